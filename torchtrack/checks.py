@@ -1,0 +1,56 @@
+"""Input validation at public boundaries: one helper family that names expected vs actual."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+
+
+class ShapeError(ValueError):
+    """A tensor argument has the wrong shape."""
+
+
+class InputError(ValueError):
+    """Bad user input (file, field, camera) with a message that names it."""
+
+
+def check_shape(x: torch.Tensor, shape: Sequence[int | str | None], name: str) -> None:
+    """Check ``x.shape`` against ``shape``.
+
+    ``shape`` entries: an int (that size), a str (a named size, only reported), ``None`` (any size),
+    and a leading ``"..."`` allows any number of leading dimensions.
+
+    Raises:
+        ShapeError: naming ``name``, the expected and the actual shape.
+    """
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    spec = list(shape)
+    leading = bool(spec) and spec[0] == "..."
+    if leading:
+        spec = spec[1:]
+    actual = tuple(x.shape)
+    ok = len(actual) >= len(spec) if leading else len(actual) == len(spec)
+    if ok:
+        tail = actual[len(actual) - len(spec):] if spec else ()
+        ok = all(not isinstance(e, int) or e == a for e, a in zip(spec, tail))
+    if not ok:
+        want = ", ".join(str(e) if e is not None else "*" for e in shape)
+        raise ShapeError(f"{name}: expected shape ({want}), got {actual}")
+
+
+def check_finite(x: torch.Tensor, name: str) -> None:
+    """Raise ``InputError`` if ``x`` holds NaN or inf, saying how many."""
+    bad = ~torch.isfinite(x)
+    if bool(bad.any()):
+        raise InputError(f"{name}: {int(bad.sum())} of {x.numel()} values are NaN or infinite")
+
+
+def check_file(path: str | Path, what: str) -> Path:
+    """Return ``path`` as a Path if it is an existing file, else raise ``InputError`` naming it."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{what} not found: {p}" if not p.exists() else f"{what} is not a file: {p}")
+    return p

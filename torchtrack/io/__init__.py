@@ -1,0 +1,1 @@
+"""Input and output: sequence folders, atomic writes, file formats."""
