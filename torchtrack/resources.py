@@ -10,12 +10,13 @@ CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 
 
 def config_path(name: str | Path) -> Path:
-    """Resolve a config: an existing path as given, else a file of that name in the built-in ``configs/``."""
+    """Resolve a config: an existing path as given, else (for a bare file name) the built-in ``configs/NAME``."""
     p = Path(name)
     if p.is_file():
         return p
     q = CONFIG_DIR / p.name
-    if q.is_file():
+    if p.parent == Path(".") and q.is_file():
         return q
-    raise InputError(f"config file not found: {p} (nor {q}; torchtrack is meant to be installed with "
-                     f"`pip install -e .` from its repository so that configs/ is found)")
+    hint = "" if p.parent != Path(".") else (f" (nor {q}; torchtrack is meant to be installed with "
+                                             "`pip install -e .` from its repository so that configs/ is found)")
+    raise InputError(f"config file not found: {p}{hint}")

@@ -1,0 +1,161 @@
+"""Skeleton FK against a plain per-joint implementation written from the URDF text by hand."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.checks import InputError, ShapeError
+from torchtrack.conventions import LANDMARKS
+from torchtrack.resources import config_path
+from torchtrack.skeleton import Skeleton
+from torchtrack.skeleton.model import LANDMARK_FRAMES
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula, written out (independent of any library)."""
+    a = axis / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def plain_fk(urdf_text: str, angles: dict[str, float]) -> dict[str, np.ndarray]:
+    """World 4x4 of every link by walking the URDF joints from the root, one joint at a time."""
+    root = ET.fromstring(urdf_text)
+    joints = {}
+    for j in root.iter("joint"):
+        origin = j.find("origin")
+        axis = j.find("axis")
+        joints[j.find("child").get("link")] = (
+            j.get("name"), j.get("type"), j.find("parent").get("link"),
+            np.array([float(v) for v in origin.get("xyz").split()]),
+            np.array([float(v) for v in axis.get("xyz").split()]) if axis is not None else None)
+    out = {"world": np.eye(4)}
+
+    def world(link: str) -> np.ndarray:
+        if link not in out:
+            name, kind, parent, xyz, axis = joints[link]
+            local = np.eye(4)
+            local[:3, 3] = xyz
+            motion = np.eye(4)
+            if kind == "revolute":
+                motion[:3, :3] = _axis_angle(axis, angles[name])
+            elif kind == "prismatic":
+                motion[:3, 3] = axis / np.linalg.norm(axis) * angles[name]
+            out[link] = world(parent) @ local @ motion
+        return out[link]
+
+    for link in joints:
+        world(link)
+    return out
+
+
+@pytest.fixture(scope="module")
+def skel() -> Skeleton:
+    return Skeleton.from_urdf()
+
+
+def _random_angles(skel: Skeleton, n: int, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    lo, hi = skel.lower.clone(), skel.upper.clone()
+    lo[:3], hi[:3] = -2.0, 2.0  # root translation
+    lo[3:6], hi[3:6] = -3.0, 3.0  # root rotation
+    return lo + (hi - lo) * torch.rand(n, skel.num_dofs, generator=g, dtype=torch.float64)
+
+
+def test_dofs_and_limits_match_urdf(skel):
+    root = ET.fromstring(config_path("body.urdf").read_text())
+    movable = [j for j in root.iter("joint") if j.get("type") != "fixed"]
+    assert sorted(skel.dof_names) == sorted(j.get("name") for j in movable)
+    assert skel.dof_names[:6] == ("root_tx", "root_ty", "root_tz", "root_rz", "root_ry", "root_rx")
+    assert skel.num_dofs == 32
+    for j in movable:
+        i = skel.dof_names.index(j.get("name"))
+        lim = j.find("limit")
+        assert skel.lower[i].item() == pytest.approx(float(lim.get("lower")))
+        assert skel.upper[i].item() == pytest.approx(float(lim.get("upper")))
+    # at least de Bem's 21 joints besides the root
+    assert len(skel.joint_names) - 1 >= 21
+
+
+def test_fk_matches_plain_implementation(skel):
+    angles = _random_angles(skel, 5)
+    res = skel(angles)
+    for b in range(angles.shape[0]):
+        ref = plain_fk(skel.urdf_text, dict(zip(skel.dof_names, angles[b].tolist())))
+        lm_ref = np.stack([ref[LANDMARK_FRAMES[n]][:3, 3] for n in LANDMARKS])
+        np.testing.assert_allclose(res.landmarks[b].numpy(), lm_ref, atol=1e-7)  # 0.1 um; pytorch-kinematics keeps some constants in float32
+        bf_ref = np.stack([ref[n] for n in skel.bone_names])
+        np.testing.assert_allclose(res.bone_frames[b].numpy(), bf_ref, atol=1e-7)  # 0.1 um; pytorch-kinematics keeps some constants in float32
+        jt_ref = np.stack([ref[n][:3, 3] for n in skel.joint_names])
+        np.testing.assert_allclose(res.joints[b].numpy(), jt_ref, atol=1e-7)  # 0.1 um; pytorch-kinematics keeps some constants in float32
+
+
+def test_batched_equals_looped(skel, device):
+    angles = _random_angles(skel, 64, seed=1).float().to(device)
+    batched = skel.landmarks(angles)
+    looped = torch.cat([skel.landmarks(angles[i:i + 1]) for i in range(angles.shape[0])])
+    assert batched.device.type == device.type and batched.dtype == torch.float32
+    torch.testing.assert_close(batched, looped, atol=1e-5, rtol=0)
+
+
+def test_cuda_matches_cpu(skel):
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA device")
+    angles = _random_angles(skel, 256, seed=2)
+    torch.testing.assert_close(skel.landmarks(angles.cuda()).cpu(), skel.landmarks(angles), atol=1e-9, rtol=0)
+
+
+def test_rest_pose_geometry(skel):
+    lm = dict(zip(LANDMARKS, skel.landmarks(skel.rest_angles()[None].double())[0]))
+    assert skel.height() == pytest.approx(1.75, abs=1e-6)
+    assert lm["head"][2] > lm["neck"][2] > lm["spine"][2] > lm["pelvis"][2] > lm["l_knee"][2] > lm["l_ankle"][2]
+    assert lm["l_shoulder"][1] > 0 > lm["r_shoulder"][1]  # left is +Y
+    # positive flexion: elbow brings the wrist forward (+X), knee the ankle backward (-X), hip the knee forward
+    for dof, lmk, sign in (("l_elbow_flex", "l_wrist", 1), ("r_knee_flex", "r_ankle", -1),
+                           ("l_hip_flex", "l_knee", 1), ("r_shoulder_abd", "r_elbow", 0)):
+        a = skel.rest_angles()
+        a[skel.dof_names.index(dof)] = 0.5
+        moved = dict(zip(LANDMARKS, skel.landmarks(a[None])[0]))
+        if sign:
+            assert torch.sign(moved[lmk][0]) == sign
+        else:  # abduction moves the right arm outwards (-Y)
+            assert moved[lmk][1] < lm[lmk][1] - 0.05
+
+
+def test_limits_clamp(skel):
+    angles = _random_angles(skel, 10) * 3.0
+    clamped = skel.clamp(angles)
+    assert torch.all(clamped >= skel.lower.double()) and torch.all(clamped <= skel.upper.double())
+    inside = (angles >= skel.lower.double()) & (angles <= skel.upper.double())
+    assert torch.equal(clamped[inside], angles[inside])
+
+
+def test_scaling(skel):
+    tall = skel.scaled_to_height(1.90)
+    assert tall.height() == pytest.approx(1.90, abs=1e-5)
+    np.testing.assert_allclose(tall.bone_lengths.numpy(), skel.bone_lengths.numpy() * 1.90 / 1.75, rtol=1e-5)
+    long_leg = skel.with_bone_lengths({"l_shank": 0.5})
+    i = skel.bone_names.index("l_shank")
+    assert long_leg.bone_lengths[i].item() == pytest.approx(0.5, abs=1e-6)
+    lm = long_leg.landmarks(long_leg.rest_angles()[None].double())[0]
+    knee, ankle = lm[LANDMARKS.index("l_knee")], lm[LANDMARKS.index("l_ankle")]
+    assert (knee - ankle).norm().item() == pytest.approx(0.5, abs=1e-6)
+    with pytest.raises(InputError, match="metres"):
+        skel.scaled_to_height(175)
+    with pytest.raises(InputError, match="unknown bone"):
+        skel.with_bone_lengths({"tail": 0.3})
+
+
+def test_bad_input(skel):
+    with pytest.raises(ShapeError, match="angles"):
+        skel.landmarks(torch.zeros(2, 31))
+    bad = torch.zeros(1, skel.num_dofs)
+    bad[0, 7] = float("nan")
+    with pytest.raises(InputError, match="NaN"):
+        skel.landmarks(bad)
+    with pytest.raises(InputError, match="not found"):
+        Skeleton.from_urdf("/nonexistent/body.urdf")

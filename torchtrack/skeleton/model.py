@@ -1,0 +1,279 @@
+"""The body's kinematic chain: a URDF evaluated with pytorch-kinematics, batch first.
+
+This is the only module that imports pytorch-kinematics. The state vector ``angles (B, D)`` holds, in the
+URDF's joint order, the root translation (m, the pelvis position), the root rotation (yaw, pitch, roll about
+Z, Y, X, rad) and the 1-DOF joint angles (rad); it is shared by IK, particle filters and outputs.
+
+Names used here:
+    frame    every URDF link (pytorch-kinematics "frame"), including intermediate DOF links and sites
+    joint    a kinematic joint position: pelvis, torso base, neck, shoulders, ..., plus end sites (F_j)
+    bone     a rigid body part carrying appearance blobs (pelvis, torso, head, upper arms, ...); its frame's
+             origin is the bone's proximal joint and ``bone_dirs_local`` points to its distal joint
+    landmark the 16 output points of ``torchtrack.conventions.LANDMARKS``
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytorch_kinematics as pk
+import torch
+from torch import nn
+
+from torchtrack.checks import InputError, check_finite, check_shape
+from torchtrack.conventions import LANDMARKS
+from torchtrack.resources import config_path
+
+#: Landmark -> the URDF link whose origin is that landmark.
+LANDMARK_FRAMES: dict[str, str] = {
+    "pelvis": "pelvis", "spine": "thorax", "neck": "head", "head": "head_center",
+    "l_shoulder": "l_upperarm", "l_elbow": "l_forearm", "l_wrist": "l_hand",
+    "r_shoulder": "r_upperarm", "r_elbow": "r_forearm", "r_wrist": "r_hand",
+    "l_hip": "l_thigh", "l_knee": "l_shank", "l_ankle": "l_foot",
+    "r_hip": "r_thigh", "r_knee": "r_shank", "r_ankle": "r_foot",
+}
+
+#: Bone -> the link at its distal end (its direction and length).
+BONE_ENDS: dict[str, str] = {
+    "pelvis": "torso", "torso": "head", "head": "head_top",
+    "l_upperarm": "l_forearm", "l_forearm": "l_hand", "l_hand": "l_hand_tip",
+    "r_upperarm": "r_forearm", "r_forearm": "r_hand", "r_hand": "r_hand_tip",
+    "l_thigh": "l_shank", "l_shank": "l_foot", "l_foot": "l_toe",
+    "r_thigh": "r_shank", "r_shank": "r_foot", "r_foot": "r_toe",
+}
+
+#: Kinematic joint positions (22): the root, every joint with DOFs and the end sites.
+JOINT_FRAMES: tuple[str, ...] = (
+    "pelvis", "torso", "thorax", "head", "head_center", "head_top",
+    "l_upperarm", "l_forearm", "l_hand", "l_hand_tip", "r_upperarm", "r_forearm", "r_hand", "r_hand_tip",
+    "l_thigh", "l_shank", "l_foot", "l_toe", "r_thigh", "r_shank", "r_foot", "r_toe",
+)
+
+DEFAULT_URDF = "body.urdf"
+
+
+@dataclass(frozen=True)
+class _UrdfJoint:
+    name: str
+    kind: str  # revolute | prismatic | fixed
+    parent: str
+    child: str
+    xyz: tuple[float, float, float]
+
+
+def _parse_urdf_joints(text: str, source: str) -> list[_UrdfJoint]:
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as exc:
+        raise InputError(f"{source}: not valid URDF XML ({exc})") from None
+    out = []
+    for j in root.iter("joint"):
+        name = j.get("name", "?")
+        try:
+            origin = j.find("origin")
+            xyz = tuple(float(v) for v in origin.get("xyz", "0 0 0").split()) if origin is not None else (0, 0, 0)
+            out.append(_UrdfJoint(name, j.get("type"), j.find("parent").get("link"), j.find("child").get("link"),
+                                  xyz))
+        except (AttributeError, ValueError) as exc:
+            raise InputError(f"{source}: joint {name!r} is malformed ({exc})") from None
+    return out
+
+
+class Skeleton(nn.Module):
+    """Batch-first forward kinematics of the body chain.
+
+    Device and dtype follow the ``angles`` given to :meth:`forward` (one pytorch-kinematics chain is kept
+    per device/dtype). Joint limits and local axes are buffers.
+
+    Attributes:
+        dof_names: (D,) names in state-vector order; the first six are the root.
+        lower, upper: (D,) joint limits (m or rad).
+        axes_local: (D, 3) joint axes in the frame of the link they move.
+        bone_names: bones carrying blobs; ``bone_dirs_local (nb, 3)`` unit direction to the distal joint in
+            the bone's frame, ``bone_lengths (nb,)`` in metres.
+    """
+
+    def __init__(self, urdf_text: str, source: str = "<urdf>") -> None:
+        super().__init__()
+        self.urdf_text = urdf_text
+        self.source = source
+        try:
+            chain = pk.build_chain_from_urdf(urdf_text)
+        except Exception as exc:  # the URDF parser raises a variety of errors
+            raise InputError(f"{source}: pytorch-kinematics cannot build a chain ({exc})") from None
+        self._chains: dict[tuple[torch.device, torch.dtype], pk.Chain] = {}
+        self._chain = chain
+        self.dof_names: tuple[str, ...] = tuple(chain.get_joint_parameter_names())
+        self.frame_names: tuple[str, ...] = tuple(chain.get_frame_names(exclude_fixed=False))
+        missing = [f for f in (*LANDMARK_FRAMES.values(), *BONE_ENDS, *BONE_ENDS.values(), *JOINT_FRAMES)
+                   if f not in self.frame_names]
+        if missing:
+            raise InputError(f"{source}: the body URDF lacks links {sorted(set(missing))}")
+        idx = {n: i for i, n in enumerate(chain.get_all_frame_indices().tolist())}
+        name_to_index = {chain.idx_to_frame[i]: i for i in idx}
+        self._frame_index = name_to_index
+        self.landmark_names: tuple[str, ...] = LANDMARKS
+        self.bone_names: tuple[str, ...] = tuple(BONE_ENDS)
+        self.joint_names: tuple[str, ...] = JOINT_FRAMES
+        self.register_buffer("landmark_index", self.frame_index([LANDMARK_FRAMES[n] for n in LANDMARKS]),
+                             persistent=False)
+        self.register_buffer("bone_index", self.frame_index(self.bone_names), persistent=False)
+        self.register_buffer("joint_index", self.frame_index(JOINT_FRAMES), persistent=False)
+        low, high = chain.get_joint_limits()
+        self.register_buffer("lower", torch.as_tensor(low, dtype=torch.float32), persistent=False)
+        self.register_buffer("upper", torch.as_tensor(high, dtype=torch.float32), persistent=False)
+        self.register_buffer("axes_local", chain.axes.detach().clone().float(), persistent=False)
+        # Bone geometry from the rest pose (root at the origin): distal joint in the bone's frame.
+        rest = chain.forward_kinematics_tensor(torch.zeros(1, chain.n_joints))[:, 0]  # (F, 4, 4)
+        T_bone = rest[self.bone_index]  # (nb, 4, 4)
+        end = rest[self.frame_index([BONE_ENDS[b] for b in self.bone_names])][:, :3, 3]  # (nb, 3)
+        d_local = torch.einsum("bji,bj->bi", T_bone[:, :3, :3], end - T_bone[:, :3, 3])  # (nb, 3)
+        length = d_local.norm(dim=-1)
+        self.register_buffer("bone_lengths", length.float(), persistent=False)
+        self.register_buffer("bone_dirs_local", (d_local / length[:, None]).float(), persistent=False)
+        self.rest_frames = rest  # (F, 4, 4) float32, CPU; rest pose with the root at the origin
+
+    # ----------------------------------------------------------------------------------------- building
+    @classmethod
+    def from_urdf(cls, path: str | Path | None = None) -> Skeleton:
+        """Load the body chain; ``path`` None is the built-in ``configs/body.urdf``."""
+        p = config_path(path or DEFAULT_URDF)
+        return cls(p.read_text(encoding="utf-8"), source=str(p))
+
+    def frame_index(self, names: Sequence[str]) -> torch.Tensor:
+        """(len(names),) int64 indices into the frames of :meth:`forward_frames`."""
+        try:
+            return torch.tensor([self._frame_index[n] for n in names], dtype=torch.int64)
+        except KeyError as exc:
+            raise InputError(f"{self.source}: no link named {exc.args[0]!r}") from None
+
+    @property
+    def num_dofs(self) -> int:
+        return len(self.dof_names)
+
+    def dof_index(self, names: Sequence[str]) -> torch.Tensor:
+        """(len(names),) int64 positions of DOF names in the state vector."""
+        lookup = {n: i for i, n in enumerate(self.dof_names)}
+        missing = [n for n in names if n not in lookup]
+        if missing:
+            raise InputError(f"unknown DOF names {missing}; known: {list(self.dof_names)}")
+        return torch.tensor([lookup[n] for n in names], dtype=torch.int64)
+
+    def _urdf_joints(self) -> list[_UrdfJoint]:
+        return _parse_urdf_joints(self.urdf_text, self.source)
+
+    def _rescaled(self, scale_of_parent: Mapping[str, float]) -> Skeleton:
+        """A new skeleton whose joint origins are multiplied by ``scale_of_parent[parent link]``."""
+        root = ET.fromstring(self.urdf_text)
+        for j in root.iter("joint"):
+            s = scale_of_parent.get(j.find("parent").get("link"), 1.0)
+            origin = j.find("origin")
+            if origin is not None and s != 1.0:
+                xyz = [float(v) * s for v in origin.get("xyz", "0 0 0").split()]
+                origin.set("xyz", " ".join(repr(v) for v in xyz))
+        return type(self)(ET.tostring(root, encoding="unicode"), source=f"{self.source} (scaled)").to(
+            self.lower.device)
+
+    def height(self) -> float:
+        """Standing height in metres: head top above the soles (toe sites) in the rest pose."""
+        z = self.rest_frames[self.frame_index(["head_top", "l_toe", "r_toe"])][:, 2, 3]
+        return float(z[0] - z[1:].min())
+
+    def standing_root_height(self) -> float:
+        """Pelvis height above the soles in the rest pose (``root_tz`` of a subject standing on z = 0)."""
+        z = self.rest_frames[self.frame_index(["pelvis", "l_toe", "r_toe"])][:, 2, 3]
+        return float(z[0] - z[1:].min())
+
+    def scaled_to_height(self, height_m: float) -> Skeleton:
+        """Every length scaled uniformly so that :meth:`height` becomes ``height_m``."""
+        if not (0.3 < float(height_m) < 3.0):
+            raise InputError(f"subject height must be in metres, between 0.3 and 3.0; got {height_m}")
+        s = float(height_m) / self.height()
+        links = {j.parent for j in self._urdf_joints()}
+        return self._rescaled({link: s for link in links if link != "world"})
+
+    def with_bone_lengths(self, lengths_m: Mapping[str, float]) -> Skeleton:
+        """Set bone lengths (m) by name; every child offset of a bone scales with it (e.g. the torso's length
+        moves its neck, shoulders and thorax site together)."""
+        scale = {}
+        for bone, length in lengths_m.items():
+            if bone not in self.bone_names:
+                raise InputError(f"unknown bone {bone!r}; bones: {list(self.bone_names)}")
+            if not (0.01 < float(length) < 2.0):
+                raise InputError(f"bone {bone!r}: length must be in metres in (0.01, 2); got {length}")
+            scale[bone] = float(length) / float(self.bone_lengths[self.bone_names.index(bone)])
+        return self._rescaled(scale)
+
+    # ------------------------------------------------------------------------------------------- poses
+    def rest_angles(self, root_height_m: float | None = None) -> torch.Tensor:
+        """(D,) the rest pose standing on the floor at the origin, facing +X."""
+        angles = torch.zeros(self.num_dofs, dtype=self.lower.dtype, device=self.lower.device)
+        angles[self.dof_names.index("root_tz")] = (self.standing_root_height() if root_height_m is None
+                                                   else root_height_m)
+        return angles
+
+    def starfish_angles(self, arm_abduction: float = 1.25, leg_abduction: float = 0.3) -> torch.Tensor:
+        """(D,) the starfish pose subjects take at the start of a sequence: arms and legs spread."""
+        angles = self.rest_angles()
+        for side in ("l", "r"):
+            angles[self.dof_names.index(f"{side}_shoulder_abd")] = arm_abduction
+            angles[self.dof_names.index(f"{side}_hip_abd")] = leg_abduction
+        # Spread legs lower the pelvis: keep the soles on the floor.
+        angles[self.dof_names.index("root_tz")] *= float(torch.cos(torch.tensor(leg_abduction)))
+        return angles
+
+    def clamp(self, angles: torch.Tensor) -> torch.Tensor:
+        """(..., D) angles clamped to the joint limits."""
+        return torch.clamp(angles, self.lower.to(angles), self.upper.to(angles))
+
+    # ---------------------------------------------------------------------------------------------- FK
+    def _chain_for(self, x: torch.Tensor) -> pk.Chain:
+        key = (x.device, x.dtype)
+        if key not in self._chains:
+            self._chains[key] = pk.build_chain_from_urdf(self.urdf_text).to(dtype=x.dtype, device=x.device)
+        return self._chains[key]
+
+    def forward_frames(self, angles: torch.Tensor) -> torch.Tensor:
+        """World transforms of every frame.
+
+        Args:
+            angles: (B, D) state vectors.
+
+        Returns:
+            (B, F, 4, 4) link-to-world transforms, F = ``len(frame_names)``, indexed by :meth:`frame_index`.
+        """
+        check_shape(angles, ("B", self.num_dofs), "angles")
+        check_finite(angles, "angles")
+        T = self._chain_for(angles).forward_kinematics_tensor(angles)  # (F, B, 4, 4)
+        return T.transpose(0, 1)
+
+    def forward(self, angles: torch.Tensor) -> FKResult:
+        """Landmarks, kinematic joints and bone frames of a batch of poses.
+
+        Args:
+            angles: (B, D).
+
+        Returns:
+            FKResult with ``landmarks (B, 16, 3)``, ``joints (B, 22, 3)``, ``bone_frames (B, nb, 4, 4)``.
+        """
+        T = self.forward_frames(angles)  # (B, F, 4, 4)
+        dev = T.device
+        return FKResult(landmarks=T[:, self.landmark_index.to(dev), :3, 3],
+                        joints=T[:, self.joint_index.to(dev), :3, 3],
+                        bone_frames=T[:, self.bone_index.to(dev)])
+
+    def landmarks(self, angles: torch.Tensor) -> torch.Tensor:
+        """(B, D) -> (B, 16, 3) world landmark positions."""
+        return self.forward(angles).landmarks
+
+
+@dataclass(frozen=True)
+class FKResult:
+    """Forward kinematics output (see :meth:`Skeleton.forward`)."""
+
+    landmarks: torch.Tensor  # (B, 16, 3)
+    joints: torch.Tensor  # (B, 22, 3)
+    bone_frames: torch.Tensor  # (B, nb, 4, 4)
