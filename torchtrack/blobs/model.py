@@ -53,7 +53,7 @@ def load_blob_specs(path: str | Path | None = None) -> tuple[list[BlobSpec], flo
         raise InputError(f"{p}: expected a mapping with a non-empty list 'blobs'")
     specs = []
     for i, b in enumerate(doc["blobs"]):
-        where = f"{p}: blob {i} ({b.get('name', '?') if isinstance(b, dict) else b!r})"
+        where = f"{p}: blob {i} ({b.get('name', '?') if isinstance(b, dict) else repr(b)})"
         if not isinstance(b, dict) or any(k not in b for k in _FIELDS):
             missing = [k for k in _FIELDS if not isinstance(b, dict) or k not in b]
             raise InputError(f"{where}: missing fields {missing}")
