@@ -27,12 +27,12 @@ def test_motion_properties(skel, kind):
     torch.testing.assert_close(a[: int(fps), 4:], star[4:].expand(int(fps), -1))
     joints = skel(a).joints  # (T, 22, 3)
     lm = skel.landmarks(a)
-    # continuous: no landmark moves more than 15 cm between frames at 30 fps (4.5 m/s)
-    assert (lm[1:] - lm[:-1]).norm(dim=-1).max() < 0.15
+    # continuous: no landmark moves more than 20 cm between frames at 30 fps (6 m/s, a kicking foot)
+    assert (lm[1:] - lm[:-1]).norm(dim=-1).max() < 0.2
     # stays near the origin and above the floor; the soles touch the floor
     assert lm[..., :2].norm(dim=-1).max() < 1.6
     toes = joints[:, [skel.joint_names.index("l_toe"), skel.joint_names.index("r_toe")], 2]
-    assert toes.min() > -0.03 and toes.min(dim=1).values.median() < 0.05
+    assert toes.min() > -0.02 and toes.min(dim=1).values.median() < 0.03
     # arms spread in the starfish: wrists far from the body axis
     wrist = lm[0, LANDMARKS.index("l_wrist")] - lm[0, LANDMARKS.index("pelvis")]
     assert wrist[:2].norm() > 0.45

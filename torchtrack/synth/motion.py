@@ -145,4 +145,25 @@ def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, 
     t = torch.arange(round(duration_s * fps), dtype=torch.float32) / fps  # (T,)
     a = skel.rest_angles().float().expand(t.shape[0], -1).clone()  # (T, D)
     _GENERATORS[kind](skel, t, a)
-    return skel.clamp(with_starfish_start(skel, a, fps, starfish_s))
+    return on_the_floor(skel, with_starfish_start(skel, skel.clamp(a), fps, starfish_s))
+
+
+def on_the_floor(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
+    """Shift ``root_tz`` per frame so that the lowest sole point (toe tips, heels) touches z = 0.
+
+    Args:
+        angles: (T, D).
+
+    Returns:
+        (T, D) a copy with ``root_tz`` adjusted (no jumping: some foot is always on the floor).
+    """
+    fk = skel(angles)
+    names = list(skel.joint_names)
+    toes = fk.joints[:, [names.index("l_toe"), names.index("r_toe")], 2]  # (T, 2)
+    ankle_height = float(skel.rest_frames[skel.frame_index(["l_foot"])][0, 2, 3]
+                         - skel.rest_frames[skel.frame_index(["l_toe"])][0, 2, 3])
+    heels = fk.joints[:, [names.index("l_foot"), names.index("r_foot")], 2] - ankle_height  # (T, 2)
+    lowest = torch.cat([toes, heels], dim=1).min(dim=1).values  # (T,)
+    out = angles.clone()
+    out[:, skel.dof_names.index("root_tz")] -= lowest
+    return out
