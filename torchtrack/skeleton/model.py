@@ -36,6 +36,12 @@ LANDMARK_FRAMES: dict[str, str] = {
     "r_hip": "r_thigh", "r_knee": "r_shank", "r_ankle": "r_foot",
 }
 
+#: Points written to poses.npz after the 16 landmarks: name -> URDF link.
+EXTRA_OUTPUT_FRAMES: dict[str, str] = {
+    "lumbar": "torso", "head_top": "head_top", "l_hand_tip": "l_hand_tip", "r_hand_tip": "r_hand_tip",
+    "l_toe": "l_toe", "r_toe": "r_toe",
+}
+
 #: Bone -> the link at its distal end (its direction and length).
 BONE_ENDS: dict[str, str] = {
     "pelvis": "torso", "torso": "head", "head": "head_top",
@@ -121,6 +127,10 @@ class Skeleton(nn.Module):
         self.register_buffer("landmark_index", self.frame_index([LANDMARK_FRAMES[n] for n in LANDMARKS]),
                              persistent=False)
         self.register_buffer("bone_index", self.frame_index(self.bone_names), persistent=False)
+        #: names of :attr:`FKResult.output_points`: the 16 landmarks, then EXTRA_OUTPUT_FRAMES
+        self.output_names: tuple[str, ...] = LANDMARKS + tuple(EXTRA_OUTPUT_FRAMES)
+        self.register_buffer("output_index", self.frame_index(
+            [LANDMARK_FRAMES[n] for n in LANDMARKS] + list(EXTRA_OUTPUT_FRAMES.values())), persistent=False)
         self.register_buffer("joint_index", self.frame_index(JOINT_FRAMES), persistent=False)
         low, high = chain.get_joint_limits()
         self.register_buffer("lower", torch.as_tensor(low, dtype=torch.float32), persistent=False)
@@ -257,11 +267,13 @@ class Skeleton(nn.Module):
             angles: (B, D).
 
         Returns:
-            FKResult with ``landmarks (B, 16, 3)``, ``joints (B, 22, 3)``, ``bone_frames (B, nb, 4, 4)``.
+            FKResult with ``landmarks (B, 16, 3)``, ``joints (B, 22, 3)``, ``bone_frames (B, nb, 4, 4)`` and
+            ``output_points (B, 22, 3)`` (named by :attr:`output_names`, the points poses.npz stores).
         """
         T = self.forward_frames(angles)  # (B, F, 4, 4)
         dev = T.device
         return FKResult(landmarks=T[:, self.landmark_index.to(dev), :3, 3],
+                        output_points=T[:, self.output_index.to(dev), :3, 3],
                         joints=T[:, self.joint_index.to(dev), :3, 3],
                         bone_frames=T[:, self.bone_index.to(dev)])
 
@@ -277,3 +289,4 @@ class FKResult:
     landmarks: torch.Tensor  # (B, 16, 3)
     joints: torch.Tensor  # (B, 22, 3)
     bone_frames: torch.Tensor  # (B, nb, 4, 4)
+    output_points: torch.Tensor  # (B, 22, 3), named by Skeleton.output_names

@@ -1,0 +1,137 @@
+"""Retarget motion-capture joint positions (e.g. a BVH file's) onto the body skeleton.
+
+The source gives world positions of its own joints per frame. We (1) scale our skeleton to the source
+subject (height, then limb lengths measured from the source), (2) initialise the root from the hips and
+shoulders, and (3) fit all state vectors at once by minimising the squared distance between our joints and
+the corresponding source points, batched over frames, with Adam on the differentiable forward kinematics of
+pytorch-kinematics and projection onto the joint limits after every step (plus a weak pull to the rest
+pose for the twists the points do not determine). This is a one-off data conversion, not the tracker's IK.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+
+from torchtrack.checks import InputError, check_shape
+from torchtrack.skeleton import Skeleton
+
+log = logging.getLogger(__name__)
+
+#: Our joint (``Skeleton.joint_names``) -> source joint names whose mean is its position. For CMU BVH files
+#: (bvh11 conversions, as in ../shared/data/mocap/cmu); an ``_end`` suffix names a joint's End Site.
+CMU_BVH_MAP: dict[str, tuple[str, ...]] = {
+    "pelvis": ("LeftHip", "RightHip"),
+    "l_thigh": ("LeftHip",), "l_shank": ("LeftKnee",), "l_foot": ("LeftAnkle",), "l_toe": ("LeftToe",),
+    "r_thigh": ("RightHip",), "r_shank": ("RightKnee",), "r_foot": ("RightAnkle",), "r_toe": ("RightToe",),
+    "head": ("lowerneck",), "head_top": ("Head_end",),
+    "l_upperarm": ("LeftShoulder",), "l_forearm": ("LeftElbow",), "l_hand": ("LeftWrist",),
+    "l_hand_tip": ("LFingers",),
+    "r_upperarm": ("RightShoulder",), "r_forearm": ("RightElbow",), "r_hand": ("RightWrist",),
+    "r_hand_tip": ("RFingers",),
+}
+
+#: Limb bones whose length is measured from the source: bone -> (proximal, distal) of our joints.
+_LIMBS = {
+    "upperarm": ("upperarm", "forearm"), "forearm": ("forearm", "hand"),
+    "thigh": ("thigh", "shank"), "shank": ("shank", "foot"),
+}
+
+
+@dataclass(frozen=True)
+class RetargetResult:
+    """Retargeted motion: our skeleton scaled to the subject, the state vectors and the fit residuals."""
+
+    skeleton: Skeleton
+    angles: torch.Tensor  # (T, D)
+    joint_names: tuple[str, ...]  # the matched joints, in the order of residual_m's last axis
+    residual_m: torch.Tensor  # (T, len(joint_names)) distance between our joint and the source point
+
+
+def _targets(positions: torch.Tensor, names: Sequence[str], mapping: Mapping[str, Sequence[str]]
+             ) -> tuple[list[str], torch.Tensor]:
+    index = {n: i for i, n in enumerate(names)}
+    ours, pts = [], []
+    for joint, sources in mapping.items():
+        missing = [s for s in sources if s not in index]
+        if missing:
+            raise InputError(f"retargeting: source joints {missing} (for our {joint!r}) are not in the motion; "
+                             f"it has {list(names)}")
+        ours.append(joint)
+        pts.append(positions[:, [index[s] for s in sources]].mean(dim=1))
+    return ours, torch.stack(pts, dim=1)  # (T, n, 3)
+
+
+def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> Skeleton:
+    """Scale to the source subject: height from head top to the lowest toe, then limb lengths (L/R mean)."""
+    at = {n: target[:, i] for i, n in enumerate(ours)}
+    if {"head_top", "l_toe", "r_toe", "pelvis"} <= at.keys():
+        # standing height ~ head top above the pelvis, plus the pelvis above the soles, over the motion
+        top = (at["head_top"][:, 2] - at["pelvis"][:, 2]).median()
+        ours_top = skel.height() - skel.standing_root_height()
+        skel = skel.scaled_to_height(skel.height() * float(top) / ours_top)
+    lengths = {}
+    for bone, (a, b) in _LIMBS.items():
+        sides = [(at[f"{s}_{a}"] - at[f"{s}_{b}"]).norm(dim=-1).median() for s in "lr"
+                 if f"{s}_{a}" in at and f"{s}_{b}" in at]
+        if sides:
+            mean = float(torch.stack(sides).mean())
+            lengths.update({f"l_{bone}": mean, f"r_{bone}": mean})
+    return skel.with_bone_lengths(lengths) if lengths else skel
+
+
+def _initial_root(skel: Skeleton, ours: list[str], target: torch.Tensor) -> torch.Tensor:
+    """(T, D) rest pose placed at the source pelvis, yawed so the hips' left-right axis matches."""
+    at = {n: target[:, i] for i, n in enumerate(ours)}
+    T = target.shape[0]
+    angles = skel.rest_angles().to(target).expand(T, -1).clone()
+    angles[:, 0:3] = at["pelvis"]
+    left = at["l_thigh"] - at["r_thigh"]  # (T, 3) the body's +Y
+    angles[:, 3] = torch.atan2(-left[:, 0], left[:, 1])  # yaw that maps +Y onto `left`
+    return angles
+
+
+def retarget_positions(skel: Skeleton, positions: torch.Tensor, names: Sequence[str],
+                       mapping: Mapping[str, Sequence[str]] = CMU_BVH_MAP, iterations: int = 400,
+                       lr: float = 0.03, rest_weight: float = 1e-3) -> RetargetResult:
+    """Fit our skeleton to source joint positions, all frames at once.
+
+    Args:
+        skel: our skeleton (it is scaled to the subject first).
+        positions: (T, J, 3) source joint positions in our world frame (Z up, metres).
+        names: (J,) source joint names.
+        mapping: our joint name -> source names (their mean is the target).
+
+    Returns:
+        RetargetResult; ``residual_m`` is the landmark distance after retargeting.
+    """
+    check_shape(positions, ("T", len(names), 3), "positions")
+    if not torch.isfinite(positions).all():
+        raise InputError("retargeting: the source positions contain NaN or inf")
+    positions = positions.double()
+    ours, target = _targets(positions, names, mapping)
+    skel = _scaled_skeleton(skel, ours, target)
+    joint_idx = torch.tensor([skel.joint_names.index(n) for n in ours])
+    rest = skel.rest_angles().double()
+    lower, upper = skel.lower.double(), skel.upper.double()
+    theta = _initial_root(skel, ours, target).requires_grad_(True)
+    opt = torch.optim.Adam([theta], lr=lr)
+    for it in range(iterations):
+        opt.zero_grad()
+        pred = skel(theta).joints[:, joint_idx]  # (T, n, 3)
+        loss = ((pred - target) ** 2).sum(-1).mean() + rest_weight * ((theta[:, 6:] - rest[6:]) ** 2).mean()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            theta.copy_(torch.clamp(theta, lower, upper))
+        if it == iterations // 2:
+            for group in opt.param_groups:
+                group["lr"] = lr / 3
+    with torch.no_grad():
+        residual = (skel(theta).joints[:, joint_idx] - target).norm(dim=-1)
+    log.info("retargeted %d frames: mean joint distance %.1f mm, max %.1f mm", target.shape[0],
+             1e3 * float(residual.mean()), 1e3 * float(residual.max()))
+    return RetargetResult(skel, theta.detach().float(), tuple(ours), residual.float())

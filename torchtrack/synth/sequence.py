@@ -1,0 +1,206 @@
+"""Write complete synthetic sequence folders (DESIGN.md format) from a motion.
+
+A sequence: a ring rig (``calibration.toml``), empty-scene ``background/`` frames, the rendered
+``video/<cam>.mp4`` (or PNG frames), ground truth ``gt.npz`` in the poses schema (landmarks and all 22
+kinematic joints, state vectors, plus the blob ellipsoids per frame as extra keys) and ``meta.toml``.
+The folder appears atomically when everything is written.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchtrack.blobs import BlobModel
+from torchtrack.cameras import CameraRig, save_calibration
+from torchtrack.checks import InputError
+from torchtrack.io.atomic import atomic_dir
+from torchtrack.io.poses import Poses, save_poses
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.motion import MOTIONS, procedural_motion
+from torchtrack.synth.scene import SceneConfig, SceneRenderer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """A ring of cameras around the capture volume, all looking at ``target_m``.
+
+    Attributes:
+        num_cameras: cameras evenly spread on the circle (the first on +X).
+        width, height: image size in pixels (even numbers, for video).
+        radius_m: circle radius; height_m: camera height above the floor.
+        hfov_deg: horizontal field of view.
+        k1: radial distortion of every camera (OpenCV k1), a mild barrel by default.
+        target_m: the point every camera looks at.
+    """
+
+    num_cameras: int = 8
+    width: int = 640
+    height: int = 480
+    radius_m: float = 3.5
+    height_m: float = 2.2
+    hfov_deg: float = 62.0
+    k1: float = -0.04
+    target_m: tuple[float, float, float] = (0.0, 0.0, 0.95)
+
+
+def make_ring_rig(cfg: RigConfig = RigConfig(), dtype: torch.dtype = torch.float64) -> CameraRig:
+    """A :class:`CameraRig` of ``cfg.num_cameras`` cameras named ``cam0..``, OpenCV convention, Z up world."""
+    if cfg.num_cameras < 1 or cfg.width < 16 or cfg.height < 16:
+        raise InputError(f"rig: need >= 1 camera and images of >= 16 px, got {cfg}")
+    C = cfg.num_cameras
+    az = torch.arange(C, dtype=dtype) * (2 * math.pi / C)  # (C,)
+    centres = torch.stack([cfg.radius_m * az.cos(), cfg.radius_m * az.sin(),
+                           torch.full_like(az, cfg.height_m)], dim=1)  # (C, 3)
+    forward = torch.tensor(cfg.target_m, dtype=dtype) - centres
+    forward = forward / forward.norm(dim=1, keepdim=True)  # camera z
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=dtype).expand_as(forward)
+    right = torch.cross(forward, up, dim=1)
+    right = right / right.norm(dim=1, keepdim=True)  # camera x
+    down = torch.cross(forward, right, dim=1)  # camera y
+    R_cam_world = torch.stack([right, down, forward], dim=1)  # rows: camera axes in world, (C, 3, 3)
+    t_cam_world = -(R_cam_world @ centres[..., None])[..., 0]
+    f = 0.5 * cfg.width / math.tan(math.radians(cfg.hfov_deg) / 2)
+    K = torch.tensor([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1]], dtype=dtype)
+    dist = torch.zeros(C, 5, dtype=dtype)
+    dist[:, 0] = cfg.k1
+    size = torch.tensor([[cfg.width, cfg.height]] * C, dtype=torch.int64)
+    return CameraRig([f"cam{i}" for i in range(C)], K.expand(C, 3, 3).clone(), R_cam_world, t_cam_world, size,
+                     dist=dist)
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """What `torchtrack synth` renders.
+
+    Attributes:
+        motion: a procedural motion (walk, turn, arm_raise, squat, kick) or a path to a BVH file.
+        duration_s: seconds of motion after the starfish start (BVH: at most this much of the file).
+        starfish_s: seconds of starfish pose at the start.
+        fps: frame rate of the sequence (a BVH file is resampled to it).
+        subject_height_m: subject height (BVH: measured from the file instead).
+        background_frames: empty-scene frames written to background/.
+        video_format: "mp4" or "png".
+        rig, scene: camera ring and scene options (noise, illumination change, shadow, distractor).
+        seed: seeds the sensor noise.
+    """
+
+    motion: str = "walk"
+    duration_s: float = 3.0
+    starfish_s: float = 1.0
+    fps: float = 30.0
+    subject_height_m: float = 1.75
+    background_frames: int = 20
+    video_format: str = "mp4"
+    rig: RigConfig = field(default_factory=RigConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    seed: int = 0
+
+
+def motion_angles(cfg: SynthConfig, skel: Skeleton) -> tuple[Skeleton, torch.Tensor]:
+    """The skeleton (scaled to the subject) and its (T, D) state vectors for ``cfg.motion``."""
+    if cfg.motion in MOTIONS:
+        skel = skel.scaled_to_height(cfg.subject_height_m)
+        return skel, procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s)
+    path = Path(cfg.motion)
+    if path.suffix.lower() != ".bvh":
+        raise InputError(f"motion {cfg.motion!r}: not one of {', '.join(MOTIONS)} and not a .bvh file")
+    from torchtrack.synth.bvh_motion import bvh_motion  # BVH import and retargeting
+
+    return bvh_motion(path, skel, cfg.fps, cfg.duration_s, cfg.starfish_s)
+
+
+def _to_uint8(images: torch.Tensor) -> np.ndarray:
+    """(C, 3, H, W) float in [0, 1] -> (C, H, W, 3) uint8."""
+    return (images.clamp(0, 1) * 255 + 0.5).to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+
+
+def _write_streams(folder: Path, names: list[str], frames: Path, fmt: str, fps: float) -> None:
+    """Encode per-camera frames from the (T, C, H, W, 3) uint8 memmap ``frames`` into ``folder``."""
+    from torchtrack.io.video import write_frames_png, write_video
+
+    data = np.load(frames, mmap_mode="r")
+    for c, name in enumerate(names):
+        stream = (data[t, c] for t in range(data.shape[0]))
+        if fmt == "mp4":
+            write_video(folder / f"{name}.mp4", stream, fps)
+        else:
+            write_frames_png(folder / name, stream)
+
+
+def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str | None = None,
+                   progress: bool = True) -> Path:
+    """Render ``cfg`` into the sequence folder ``out`` (replaced atomically when complete).
+
+    Returns:
+        ``out`` as a Path.
+    """
+    from tqdm import tqdm
+
+    if cfg.video_format not in ("mp4", "png"):
+        raise InputError(f"video_format must be 'mp4' or 'png', got {cfg.video_format!r}")
+    device = torch.device(device or "cpu")
+    out = Path(out)
+    skel, angles = motion_angles(cfg, Skeleton.from_urdf())
+    blobs = BlobModel.from_config(skel)
+    rig = make_ring_rig(cfg.rig)
+    renderer = SceneRenderer(rig.float().to(device), cfg.scene).to(device)
+    gen = torch.Generator(device=device).manual_seed(cfg.seed)
+    T = angles.shape[0]
+    with torch.no_grad():
+        fk = skel(angles.double())
+        centres, R = blobs.ellipsoids(fk.bone_frames)  # (T, K, 3), (T, K, 3, 3)
+    semi = blobs.semi_axes.float().to(device)
+    colours = blobs.colour.float().to(device)
+    C, (W, H) = rig.num_cameras, (cfg.rig.width, cfg.rig.height)
+    with atomic_dir(out) as tmp:
+        save_calibration(rig, tmp / "calibration.toml")
+        bg = np.lib.format.open_memmap(tmp / "bg.npy", mode="w+", dtype=np.uint8,
+                                       shape=(cfg.background_frames, C, H, W, 3))
+        for i in range(cfg.background_frames):
+            bg[i] = _to_uint8(renderer.background(generator=gen))
+        bg.flush()
+        del bg
+        frames = np.lib.format.open_memmap(tmp / "frames.npy", mode="w+", dtype=np.uint8, shape=(T, C, H, W, 3))
+        for t in tqdm(range(T), desc=f"render {out.name}", unit="frame", disable=not progress):
+            images, _, _ = renderer.render(centres[t].float().to(device), R[t].float().to(device), semi, colours,
+                                           frame=t, num_frames=T, generator=gen)
+            frames[t] = _to_uint8(images)
+        frames.flush()
+        del frames
+        _write_streams(tmp / "background", rig.names, tmp / "bg.npy", cfg.video_format, cfg.fps)
+        _write_streams(tmp / "video", rig.names, tmp / "frames.npy", cfg.video_format, cfg.fps)
+        (tmp / "bg.npy").unlink()
+        (tmp / "frames.npy").unlink()
+        poses = Poses(
+            fps=cfg.fps, frame_index=np.arange(T), joint_names=list(skel.output_names),
+            joints3d=fk.output_points.float().numpy(),
+            dof_names=list(skel.dof_names), angles=angles.float().numpy(), valid=np.ones(T, dtype=bool),
+            confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
+            extra={"blob_names": np.asarray(blobs.names), "blob_centres": centres.float().numpy(),
+                   "blob_R_world": R.float().numpy(), "blob_semi_axes": blobs.semi_axes.numpy(),
+                   "bone_names": np.asarray(skel.bone_names), "bone_lengths": skel.bone_lengths.numpy()})
+        save_poses(poses, tmp / "gt.npz")
+        _write_meta(tmp / "meta.toml", cfg, skel)
+        (tmp / "body.urdf").write_text(skel.urdf_text, encoding="utf-8")
+    log.info("wrote %s: %d cameras, %d frames (%d background)", out, C, T, cfg.background_frames)
+    return out
+
+
+def _write_meta(path: Path, cfg: SynthConfig, skel: Skeleton) -> None:
+    import tomli_w
+
+    scene = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.scene).items() if v is not None}
+    rig = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.rig).items()}
+    doc = {"fps": cfg.fps, "subject_height_m": round(skel.height(), 4),
+           "notes": "synthetic sequence rendered by torchtrack synth; body.urdf is the subject's skeleton",
+           "synth": {"motion": cfg.motion, "duration_s": cfg.duration_s, "starfish_s": cfg.starfish_s,
+                     "seed": cfg.seed, "background_frames": cfg.background_frames, "rig": rig, "scene": scene}}
+    path.write_text(tomli_w.dumps(doc), encoding="utf-8")
