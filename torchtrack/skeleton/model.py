@@ -187,6 +187,34 @@ class Skeleton(nn.Module):
         return type(self)(ET.tostring(root, encoding="unicode"), source=f"{self.source} (scaled)").to(
             self.lower.device)
 
+    def with_joint_origins(self, origins_m: Mapping[str, Sequence[float]]) -> Skeleton:
+        """Set URDF joint origins (the joint's position in its parent link, metres) by joint name.
+
+        For a bone, name the first joint of its ensemble (e.g. ``l_shoulder_flex`` places the left shoulder
+        in the torso's frame, ``l_hip_flex`` the left hip in the pelvis' frame).
+        """
+        root = ET.fromstring(self.urdf_text)
+        joints = {j.get("name"): j for j in root.iter("joint")}
+        for name, xyz in origins_m.items():
+            if name not in joints:
+                raise InputError(f"{self.source}: no joint named {name!r}")
+            xyz = [float(v) for v in xyz]
+            if len(xyz) != 3 or not all(abs(v) < 3.0 for v in xyz):
+                raise InputError(f"joint {name!r}: origin must be 3 values in metres, got {xyz}")
+            origin = joints[name].find("origin")
+            if origin is None:
+                origin = ET.SubElement(joints[name], "origin", rpy="0 0 0")
+            origin.set("xyz", " ".join(repr(v) for v in xyz))
+        return type(self)(ET.tostring(root, encoding="unicode"), source=f"{self.source} (edited)").to(
+            self.lower.device)
+
+    def joint_origin(self, name: str) -> tuple[float, float, float]:
+        """The origin (m) of URDF joint ``name`` in its parent link."""
+        for j in self._urdf_joints():
+            if j.name == name:
+                return j.xyz
+        raise InputError(f"{self.source}: no joint named {name!r}")
+
     def height(self) -> float:
         """Standing height in metres: head top above the soles (toe sites) in the rest pose."""
         z = self.rest_frames[self.frame_index(["head_top", "l_toe", "r_toe"])][:, 2, 3]

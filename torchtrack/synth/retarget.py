@@ -65,14 +65,48 @@ def _targets(positions: torch.Tensor, names: Sequence[str], mapping: Mapping[str
     return ours, torch.stack(pts, dim=1)  # (T, n, 3)
 
 
+def _body_frame_offsets(at: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Median over frames of the shoulders relative to the neck, hips relative to the pelvis and the
+    pelvis-neck distance, in a body frame (x forward, y left, z from the pelvis to the neck)."""
+    up = at["head"] - at["pelvis"]
+    trunk = up.norm(dim=-1)  # (T,)
+    up = up / trunk[:, None]
+    left = at["l_thigh"] - at["r_thigh"]
+    left = left - (left * up).sum(-1, keepdim=True) * up
+    left = left / left.norm(dim=-1, keepdim=True)
+    fwd = torch.cross(left, up, dim=-1)
+    R = torch.stack([fwd, left, up], dim=1)  # (T, 3, 3) rows: body axes in world
+
+    def local(p: torch.Tensor, o: torch.Tensor) -> torch.Tensor:
+        return (R @ (p - o)[..., None])[..., 0].median(dim=0).values
+
+    out = {"trunk": trunk.median(), "l_thigh": local(at["l_thigh"], at["pelvis"]),
+           "r_thigh": local(at["r_thigh"], at["pelvis"])}
+    for s in "lr":
+        if f"{s}_upperarm" in at:
+            out[f"{s}_upperarm"] = local(at[f"{s}_upperarm"], at["head"])
+    return out
+
+
 def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> Skeleton:
-    """Scale to the source subject: height from head top to the lowest toe, then limb lengths (L/R mean)."""
+    """Fit our proportions to the source subject: overall height, trunk length, hip and shoulder placement,
+    then limb lengths (left/right mean), all as medians over the motion."""
     at = {n: target[:, i] for i, n in enumerate(ours)}
-    if {"head_top", "l_toe", "r_toe", "pelvis"} <= at.keys():
-        # standing height ~ head top above the pelvis, plus the pelvis above the soles, over the motion
+    if {"head_top", "pelvis"} <= at.keys():
         top = (at["head_top"][:, 2] - at["pelvis"][:, 2]).median()
         ours_top = skel.height() - skel.standing_root_height()
         skel = skel.scaled_to_height(skel.height() * float(top) / ours_top)
+    if {"head", "pelvis", "l_thigh", "r_thigh"} <= at.keys():
+        rel = _body_frame_offsets(at)
+        spine = skel.joint_origin("spine_flex")[2]  # pelvis -> lumbar, kept
+        torso = float(rel["trunk"]) - spine  # lumbar -> neck
+        origins = {"neck_flex": (0.0, 0.0, torso)}
+        for s in "lr":
+            origins[f"{s}_hip_flex"] = tuple(float(v) for v in rel[f"{s}_thigh"])
+            if f"{s}_upperarm" in rel:
+                x, y, z = (float(v) for v in rel[f"{s}_upperarm"])
+                origins[f"{s}_shoulder_flex"] = (x, y, torso + z)
+        skel = skel.with_joint_origins(origins)
     lengths = {}
     for bone, (a, b) in _LIMBS.items():
         sides = [(at[f"{s}_{a}"] - at[f"{s}_{b}"]).norm(dim=-1).median() for s in "lr"
@@ -80,6 +114,8 @@ def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> S
         if sides:
             mean = float(torch.stack(sides).mean())
             lengths.update({f"l_{bone}": mean, f"r_{bone}": mean})
+    if {"head", "head_top"} <= at.keys():
+        lengths["head"] = float((at["head_top"] - at["head"]).norm(dim=-1).median())
     return skel.with_bone_lengths(lengths) if lengths else skel
 
 

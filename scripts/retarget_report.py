@@ -1,0 +1,33 @@
+#!/usr/bin/env python
+"""Print how closely the retargeted skeleton follows each CMU BVH file (landmark distance after retargeting).
+
+Usage: .venv/bin/python scripts/retarget_report.py [BVH ...] [--fps 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.bvh_motion import retarget_bvh
+
+DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "cmu"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("files", nargs="*", type=Path, default=sorted(DATA.glob("*.bvh")))
+    ap.add_argument("--fps", type=float, default=30.0)
+    args = ap.parse_args()
+    for path in args.files:
+        res = retarget_bvh(path, Skeleton.from_urdf(), args.fps)
+        r = res.residual_m * 1000
+        print(f"{path.name}: {r.shape[0]} frames at {args.fps:g} fps, subject height {res.skeleton.height():.3f} m, "
+              f"joint distance mean {r.mean():.1f} mm, median {r.median():.1f} mm, max {r.max():.1f} mm")
+        for i, name in enumerate(res.joint_names):
+            print(f"    {name:12s} mean {r[:, i].mean():6.1f} mm   max {r[:, i].max():6.1f} mm")
+
+
+if __name__ == "__main__":
+    main()
