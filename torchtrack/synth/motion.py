@@ -116,10 +116,12 @@ def with_starfish_start(skel: Skeleton, motion: torch.Tensor, fps: float, starfi
     Returns:
         (T + round(starfish_s * fps), D); the first ``round(blend_s * fps)`` frames of ``motion`` are blended.
     """
-    n_star, n_blend = round(starfish_s * fps), round(blend_s * fps)
+    n_star, n_blend = round(starfish_s * fps), min(round(blend_s * fps), motion.shape[0])
     star = skel.starfish_angles().to(motion).expand(n_star, -1).clone()  # (n_star, D)
     star[:, :2] = motion[0, :2]  # stand where the motion begins, facing the same way
     star[:, 3] = motion[0, 3]
+    if n_star == 0:
+        return motion.clone()
     out = torch.cat([star, motion.clone()])
     w = torch.linspace(0, 1, n_blend + 2, dtype=motion.dtype, device=motion.device)[1:-1, None]  # (n_blend, 1)
     w = 0.5 - 0.5 * torch.cos(math.pi * w)

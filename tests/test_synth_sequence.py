@@ -1,0 +1,106 @@
+"""A rendered sequence folder, read back through the sequence reader, agrees with its ground truth."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.cameras import load_calibration
+from torchtrack.checks import InputError
+from torchtrack.conventions import LANDMARKS
+from torchtrack.io.poses import load_poses
+from torchtrack.io.sequence import SequenceFolder
+from torchtrack.synth.scene import SceneConfig
+from torchtrack.synth.sequence import RigConfig, SynthConfig, make_ring_rig, write_sequence
+
+
+def _cfg(**kw) -> SynthConfig:
+    base = SynthConfig(motion="arm_raise", duration_s=0.4, starfish_s=0.4, fps=10, background_frames=3,
+                       video_format="png", rig=RigConfig(num_cameras=3, width=96, height=72),
+                       scene=dataclasses.replace(SceneConfig(), noise_std=0.0))
+    return dataclasses.replace(base, **kw)
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    return write_sequence(_cfg(), tmp_path_factory.mktemp("synth") / "seq", progress=False)
+
+
+def test_ring_rig_looks_at_target():
+    rig = make_ring_rig(RigConfig(num_cameras=5))
+    uv, valid = rig.project(torch.tensor([[0.0, 0.0, 0.95]], dtype=torch.float64))
+    assert bool(valid.all())
+    # the target lands on the principal point, up to the mild distortion (none at the centre)
+    torch.testing.assert_close(uv[:, 0], rig.K[:, :2, 2], atol=1e-6, rtol=0)
+    centres = rig.centers()
+    torch.testing.assert_close(centres[:, :2].norm(dim=1), torch.full((5,), 3.5, dtype=torch.float64))
+    # the world's up projects upwards in every image (v decreases with height)
+    uv_hi, _ = rig.project(torch.tensor([[0.0, 0.0, 1.5]], dtype=torch.float64))
+    assert bool((uv_hi[:, 0, 1] < uv[:, 0, 1]).all())
+
+
+def test_folder_contents_and_ground_truth(seq):
+    rig = load_calibration(seq / "calibration.toml")
+    assert rig.names == ["cam0", "cam1", "cam2"]
+    gt = load_poses(seq / "gt.npz")
+    T = round(0.8 * 10)
+    assert gt.num_frames == T and gt.fps == 10
+    assert list(gt.joint_names[:16]) == list(LANDMARKS)
+    assert gt.valid.all()
+    # the first frames are the starfish pose: wrists far out to the sides
+    lm = gt.landmarks()
+    assert np.linalg.norm(lm[0, LANDMARKS.index("l_wrist"), :2] - lm[0, 0, :2]) > 0.45
+    with SequenceFolder(seq) as folder:
+        assert folder.num_frames == T and folder.has_background
+
+
+def test_body_pixels_where_ground_truth_projects(seq):
+    """Blob centres projected with the calibration (independent of the renderer) fall on pixels that
+    differ from the empty background, and points well outside the body do not."""
+    rig = load_calibration(seq / "calibration.toml").double()
+    gt = np.load(seq / "gt.npz")
+    centres = torch.from_numpy(gt["blob_centres"]).double()  # (T, K, 3)
+    big = gt["blob_semi_axes"].min(axis=1) > 0.07  # torso, head, pelvis, thighs: several pixels wide
+    with SequenceFolder(seq) as folder:
+        bg = folder.background_frames(3).mean(0)  # (C, 3, H, W)
+        for t in (0, 5):
+            img = folder.read_frame(t)
+            diff = (img - bg).abs().amax(dim=1)  # (C, H, W)
+            uv, valid = rig.project(centres[t][big])  # (C, Kb, 2)
+            px = uv.round().long()
+            for c in range(rig.num_cameras):
+                for k in range(px.shape[1]):
+                    if valid[c, k]:
+                        assert diff[c, px[c, k, 1], px[c, k, 0]] > 0.05, (t, c, k)
+            # far from the body: a point 1.5 m to the side of the pelvis, at floor level
+            away, _ = rig.project(torch.tensor([[centres[t, 0, 0] + 1.5, centres[t, 0, 1], 0.0]],
+                                               dtype=torch.float64))
+            for c in range(rig.num_cameras):
+                u, v = away[c, 0].round().long().tolist()
+                if 0 <= u < 96 and 0 <= v < 72:
+                    assert diff[c, v, u] < 0.05
+
+
+def test_atomic_replace_and_bad_motion(seq, tmp_path):
+    out = tmp_path / "s"
+    out.mkdir()
+    (out / "keep.txt").write_text("old")
+    with pytest.raises(InputError, match="not one of"):
+        write_sequence(_cfg(motion="moonwalk"), out, progress=False)
+    assert (out / "keep.txt").read_text() == "old"  # nothing half-written
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".s.")]
+
+
+def test_cli_synth(tmp_path, capsys):
+    from torchtrack.cli import main
+
+    rc = main(["synth", "--out", str(tmp_path / "c"), "--motion", "squat", "--duration", "0.2", "--starfish",
+               "0.2", "--fps", "10", "--cameras", "2", "--size", "64x48", "--background-frames", "2"])
+    assert rc == 0
+    assert "wrote synthetic sequence" in capsys.readouterr().out
+    assert (tmp_path / "c" / "video" / "cam1.mp4").is_file()
+    assert main(["synth", "--out", str(tmp_path / "d"), "--size", "big"]) == 2
+    assert "--size" in capsys.readouterr().err
