@@ -227,6 +227,11 @@ class VideoSource(abc.ABC):
 class VideoFileSource(VideoSource):
     """A video file decoded sequentially by OpenCV/FFmpeg (see the module docstring).
 
+    Decoded frames are placed by their presentation timestamp, ``round((t - t_0) * fps)``, not by how many
+    frames came before: after a damaged stretch FFmpeg drops frames, and counting would shift every later frame
+    (measured here: a stream with zeroed bytes delivers frame 11 as the 10th decoded picture). Frames whose
+    timestamp never appears are invalid. Without an fps the count is used.
+
     Args:
         path: the video file.
         verify_frame_count: decode the whole file once to count its frames instead of trusting the container.
@@ -243,18 +248,21 @@ class VideoFileSource(VideoSource):
         if not self.path.is_file():
             raise InputError(f"video file not found: {self.path}")
         self._cap = None
-        self._next = 0  # index of the frame the next cap.read() returns
-        self._failed: set[int] = set()
+        self._t0_ms = 0.0
         cap = self._open()
-        header = int(cap.get(self._cv2.CAP_PROP_FRAME_COUNT))
-        fps = float(cap.get(self._cv2.CAP_PROP_FPS))
+        cv2 = self._cv2
+        header = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
         self.fps = fps if np.isfinite(fps) and fps > 0 else None
-        ok, bgr = cap.read()
-        self._next = 1
-        if not ok or bgr is None:
+        if not cap.grab():
             self.close()
             raise InputError(f"{self.path}: frame 0 could not be decoded (the file opens but holds no readable "
                              "video frames)")
+        self._t0_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC))
+        ok, bgr = cap.retrieve()
+        self.close()
+        if not ok or bgr is None:
+            raise InputError(f"{self.path}: frame 0 could not be decoded")
         self.size_wh = (int(bgr.shape[1]), int(bgr.shape[0]))
         self.header_frame_count = header
         if verify_frame_count or header <= 0:
@@ -277,7 +285,9 @@ class VideoFileSource(VideoSource):
         if not cap.isOpened():
             raise InputError(f"cannot open video file {self.path}: OpenCV/FFmpeg cannot read it (not a video, "
                              "truncated, or an unsupported codec)")
-        self._cap, self._next = cap, 0
+        self._cap = cap
+        self._pos = 0  # every frame index below _pos is gone (delivered, skipped or lost)
+        self._held: int | None = None  # index of a frame grabbed but not yet retrieved (>= _pos)
         return cap
 
     def close(self) -> None:
@@ -285,16 +295,29 @@ class VideoFileSource(VideoSource):
             self._cap.release()
             self._cap = None
 
+    def _grab(self) -> bool:
+        """Decode the next picture; on success hold it at its timestamp index, else count one lost frame."""
+        cap = self._cap
+        if not cap.grab():
+            self._pos += 1
+            return False
+        index = self._pos
+        if self.fps is not None:
+            ms = float(cap.get(self._cv2.CAP_PROP_POS_MSEC))
+            index = max(int(round((ms - self._t0_ms) * self.fps / 1000.0)), self._pos)
+        self._held = self._pos = index
+        return True
+
     def _count_decodable(self) -> int:
-        """Decode (grab) every frame; the count is the last decodable index + 1."""
-        cap = self._open()
-        last, failures, i = -1, 0, 0
+        """Decode every frame; the count is the last decodable index + 1."""
+        self._open()
+        last, failures = -1, 0
         while failures < self._MAX_FAILURES:
-            if cap.grab():
-                last, failures = i, 0
+            if self._grab():
+                last, failures = self._held, 0
+                self._held, self._pos = None, last + 1
             else:
                 failures += 1
-            i += 1
         self.close()
         return last + 1
 
@@ -303,17 +326,19 @@ class VideoFileSource(VideoSource):
 
     def _decode_into(self, index: int, out: np.ndarray) -> bool:
         cv2 = self._cv2
-        if self._cap is None or index < self._next:
+        if self._cap is None or index < self._pos:
             self._open()
-        cap = self._cap
-        while self._next < index:  # skip forward: grab decodes without the colour conversion
-            if not cap.grab():
-                self._failed.add(self._next)
-            self._next += 1
-        ok, bgr = cap.read()
-        self._next += 1
+        while self._held is None or self._held < index:
+            if self._held is not None:  # a frame before the one wanted: drop it
+                self._pos, self._held = self._held + 1, None
+            if self._pos > index:
+                return False  # frame `index` was lost in a failed decode
+            self._grab()  # grab only decodes; the colour conversion happens in retrieve
+        if self._held > index:
+            return False  # the next decodable frame comes after `index`: it is kept for a later call
+        ok, bgr = self._cap.retrieve()
+        self._pos, self._held = index + 1, None
         if not ok or bgr is None:
-            self._failed.add(index)
             return False
         if bgr.shape != out.shape:
             raise InputError(f"{self.path}: frame {index} decodes as {bgr.shape[1]}x{bgr.shape[0]} (WxH), frame 0 as "
