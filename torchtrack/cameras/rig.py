@@ -165,6 +165,8 @@ class CameraRig(torch.nn.Module):
     # ---------------------------------------------------------------------------------------- derived rigs
     def subset(self, names_or_indices: Sequence[str | int]) -> CameraRig:
         """The rig of the given cameras (names or indices, in the given order)."""
+        if isinstance(names_or_indices, (str, int)):
+            names_or_indices = [names_or_indices]
         idx = [self._index(k) for k in names_or_indices]
         sel = torch.tensor(idx, dtype=torch.long, device=self.K.device)
         return CameraRig([self._names[i] for i in idx], self.K[sel], self.R_cam_world[sel],

@@ -1,0 +1,84 @@
+"""``torchtrack calib``: convert calibration files to torchtrack's native TOML, or show one.
+
+    torchtrack calib convert IN OUT [--translation-scale S]
+    torchtrack calib show FILE
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import torch
+
+from torchtrack.checks import InputError
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``calib`` with its actions ``convert`` and ``show``."""
+    parser = subparsers.add_parser("calib", help="calibration files: convert to native TOML, show",
+                                   description=__doc__.splitlines()[0])
+    actions = parser.add_subparsers(dest="calib_action", required=True, metavar="ACTION")
+
+    convert = actions.add_parser(
+        "convert", help="convert a calibration (native/anipose/Pose2Sim TOML, caliscope, Qualisys .qca, "
+                        "EasyMocap YAML) to native TOML (OUT.toml) or EasyMocap YAML (OUT folder or OUT/intri.yml)")
+    convert.add_argument("input", type=Path, help="calibration file (or EasyMocap folder)")
+    convert.add_argument("output", type=Path, help="OUT.toml, or a folder / .yml path for EasyMocap YAML")
+    convert.add_argument("--translation-scale", type=float, default=1.0, metavar="S",
+                         help="multiply translations by S, e.g. 0.001 for a rig calibrated in mm (default 1)")
+    convert.set_defaults(func=run_convert)
+
+    show = actions.add_parser("show", help="print the cameras: sizes, focal lengths, centres")
+    show.add_argument("file", type=Path, help="calibration file (any supported format)")
+    show.set_defaults(func=run_show)
+
+
+def _scaled(rig, scale: float):
+    from torchtrack.cameras.rig import CameraRig
+
+    if not (math.isfinite(scale) and scale > 0):
+        raise InputError(f"--translation-scale must be a positive finite number, got {scale}")
+    if scale == 1.0:
+        return rig
+    return CameraRig(rig.names, rig.K, rig.R_cam_world, rig.t_cam_world * scale, rig.image_size_wh, rig.dist,
+                     rig.fisheye)
+
+
+def run_convert(args: argparse.Namespace) -> int:
+    """Read ``args.input`` (float64, any format), scale translations, write ``args.output``."""
+    from torchtrack.cameras.calib_formats import write_easymocap_yaml
+    from torchtrack.cameras.calib_io import load_calibration, write_native_toml
+
+    rig = _scaled(load_calibration(args.input, dtype=torch.float64), args.translation_scale)
+    out: Path = args.output
+    suffix = out.suffix.lower()
+    if suffix == ".toml":
+        write_native_toml(rig, out)
+        written = [out]
+    elif suffix in (".yml", ".yaml"):
+        written = list(write_easymocap_yaml(rig, out.parent))
+    elif suffix == "" or out.is_dir():
+        written = list(write_easymocap_yaml(rig, out))
+    else:
+        raise InputError(f"{out}: unknown output format (use .toml for native TOML, a folder for EasyMocap YAML)")
+    print(f"wrote {len(rig)} cameras to {', '.join(str(p) for p in written)}")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    """Print one line per camera: name, model, size, focal lengths, principal point, centre."""
+    from torchtrack.cameras.calib_io import detect_format, load_calibration
+
+    rig = load_calibration(args.file, dtype=torch.float64)
+    print(f"{args.file}: {detect_format(args.file)} calibration, {len(rig)} cameras")
+    centres = rig.centers().tolist()
+    for i, name in enumerate(rig.names):
+        K = rig.K[i].tolist()
+        w, h = rig.image_size_wh[i].tolist()
+        model = "fisheye" if rig.fisheye[i] else "pinhole"
+        cx, cy, cz = centres[i]
+        print(f"  {name:<12} {model:<7} {w}x{h}  f=({K[0][0]:.2f}, {K[1][1]:.2f})  c=({K[0][2]:.2f}, "
+              f"{K[1][2]:.2f})  centre=({cx:.4g}, {cy:.4g}, {cz:.4g})  dist={[round(d, 6) for d in rig.dist[i].tolist()]}")
+    return 0
