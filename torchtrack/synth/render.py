@@ -27,10 +27,12 @@ __all__ = [
     "check_ellipsoids",
     "ellipsoid_world_to_unit",
     "ray_ellipsoid_pair_hits",
+    "unit_sphere_hits",
     "nearest_hits",
     "ellipsoid_normals",
     "bounding_sphere_pairs",
     "ray_ellipsoid_intersect",
+    "ray_box_intersect",
     "shade",
 ]
 
@@ -87,19 +89,33 @@ def ray_ellipsoid_pair_hits(
     B = ellipsoid_world_to_unit(R_world_ellipsoid, semi_axes)[part_index]  # (P, 3, 3)
     o = (B @ (origins - centers[part_index])[..., None])[..., 0]  # (P, 3) origin, unit-sphere frame
     d = (B @ dirs[..., None])[..., 0]  # (P, 3) direction, unit-sphere frame
-    a = (d * d).sum(-1)  # (P,)
-    b = (o * d).sum(-1)  # (P,) half the linear coefficient
-    c = (o * o).sum(-1) - 1.0  # (P,)
+    return unit_sphere_hits(o, d)
+
+
+def unit_sphere_hits(origins_unit: torch.Tensor, dirs_unit: torch.Tensor) -> torch.Tensor:
+    """Nearest positive hit of rays with the unit sphere (rays already in an ellipsoid's unit-sphere frame).
+
+    Solves ``|o + t d|^2 = 1`` and returns the near root if positive, else the far root if positive (origin
+    inside), else ``+inf``.
+
+    Args:
+        origins_unit: (..., 3), dirs_unit: (..., 3), broadcastable.
+
+    Returns:
+        t: (...) hit parameter, ``+inf`` on a miss.
+    """
+    o, d = torch.broadcast_tensors(origins_unit, dirs_unit)
+    a = (d * d).sum(-1)  # (...)
+    b = (o * d).sum(-1)  # (...) half the linear coefficient
+    c = (o * o).sum(-1) - 1.0  # (...)
     # b^2 - a c rewritten as |d|^2 - |o x d|^2: no cancellation when the origin is far away.
-    disc = a - torch.linalg.cross(o, d).square().sum(-1)  # (P,)
-    sq = disc.clamp_min(0).sqrt()
-    q = -(b + torch.copysign(sq, b))  # (P,) stable root pair: t1 = q / a, t2 = c / q
+    disc = a - torch.linalg.cross(o, d).square().sum(-1)  # (...)
+    q = -(b + torch.copysign(disc.clamp_min(0).sqrt(), b))  # (...) stable root pair: t1 = q / a, t2 = c / q
     t1, t2 = q / a, c / q
     t_near, t_far = torch.minimum(t1, t2), torch.maximum(t1, t2)
     t = torch.where(t_near > 0, t_near, t_far)
-    inf = torch.full_like(t, float("inf"))
     hit = (disc >= 0) & (t > 0) & torch.isfinite(t)
-    return torch.where(hit, t, inf)
+    return torch.where(hit, t, torch.full_like(t, float("inf")))
 
 
 def nearest_hits(
@@ -159,6 +175,9 @@ def bounding_sphere_pairs(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Candidate (ray, sphere) pairs: rays that pass within a sphere's radius ahead of their origin.
 
+    Two levels: rays that miss the sphere enclosing all K spheres are dropped with one test each; the others
+    are tested against every sphere.
+
     Args:
         origins, dirs: (N, 3).
         centers: (K, 3). radii: (K,).
@@ -166,14 +185,22 @@ def bounding_sphere_pairs(
     Returns:
         ray_index: (P,) int64, part_index: (P,) int64, sorted by ray then part.
     """
-    v = centers[None] - origins[:, None]  # (N, K, 3) origin -> sphere centre
-    d = F.normalize(dirs, dim=-1)[:, None]  # (N, 1, 3)
-    along = (v * d).sum(-1)  # (N, K) distance along the ray to the closest approach
-    dist2 = v.square().sum(-1) - along.square()  # (N, K) squared distance of the line to the centre
-    r = radii[None]
-    keep = (dist2 <= r * r) & (along > -r)  # (N, K)
+    middle = centers.mean(0, keepdim=True)  # (1, 3)
+    outer = ((centers - middle).norm(dim=-1) + radii).amax(0, keepdim=True)  # (1,) enclosing sphere
+    near = _sphere_test(origins, dirs, middle, outer)[:, 0].nonzero()[:, 0]  # (N',)
+    keep = _sphere_test(origins[near], dirs[near], centers, radii)  # (N', K)
     ray_index, part_index = keep.nonzero(as_tuple=True)
-    return ray_index, part_index
+    return near[ray_index], part_index
+
+
+def _sphere_test(origins: torch.Tensor, dirs: torch.Tensor, centers: torch.Tensor, radii: torch.Tensor):
+    """(N, K) bool: ray n passes within radii[k] of centers[k], ahead of (or around) its origin."""
+    d = F.normalize(dirs, dim=-1)  # (N, 3)
+    along = d @ centers.T - (d * origins).sum(-1, keepdim=True)  # (N, K) distance to the closest approach
+    v2 = (origins.square().sum(-1, keepdim=True) - 2 * origins @ centers.T
+          + centers.square().sum(-1)[None])  # (N, K) squared distance origin -> centre
+    r = radii[None] * (1 + 1e-4)  # (1, K) a little margin for the rounding of the expanded forms
+    return (v2 - along.square() <= r * r + 1e-6 * v2) & (along > -r)
 
 
 def ray_ellipsoid_intersect(
@@ -186,9 +213,11 @@ def ray_ellipsoid_intersect(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Nearest hit of each ray with a set of K ellipsoids.
 
-    Rays are processed in chunks of ``chunk_size``; within a chunk a bounding-sphere test (K cheap tests per
-    ray) selects the candidate pairs, and the quadratic is solved only for those, so memory is bounded by
-    ``chunk_size * K`` booleans plus the candidates.
+    Rays are processed in chunks of ``chunk_size``; within a chunk, bounding spheres select the candidate
+    pairs (:func:`bounding_sphere_pairs`: one test per ray against the sphere around all ellipsoids, then K
+    tests for the rays that pass it) and the quadratic is solved only for those, so memory is bounded by
+    ``chunk_size * K`` and the cost follows the rays that come near the ellipsoids (on a 640x480 view of a
+    19-part body about 20x less than solving every pair, see ``scripts/bench_render.py``).
 
     A ray whose origin is inside an ellipsoid hits it where it leaves it; the normal there is the outward
     normal (it points along the ray).
@@ -226,9 +255,38 @@ def ray_ellipsoid_intersect(
     else:
         t_hit = torch.empty(0, dtype=d_all.dtype, device=d_all.device)
         part_id = torch.empty(0, dtype=torch.int64, device=d_all.device)
-    points = o_all + torch.where(torch.isfinite(t_hit), t_hit, 0)[:, None] * d_all  # (R, 3)
-    normal = ellipsoid_normals(points, part_id, centers, R_world_ellipsoid, semi_axes)
+    hit = (part_id >= 0).nonzero()[:, 0]  # (Nh,)
+    points = o_all[hit] + t_hit[hit, None] * d_all[hit]  # (Nh, 3)
+    normal = torch.zeros_like(d_all)  # (R, 3)
+    normal[hit] = ellipsoid_normals(points, part_id[hit], centers, R_world_ellipsoid, semi_axes)
     return t_hit.reshape(shape[:-1]), part_id.reshape(shape[:-1]), normal.reshape(shape)
+
+
+def ray_box_intersect(
+    origins: torch.Tensor, dirs: torch.Tensor, center: torch.Tensor, R_world_box: torch.Tensor,
+    half_size: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Entry hit of rays with one oriented box (slab test); rays starting inside the box miss it.
+
+    Args:
+        origins, dirs: (..., 3) rays (``t`` in units of ``|dir|``).
+        center: (3,) box centre. R_world_box: (3, 3), columns = box axes in world. half_size: (3,) > 0.
+
+    Returns:
+        t: (...) entry distance, ``+inf`` on a miss. normal: (..., 3) outward world normal of the entry face.
+    """
+    check_shape(center, (3,), "center")
+    check_shape(R_world_box, (3, 3), "R_world_box")
+    check_shape(half_size, (3,), "half_size")
+    o, d = (origins - center) @ R_world_box, dirs @ R_world_box  # (..., 3) in the box frame
+    d = torch.where(d.abs() < 1e-12, torch.full_like(d, 1e-12), d)  # parallel to a slab: never crosses it
+    t0, t1 = (-half_size - o) / d, (half_size - o) / d  # (..., 3) slab crossings
+    t_enter, axis = torch.minimum(t0, t1).max(-1)  # (...), the entry face's axis
+    t_exit = torch.maximum(t0, t1).amin(-1)
+    t = torch.where((t_enter <= t_exit) & (t_enter > 0), t_enter, float("inf"))
+    sign = -torch.sign(d.gather(-1, axis[..., None]))  # (..., 1) the entry face looks back at the ray
+    normal = F.one_hot(axis, 3).to(d) * sign @ R_world_box.T  # (..., 3)
+    return t, normal
 
 
 def shade(
