@@ -38,8 +38,8 @@ def test_cmu_bvh_retarget_follows_the_capture(name):
     from torchtrack.synth.bvh_motion import retarget_bvh
 
     path = shared_data("mocap", "cmu", f"{name}.bvh")
-    res = retarget_bvh(path, Skeleton.from_urdf(), fps=30, duration_s=1.5)
-    # measured: mean 13 mm, worst point 6 cm (hand tips and toes, which CMU places differently)
+    res = retarget_bvh(path, Skeleton.from_urdf(), fps=15)  # the whole file, every 8th frame
+    # measured at 30 fps: mean 12-14 mm, worst point 5.5-7 cm (toes and hand tips, placed differently by CMU)
     assert float(res.residual_m.mean()) < 0.02
     assert float(res.residual_m.max()) < 0.09
     assert 1.3 < res.skeleton.height() < 1.9

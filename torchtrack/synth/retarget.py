@@ -130,30 +130,12 @@ def _initial_root(skel: Skeleton, ours: list[str], target: torch.Tensor) -> torc
     return angles
 
 
-def retarget_positions(skel: Skeleton, positions: torch.Tensor, names: Sequence[str],
-                       mapping: Mapping[str, Sequence[str]] = CMU_BVH_MAP, iterations: int = 400,
-                       lr: float = 0.03, rest_weight: float = 1e-3) -> RetargetResult:
-    """Fit our skeleton to source joint positions, all frames at once.
-
-    Args:
-        skel: our skeleton (it is scaled to the subject first).
-        positions: (T, J, 3) source joint positions in our world frame (Z up, metres).
-        names: (J,) source joint names.
-        mapping: our joint name -> source names (their mean is the target).
-
-    Returns:
-        RetargetResult; ``residual_m`` is the landmark distance after retargeting.
-    """
-    check_shape(positions, ("T", len(names), 3), "positions")
-    if not torch.isfinite(positions).all():
-        raise InputError("retargeting: the source positions contain NaN or inf")
-    positions = positions.double()
-    ours, target = _targets(positions, names, mapping)
-    skel = _scaled_skeleton(skel, ours, target)
-    joint_idx = torch.tensor([skel.joint_names.index(n) for n in ours])
+def _fit(skel: Skeleton, theta0: torch.Tensor, target: torch.Tensor, joint_idx: torch.Tensor, iterations: int,
+         lr: float, rest_weight: float) -> torch.Tensor:
+    """Adam on (T, D) state vectors, projected onto the joint limits after every step."""
     rest = skel.rest_angles().double()
     lower, upper = skel.lower.double(), skel.upper.double()
-    theta = _initial_root(skel, ours, target).requires_grad_(True)
+    theta = theta0.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([theta], lr=lr)
     for it in range(iterations):
         opt.zero_grad()
@@ -166,8 +148,50 @@ def retarget_positions(skel: Skeleton, positions: torch.Tensor, names: Sequence[
         if it == iterations // 2:
             for group in opt.param_groups:
                 group["lr"] = lr / 3
+    return theta.detach()
+
+
+def retarget_positions(skel: Skeleton, positions: torch.Tensor, names: Sequence[str],
+                       mapping: Mapping[str, Sequence[str]] = CMU_BVH_MAP, iterations: int = 400,
+                       lr: float = 0.03, rest_weight: float = 1e-3, refit_threshold_m: float = 0.08
+                       ) -> RetargetResult:
+    """Fit our skeleton to source joint positions, all frames at once.
+
+    Args:
+        skel: our skeleton (it is scaled to the subject first).
+        positions: (T, J, 3) source joint positions in our world frame (Z up, metres).
+        names: (J,) source joint names.
+        mapping: our joint name -> source names (their mean is the target).
+        refit_threshold_m: frames whose worst joint is farther than this (and 3x the median frame's) are
+            fitted again from their nearest well-fitted frame.
+
+    Returns:
+        RetargetResult; ``residual_m`` is the landmark distance after retargeting.
+    """
+    check_shape(positions, ("T", len(names), 3), "positions")
+    if not torch.isfinite(positions).all():
+        raise InputError("retargeting: the source positions contain NaN or inf")
+    positions = positions.double()
+    ours, target = _targets(positions, names, mapping)
+    skel = _scaled_skeleton(skel, ours, target)
+    joint_idx = torch.tensor([skel.joint_names.index(n) for n in ours])
+    theta = _fit(skel, _initial_root(skel, ours, target), target, joint_idx, iterations, lr, rest_weight)
     with torch.no_grad():
-        residual = (skel(theta).joints[:, joint_idx] - target).norm(dim=-1)
+        residual = (skel(theta).joints[:, joint_idx] - target).norm(dim=-1)  # (T, n)
+    # Frames caught in a local minimum (typically a wrong initial facing): restart them from the nearest
+    # well-fitted frame, moved to their own pelvis, and fit again.
+    worst = residual.max(dim=1).values
+    bad = worst > max(refit_threshold_m, 3 * float(worst.median()))
+    good = (~bad).nonzero().flatten()
+    if bool(bad.any()) and good.numel():
+        idx = bad.nonzero().flatten()
+        nearest = good[(idx[:, None] - good[None, :]).abs().argmin(dim=1)]
+        start = theta[nearest].clone()
+        start[:, 0:3] += target[idx, ours.index("pelvis")] - target[nearest, ours.index("pelvis")]
+        theta[idx] = _fit(skel, start, target[idx], joint_idx, iterations, lr, rest_weight)
+        with torch.no_grad():
+            residual = (skel(theta).joints[:, joint_idx] - target).norm(dim=-1)
+        log.info("retargeting: %d frames re-fitted from a neighbour", idx.numel())
     log.info("retargeted %d frames: mean joint distance %.1f mm, max %.1f mm", target.shape[0],
              1e3 * float(residual.mean()), 1e3 * float(residual.max()))
     return RetargetResult(skel, theta.detach().float(), tuple(ours), residual.float())
