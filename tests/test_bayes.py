@@ -1,0 +1,141 @@
+"""The fast Bayesian grid against a straightforward Algorithm 1 (per voxel, per camera, per window pixel)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.checks import InputError, ShapeError
+from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, window_sum
+from torchtrack.occupancy.grid import GridSpec, VoxelLookup
+from torchtrack.synth.sequence import RigConfig, make_ring_rig
+
+# BT.601 as kornia defines YUV, written out for the reference
+RGB2YUV = np.array([[0.299, 0.587, 0.114], [-0.147, -0.289, 0.436], [0.615, -0.515, -0.100]])
+
+
+def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig) -> np.ndarray:
+    """Posterior P(G=1) per voxel, computed the slow way.
+
+    Voxel centres are projected with cv2.projectPoints (an independent projection); each camera's pixels in
+    the k x k window around the nearest pixel multiply p(I|G) into both hypotheses (in log space).
+    """
+    C, _, H, W = images.shape
+    s1, r1 = cfg.p_sample, cfg.p_other
+    pf1 = (1 - s1) * 0.5 + s1 * cfg.pd
+    pf0 = (1 - s1) * 0.5 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
+    uniform = 1.0 / abs(np.linalg.det(RGB2YUV))
+    centres = spec.centres(torch.float64).numpy()
+    yuv = np.einsum("ij,cjhw->cihw", RGB2YUV, images)
+    out = np.empty(len(centres))
+    half = cfg.window // 2
+    for v, X in enumerate(centres):
+        log1 = log0 = math.log(cfg.prior), math.log(1 - cfg.prior)
+        log1, log0 = log1[0], log0[1]
+        for c in range(C):
+            rvec, _ = cv2.Rodrigues(rig.R_cam_world[c].numpy())
+            uv, _ = cv2.projectPoints(X[None], rvec, rig.t_cam_world[c].numpy(), rig.K[c].numpy(),
+                                      rig.dist[c].numpy())
+            u, w = uv[0, 0]
+            z = (rig.R_cam_world[c].numpy() @ X + rig.t_cam_world[c].numpy())[2]
+            pu, pv = int(round(u)), int(round(w))
+            if z <= 0 or not (0 <= pu < W and 0 <= pv < H):
+                continue
+            for dv in range(-half, half + 1):
+                for du in range(-half, half + 1):
+                    qu, qv = pu + du, pv + dv
+                    if not (0 <= qu < W and 0 <= qv < H):
+                        continue
+                    normal = 1.0
+                    for ch in range(3):
+                        m, s = bg_mean[c, ch, qv, qu], bg_std[c, ch, qv, qu]
+                        normal *= math.exp(-0.5 * ((yuv[c, ch, qv, qu] - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+                    log1 += math.log(pf1 * uniform + (1 - pf1) * normal)
+                    log0 += math.log(pf0 * uniform + (1 - pf0) * normal)
+        out[v] = 1.0 / (1.0 + math.exp(log0 - log1))
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene():
+    g = torch.Generator().manual_seed(0)
+    rig = make_ring_rig(RigConfig(num_cameras=3, width=40, height=30, radius_m=3.0, k1=-0.05))
+    empty = 0.2 + 0.6 * torch.rand(1, 3, 3, 30, 40, generator=g, dtype=torch.float64)
+    empty = empty + 0.01 * torch.randn(8, 3, 3, 30, 40, generator=g, dtype=torch.float64)
+    bg = BackgroundModel.from_frames(empty.clamp(0, 1), BackgroundConfig(compensate_gain=False))
+    images = empty[:2].clone()
+    images[:, :, :, 10:22, 15:26] = torch.rand(2, 3, 3, 12, 11, generator=g, dtype=torch.float64)  # "body"
+    spec = GridSpec((-0.487, -0.493, 0.31), (0.5, 0.5, 1.5), 0.2)  # off-centre: no voxel projects on a half pixel
+    return rig, bg, images, spec
+
+
+@pytest.mark.parametrize("cfg", [BayesConfig(), BayesConfig(pd=0.8, pfa=0.2, window=1, prior=0.3),
+                                 BayesConfig(window=5, p_sample=0.7, p_other=0.3)])
+def test_fast_grid_equals_algorithm1(scene, cfg):
+    rig, bg, images, spec = scene
+    fast = BayesianGrid(rig, spec, bg, cfg)(images).probability()  # (B, V)
+    for b in range(images.shape[0]):
+        ref = algorithm1(rig, bg.mean_yuv.numpy(), bg.std_yuv.numpy(), images[b].numpy(), spec, cfg)
+        # tolerance: float64 throughout; differences only from summation order
+        np.testing.assert_allclose(fast[b].numpy(), ref, atol=1e-9, rtol=0)
+    assert 0.0 < float(fast.mean()) < 1.0  # not a degenerate case: some voxels are occupied, some are not
+
+
+def test_window_sum_by_hand():
+    x = torch.arange(20, dtype=torch.float64).reshape(1, 1, 4, 5)
+    s = window_sum(x, 3)
+    ref = np.zeros((4, 5))
+    for i in range(4):
+        for j in range(5):
+            ref[i, j] = x[0, 0, max(0, i - 1):i + 2, max(0, j - 1):j + 2].sum()
+    np.testing.assert_allclose(s[0, 0].numpy(), ref)
+
+
+def test_lookup_matches_opencv(scene):
+    rig, _, _, spec = scene
+    lk = VoxelLookup(rig, spec)
+    X = spec.centres(torch.float64).numpy()
+    for c in range(rig.num_cameras):
+        rvec, _ = cv2.Rodrigues(rig.R_cam_world[c].numpy())
+        uv, _ = cv2.projectPoints(X, rvec, rig.t_cam_world[c].numpy(), rig.K[c].numpy(), rig.dist[c].numpy())
+        px = np.round(uv[:, 0]).astype(int)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < 40) & (px[:, 1] >= 0) & (px[:, 1] < 30)
+        expect = np.where(inside, px[:, 1] * 40 + px[:, 0], -1)
+        np.testing.assert_array_equal(lk.pixel_index[c].numpy(), expect)
+
+
+def test_unreadable_camera_gives_no_evidence(scene):
+    rig, bg, images, spec = scene
+    grid = BayesianGrid(rig, spec, bg)
+    bad = images.clone()
+    bad[:, 1] = float("nan")
+    with pytest.warns(RuntimeWarning, match="cam1"):
+        lo_bad = grid(bad).log_odds
+    ev = grid.evidence(images)
+    manual = grid.lookup.gather(ev)[:, [0, 2]].sum(1)  # cameras 0 and 2 only (prior 0.5: logit 0)
+    torch.testing.assert_close(lo_bad, manual)
+
+
+def test_bad_input(scene):
+    rig, bg, images, spec = scene
+    grid = BayesianGrid(rig, spec, bg)
+    with pytest.raises(ShapeError, match="images"):
+        grid(images[:, :2])
+    with pytest.raises(InputError, match="window"):
+        BayesConfig(window=4)
+    with pytest.raises(InputError, match="pd"):
+        BayesConfig(pd=1.0)
+    empty = grid(bg_frame(bg)).occupied()
+    assert int(empty.sum()) == 0  # nobody there: an empty grid
+
+
+def bg_frame(bg) -> torch.Tensor:
+    """An RGB frame equal to the background mean (inverse of the YUV transform)."""
+    yuv = bg.mean_yuv.numpy()
+    rgb = np.einsum("ij,cjhw->cihw", np.linalg.inv(RGB2YUV), yuv)
+    return torch.from_numpy(rgb)[None]

@@ -1,0 +1,163 @@
+"""Bayesian occupancy grid: every pixel a noisy sensor, fused over cameras (de Bem eq. 1-8, Franco & Boyer).
+
+Per camera i and pixel p, with F the silhouette detection, S "the pixel samples the voxel" and R "another
+object on the viewing line" (ALGORITHMS.md §1):
+
+    p(F=1 | G=1) = P_S0 / 2 + P_S1 * PD
+    p(F=1 | G=0) = P_S0 / 2 + P_S1 * (P_R1 * PD + P_R0 * PFA)
+    p(I | G)     = p(F=1 | G) U(I) + p(F=0 | G) N(I; mu_p, Sigma_p)
+
+and the posterior log-odds of voxel X sum, over cameras and over the k x k window around X's projection,
+the per-pixel ratio log p(I|G=1) - log p(I|G=0) (Algorithm 1: the product of the window's pixel terms).
+Everything inside the sum depends on the pixel alone, so it is computed once per image, box-summed over the
+window, and gathered at each voxel's pixel through a lookup table fixed for the rig: one gather per voxel
+and camera. Voxels outside a camera's image get nothing from it; voxels that fewer than ``min_views``
+cameras see are reported unobserved.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from torchtrack.checks import InputError, check_shape
+from torchtrack.occupancy.grid import GridSpec, VoxelLookup
+
+
+@dataclass(frozen=True)
+class BayesConfig:
+    """Sensor model of the Bayesian grid.
+
+    Attributes:
+        pd: detection probability P(F=1 | the pixel samples an occupied voxel).
+        pfa: false-alarm probability P(F=1 | nothing there).
+        p_sample: P(S=1), the pixel samples the voxel (uniform sampling over the window: 1/2 in the paper).
+        p_other: P(R=1), another object on the viewing line (uniform: 1/2).
+        window: k of the k x k sampling window (odd).
+        prior: prior occupancy probability of a voxel.
+        min_views: voxels seen by fewer cameras are unobserved (None: all cameras).
+    """
+
+    pd: float = 0.9
+    pfa: float = 0.1
+    p_sample: float = 0.5
+    p_other: float = 0.5
+    window: int = 3
+    prior: float = 0.5
+    min_views: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("pd", "pfa", "p_sample", "p_other", "prior"):
+            v = getattr(self, name)
+            if not 0.0 < v < 1.0:
+                raise InputError(f"BayesConfig.{name} must be in (0, 1), got {v}")
+        if self.window < 1 or self.window % 2 == 0:
+            raise InputError(f"BayesConfig.window must be a positive odd number, got {self.window}")
+
+    def detection_probabilities(self) -> tuple[float, float]:
+        """(p(F=1 | G=1), p(F=1 | G=0))."""
+        s1, r1 = self.p_sample, self.p_other
+        return (1 - s1) / 2 + s1 * self.pd, (1 - s1) / 2 + s1 * (r1 * self.pd + (1 - r1) * self.pfa)
+
+
+def pixel_log_ratio(log_bg: torch.Tensor, log_uniform: float, config: BayesConfig) -> torch.Tensor:
+    """Per-pixel evidence log p(I|G=1) - log p(I|G=0).
+
+    Args:
+        log_bg: (...) log N(I; mu, Sigma) of each pixel under its background Gaussian.
+        log_uniform: log U(I), the uniform foreground colour density.
+
+    Returns:
+        (...) the log ratio; NaN stays NaN (unreadable pixels).
+    """
+    f1, f0 = config.detection_probabilities()
+    lu = torch.full_like(log_bg, log_uniform)
+
+    def log_p(pf: float) -> torch.Tensor:  # log( pf U + (1 - pf) N ), stable
+        return torch.logaddexp(lu + math.log(pf), log_bg + math.log1p(-pf))
+
+    return log_p(f1) - log_p(f0)
+
+
+def window_sum(x: torch.Tensor, k: int) -> torch.Tensor:
+    """(B, C, H, W) -> (B, C, H, W) sum over the k x k window around each pixel (zeros beyond the border)."""
+    if k == 1:
+        return x
+    B, C, H, W = x.shape
+    s = F.avg_pool2d(x.reshape(B * C, 1, H, W), k, stride=1, padding=k // 2, count_include_pad=True)
+    return (s * (k * k)).reshape(B, C, H, W)
+
+
+@dataclass(frozen=True)
+class Occupancy:
+    """Output of an occupancy model on a batch of frames.
+
+    Attributes:
+        log_odds: (B, V) posterior log-odds of occupancy (logit of the prior where unobserved).
+        observed: (V,) bool, voxels seen by at least ``min_views`` cameras.
+        spec: the grid.
+    """
+
+    log_odds: torch.Tensor
+    observed: torch.Tensor
+    spec: GridSpec
+
+    def probability(self) -> torch.Tensor:
+        """(B, V) P(occupied); 0 where unobserved."""
+        return torch.sigmoid(self.log_odds) * self.observed
+
+    def occupied(self, threshold: float = 0.5) -> torch.Tensor:
+        """(B, V) bool, P > threshold and observed."""
+        return (self.log_odds > math.log(threshold / (1 - threshold))) & self.observed
+
+
+class BayesianGrid(nn.Module):
+    """The Franco-Boyer occupancy grid over ``spec`` for a static ``rig``, batched over frames.
+
+    Args:
+        rig: the CameraRig (all cameras one image size, that of the frames given to :meth:`forward`).
+        spec: the voxel grid.
+        background: a ``BackgroundModel`` of the same cameras and image size.
+        config: sensor model.
+    """
+
+    def __init__(self, rig: nn.Module, spec: GridSpec, background: nn.Module, config: BayesConfig = BayesConfig()
+                 ) -> None:
+        super().__init__()
+        sizes = rig.image_size_wh
+        if not bool((sizes == sizes[0]).all()):
+            raise InputError("the Bayesian grid needs one image size for all cameras; got "
+                             + ", ".join(f"{n} {tuple(s.tolist())}" for n, s in zip(rig.names, sizes)))
+        self.config = config
+        self.spec = spec
+        self.camera_names = list(rig.names)
+        self.image_size_wh = tuple(int(v) for v in sizes[0])
+        self.lookup = VoxelLookup(rig, spec)
+        self.background = background
+        need = rig.num_cameras if config.min_views is None else config.min_views
+        self.register_buffer("observed", self.lookup.num_views >= need, persistent=False)
+
+    def evidence(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, C, 3, H, W) RGB -> (B, C, H, W) window-summed per-pixel log ratio; 0 for unreadable pixels."""
+        W, H = self.image_size_wh
+        check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
+        r = pixel_log_ratio(self.background.log_likelihood(images), self.background.log_uniform, self.config)
+        return window_sum(torch.nan_to_num(r, nan=0.0), self.config.window)
+
+    def forward(self, images: torch.Tensor) -> Occupancy:
+        """Occupancy of a batch of frames.
+
+        Args:
+            images: (B, C, 3, H, W) RGB in [0, 1]; NaN frames (unreadable) contribute no evidence.
+
+        Returns:
+            :class:`Occupancy` with log_odds (B, V).
+        """
+        ev = self.evidence(images)  # (B, C, H, W)
+        per_cam = self.lookup.gather(ev)  # (B, C, V)
+        prior = math.log(self.config.prior / (1 - self.config.prior))
+        return Occupancy(per_cam.sum(dim=1) + prior, self.observed, self.spec)
