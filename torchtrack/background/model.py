@@ -1,0 +1,323 @@
+"""Per-pixel YUV Gaussian background model (Caillette & Howard 2004, §3.2; de Bem et al. 2015).
+
+Conventions of this module:
+
+* Colour space: YUV from :func:`kornia.color.rgb_to_yuv` (BT.470 M/PAL: ``Y = 0.299 R + 0.587 G + 0.114 B``,
+  ``U = -0.147 R - 0.289 G + 0.436 B``, ``V = 0.615 R - 0.515 G - 0.100 B``). Images come in as RGB in [0, 1].
+* Diagonal covariance: each pixel of each camera has a mean ``mean_yuv`` and a per-channel std ``std_yuv``,
+  both ``(C, 3, H, W)``. The stored std is final: floored at ``min_std`` on every channel, **then** Y multiplied by
+  ``luminance_relax`` (Caillette: a relaxed luminance variance keeps shadows and illumination changes out of
+  the foreground). Flooring first means the relaxation is never absorbed by the floor.
+* Global gain (``compensate_gain``): for each frame and camera, ``g = median_p(Y_frame / Y_mean)`` over the
+  pixels with ``Y_mean >= DARK_Y``, clamped to ``GAIN_RANGE`` (warning, naming the camera, when it had to be).
+  A global gain multiplies RGB, hence Y, U and V: the whole YUV image is divided by ``g``. The likelihood is
+  the density of the *observed* YUV under ``I = g B``, ``B ~ N(mean, diag std^2)``, i.e. it includes the
+  Jacobian ``-3 log g`` so that it stays comparable with :attr:`BackgroundModel.log_uniform`.
+* Dead frames: a camera frame that is all NaN (not decoded) or all black (every value < 1/255) carries no
+  signal. When estimating, such frames are skipped (a camera with too few usable frames is an ``InputError``
+  naming it); at run time, they give NaN for that camera, with a warning naming it.
+* Recommended foreground test: ``mahalanobis2(images) > FOREGROUND_MAHALANOBIS2``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import nn
+
+from torchtrack.background import estimate as est
+from torchtrack.checks import InputError, ShapeError, check_shape
+
+if TYPE_CHECKING:
+    from torchtrack.io.sequence import SequenceFolder
+
+logger = logging.getLogger(__name__)
+
+#: Recommended foreground threshold on :meth:`BackgroundModel.mahalanobis2` (squared Mahalanobis distance,
+#: 3 colour channels). With the floors of :class:`BackgroundConfig` in-noise pixels sit far below it (the
+#: chi-square(3) tail above 16 is 0.1 %); see tests/test_background.py for the measured silhouette IoU.
+FOREGROUND_MAHALANOBIS2 = 16.0
+#: Fewest usable frames per camera for :meth:`BackgroundModel.from_frames` / :meth:`~BackgroundModel.from_sequence`.
+MIN_FRAMES = 2
+MIN_SEQUENCE_FRAMES = 5
+
+
+@dataclass(frozen=True)
+class BackgroundConfig:
+    """How the background model is estimated and applied.
+
+    Attributes:
+        min_std: floor on every per-channel std (YUV units); sensor noise is about 2/255.
+        luminance_relax: the Y std is multiplied by this after flooring (Caillette §3.2: shadows and illumination
+            changes are not foreground).
+        compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
+            (also applied to the estimation frames, so the model is in gain-normalised units).
+        max_frames: frames used for estimation, evenly sampled over the given ones.
+    """
+
+    min_std: float = 0.012
+    luminance_relax: float = 3.0
+    compensate_gain: bool = True
+    max_frames: int = 60
+
+    def __post_init__(self) -> None:
+        if not (self.min_std > 0 and math.isfinite(self.min_std)):
+            raise InputError(f"BackgroundConfig.min_std must be a positive number, got {self.min_std}")
+        if not (self.luminance_relax >= 1 and math.isfinite(self.luminance_relax)):
+            raise InputError(f"BackgroundConfig.luminance_relax must be >= 1, got {self.luminance_relax}")
+        if self.max_frames < MIN_FRAMES:
+            raise InputError(f"BackgroundConfig.max_frames must be >= {MIN_FRAMES}, got {self.max_frames}")
+
+
+def _camera_names(camera_names: Sequence[str] | None, C: int) -> list[str]:
+    if camera_names is None:
+        return [f"cam{i}" for i in range(C)]
+    names = [str(n) for n in camera_names]
+    if len(names) != C:
+        raise InputError(f"camera_names: {len(names)} names for {C} cameras: {names}")
+    return names
+
+
+def _check_frames(frames: torch.Tensor, min_frames: int) -> None:
+    check_shape(frames, (None, None, 3, None, None), "frames")
+    if not frames.is_floating_point():
+        raise InputError(f"frames: expected float RGB in [0, 1], got dtype {frames.dtype}")
+    if frames.shape[0] < min_frames:
+        raise InputError(f"frames: need at least {min_frames} frames, got {frames.shape[0]}")
+    if frames.shape[1] < 1 or frames.shape[3] < 1 or frames.shape[4] < 1:
+        raise ShapeError(f"frames: empty camera or image dimension in shape {tuple(frames.shape)}")
+
+
+class BackgroundModel(nn.Module):
+    """Per-pixel YUV Gaussian background of every camera (diagonal covariance).
+
+    Args:
+        mean_yuv: (C, 3, H, W) per-pixel mean (YUV, gain-normalised units).
+        std_yuv: (C, 3, H, W) per-pixel std, final (floored and relaxed), > 0.
+        config: the :class:`BackgroundConfig` used (``compensate_gain`` applies at run time).
+        camera_names: (C,) names for messages; default ``cam0 ..``.
+
+    Attributes:
+        mean_yuv, std_yuv: buffers, as above (move with ``.to()``).
+        camera_names: (C,) str. config: :class:`BackgroundConfig`.
+        log_uniform: log of the uniform colour density over the YUV image of the RGB unit cube.
+    """
+
+    mean_yuv: torch.Tensor
+    std_yuv: torch.Tensor
+
+    def __init__(self, mean_yuv: torch.Tensor, std_yuv: torch.Tensor, config: BackgroundConfig = BackgroundConfig(),
+                 camera_names: Sequence[str] | None = None) -> None:
+        super().__init__()
+        check_shape(mean_yuv, (None, 3, None, None), "mean_yuv")
+        check_shape(std_yuv, tuple(mean_yuv.shape), "std_yuv")
+        if not bool((std_yuv > 0).all()):
+            raise InputError("std_yuv: every std must be > 0 (NaN or <= 0 found)")
+        self.config = config
+        self.camera_names = _camera_names(camera_names, mean_yuv.shape[0])
+        self.register_buffer("mean_yuv", mean_yuv)
+        self.register_buffer("std_yuv", std_yuv)
+
+    # ------------------------------------------------------------------------------------------ estimation
+
+    @classmethod
+    def from_frames(cls, frames: torch.Tensor, config: BackgroundConfig = BackgroundConfig(),
+                    camera_names: Sequence[str] | None = None) -> BackgroundModel:
+        """Model from empty-scene frames: per-pixel YUV mean and unbiased std, then floor and relax.
+
+        With ``compensate_gain`` every frame is first divided by its gain against the plain mean, and the mean
+        and std are taken over the normalised frames (auto-exposure flicker does not inflate the std).
+
+        Args:
+            frames: (N, C, 3, H, W) RGB in [0, 1], N >= 2 (at most ``max_frames`` are used, evenly sampled);
+                NaN values are ignored per pixel, all-NaN or all-black camera frames are skipped.
+
+        Raises:
+            ShapeError: bad shape. InputError: fewer than 2 usable frames in some camera (named).
+        """
+        _check_frames(frames, MIN_FRAMES)
+        names = _camera_names(camera_names, frames.shape[1])
+        frames = est.subsample(frames, config.max_frames)
+        dead = est.dead_frames(frames)  # (N, C)
+        est.check_cameras(dead, names, MIN_FRAMES, "background frames")
+        dtype = est.compute_dtype(frames)
+        mean, std = est.nan_mean_std(frames, dead, None, dtype)  # (C, 3, H, W) each
+        if config.compensate_gain:
+            gains = est.sequence_gains(frames, dead, mean[:, 0], names, "background frames")  # (N, C)
+            mean, std = est.nan_mean_std(frames, dead, gains, dtype)
+        return cls(mean, est.floor_and_relax(std, config.min_std, config.luminance_relax), config, names)
+
+    @classmethod
+    def from_sequence(cls, frames: torch.Tensor, config: BackgroundConfig = BackgroundConfig(),
+                      camera_names: Sequence[str] | None = None) -> BackgroundModel:
+        """Model from a moving sequence without empty frames: temporal median and ``1.4826 * MAD``.
+
+        Pass 1: per-pixel median over frames; with ``compensate_gain``, each frame's gain against it; the MAD of
+        the gain-normalised frames around that median. Pass 2 (ghost reduction): per-frame foreground masks of
+        the pass-1 model (``mahalanobis2 > FOREGROUND_MAHALANOBIS2``, dilated by ``max(1, max(H, W) // 160)``
+        px); each pixel's median and MAD are re-estimated from the frames where it is not foreground when at
+        least ``MIN_CLEAN_FRAMES`` such frames exist (pass 1 is kept elsewhere). A subject standing still for
+        most of the sequence still leaves a ghost: pass 2 cannot see it (the ghost is what pass 1 calls
+        background).
+
+        Args:
+            frames: (N, C, 3, H, W) RGB in [0, 1] (float16 storage is fine), N >= 5; at most ``max_frames`` are
+                used, evenly sampled. NaN ignored per pixel; all-NaN / all-black camera frames skipped.
+
+        Raises:
+            ShapeError: bad shape. InputError: fewer than 5 usable frames in some camera (named).
+        """
+        _check_frames(frames, MIN_SEQUENCE_FRAMES)
+        names = _camera_names(camera_names, frames.shape[1])
+        mean, std = sequence_statistics(frames, config, names, refine=True)
+        return cls(mean, std, config, names)
+
+    @classmethod
+    def from_folder(cls, folder: SequenceFolder, config: BackgroundConfig = BackgroundConfig(),
+                    size_wh: tuple[int, int] | None = None,
+                    device: torch.device | str | None = None) -> BackgroundModel:
+        """Model of a :class:`~torchtrack.io.sequence.SequenceFolder`: from its ``background/`` frames when
+        present and readable, else estimated from ``max_frames`` evenly spaced video frames
+        (:meth:`from_sequence`). Logs (INFO) which, naming the folder.
+
+        Args:
+            folder: the sequence folder. size_wh: (W, H) to read at (the model then has that size; scale the
+                intrinsics to match). device: where frames and model go (None: CPU).
+        """
+        frames = folder.background_frames(config.max_frames, device=device, size_wh=size_wh)
+        if frames is not None and frames.shape[0] >= MIN_FRAMES:
+            logger.info("background of %s: %d empty-scene frames from %s", folder.root, frames.shape[0],
+                        folder.root / "background")
+            return cls.from_frames(frames, config, folder.camera_names)
+        n = min(config.max_frames, len(folder))
+        logger.info("background of %s: no usable background/ frames; estimating it from %d of the %d video "
+                    "frames (temporal median, second pass against ghosts)", folder.root, n, len(folder))
+        if n < MIN_SEQUENCE_FRAMES:
+            raise InputError(f"{folder.root}: no background/ frames and only {len(folder)} video frames; need at "
+                             f"least {MIN_SEQUENCE_FRAMES} to estimate the background")
+        indices = sorted({int(round(i)) for i in torch.linspace(0, len(folder) - 1, n).tolist()})
+        frames = None
+        for k, i in enumerate(indices):  # forward reads: the video sources decode sequentially
+            image = folder.read_frame(i, device=device, size_wh=size_wh)  # (C, 3, H, W)
+            if frames is None:  # float16 storage halves the memory; 1/255 steps survive it
+                frames = torch.empty((len(indices), *image.shape), dtype=torch.float16, device=image.device)
+            frames[k] = image
+        return cls.from_sequence(frames, config, folder.camera_names)
+
+    # ------------------------------------------------------------------------------------------ evaluation
+
+    @property
+    def log_uniform(self) -> float:
+        """log U: the uniform density over the YUV image of the RGB unit cube, ``-log |det M_rgb2yuv|``."""
+        return est.log_uniform_density()
+
+    @property
+    def num_cameras(self) -> int:
+        return self.mean_yuv.shape[0]
+
+    def to_yuv(self, images: torch.Tensor) -> torch.Tensor:
+        """(..., 3, H, W) RGB -> YUV with :func:`kornia.color.rgb_to_yuv`."""
+        check_shape(images, ("...", 3, None, None), "images")
+        return est.rgb_to_yuv(images)
+
+    def _check_images(self, images: torch.Tensor) -> None:
+        check_shape(images, (None, None, 3, None, None), "images")
+        C, _, H, W = self.mean_yuv.shape
+        if tuple(images.shape[1:]) != (C, 3, H, W):
+            raise ShapeError(f"images: shape {tuple(images.shape)} (B, C, 3, H, W) does not fit the background "
+                             f"model's {C} cameras of {H}x{W} (HxW), i.e. (B, {C}, 3, {H}, {W})")
+
+    def _params(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return (self.mean_yuv.to(device=images.device, dtype=images.dtype),
+                self.std_yuv.to(device=images.device, dtype=images.dtype))
+
+    def gain(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, C, 3, H, W) RGB -> (B, C) robust global gain vs the background (clamped, see the module doc); 1
+        when ``compensate_gain`` is off; NaN for a dead frame (all NaN or black) or one without usable pixels."""
+        return self._normalise(images)[1]
+
+    def normalise(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, C, 3, H, W) RGB -> (B, C, 3, H, W) YUV, divided by the frame's gain when ``compensate_gain``;
+        NaN for dead camera frames (all NaN or black; warned about, naming the camera)."""
+        return self._normalise(images)[0]
+
+    def _normalise(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """YUV (B, C, 3, H, W) as :meth:`normalise`, the (B, C) gain used and the (B, C) dead-frame mask."""
+        self._check_images(images)
+        dead = est.dead_frames(images)  # (B, C)
+        if bool(dead.any()):
+            cams = [self.camera_names[c] for c in dead.any(0).nonzero()[:, 0].tolist()]
+            warnings.warn(f"background model: camera(s) {cams} gave an all-NaN or all-black frame "
+                          f"({int(dead.sum())} of {dead.numel()} camera frames); their output is NaN",
+                          RuntimeWarning, stacklevel=3)
+        yuv = est.rgb_to_yuv(images)  # (B, C, 3, H, W)
+        if self.config.compensate_gain:
+            g = est.robust_gain(yuv[:, :, 0], self.mean_yuv[:, 0].to(yuv))  # (B, C)
+            g = est.clamp_gain(g.masked_fill(dead, 1.0), self.camera_names, "background model")
+        else:
+            g = torch.ones(dead.shape, dtype=yuv.dtype, device=yuv.device)
+        g = g.masked_fill(dead, float("nan"))
+        return yuv / g[:, :, None, None, None], g, dead
+
+    def mahalanobis2(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, C, 3, H, W) RGB -> (B, C, H, W) squared Mahalanobis distance to each pixel's background,
+        ``sum_k ((I_k / g - mean_k) / std_k)^2`` over Y, U, V. NaN where the image is NaN or the frame dead."""
+        yuv, _, _ = self._normalise(images)
+        mean, std = self._params(yuv)
+        return ((yuv - mean) / std).square().sum(2)  # (B, C, H, W)
+
+    def log_likelihood(self, images: torch.Tensor) -> torch.Tensor:
+        """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.
+
+        ``log N(I / g; mean, diag std^2) - 3 log g`` (the density of ``I = g B``; ``g = 1`` without gain
+        compensation), directly comparable with :attr:`log_uniform`. NaN where the image is NaN or dead.
+        """
+        yuv, g, _ = self._normalise(images)
+        mean, std = self._params(yuv)
+        d2 = ((yuv - mean) / std).square().sum(2)  # (B, C, H, W)
+        log_norm = std.log().sum(1) + 1.5 * math.log(2 * math.pi)  # (C, H, W)
+        return -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
+
+    def extra_repr(self) -> str:
+        C, _, H, W = self.mean_yuv.shape
+        return f"cameras={self.camera_names}, size_hw=({H}, {W}), config={self.config}"
+
+
+def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str],
+                        refine: bool = True) -> tuple[torch.Tensor, torch.Tensor]:
+    """Mean and final std (C, 3, H, W) of a moving sequence, as :meth:`BackgroundModel.from_sequence`.
+
+    Args:
+        frames: (N, C, 3, H, W) RGB in [0, 1]. names: (C,) camera names for messages.
+        refine: False stops after pass 1 (to measure what the second pass brings).
+    """
+    frames = est.subsample(frames, config.max_frames)
+    dead = est.dead_frames(frames)  # (N, C)
+    est.check_cameras(dead, names, MIN_SEQUENCE_FRAMES, "sequence frames")
+    dtype = est.compute_dtype(frames)
+    relax = (config.min_std, config.luminance_relax)
+    H, W = frames.shape[-2:]
+    gains = None
+    if config.compensate_gain:  # gains against the plain median (on a pixel grid: a median of ratios needs few)
+        step = max(1, math.ceil(math.sqrt(H * W / est.GAIN_PIXELS)))
+        grid = frames[..., ::step, ::step]  # (N, C, 3, H / step, W / step)
+        y_ref = est.median_mad(grid, dead, None, dtype, spread=False)[0][:, 0]  # (C, h, w)
+        gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
+    med, spread, _ = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
+    std = est.floor_and_relax(spread, *relax)
+    if not refine:
+        return med, std
+    fg = est.foreground_masks(frames, dead, gains, med, std, FOREGROUND_MAHALANOBIS2, max(1, max(H, W) // 160))
+    touched = fg.any(0)  # (C, H, W): elsewhere pass 2 would use the same frames as pass 1
+    med2, spread2, count = est.median_mad(frames, dead, gains, dtype, foreground=fg, pixels=touched)
+    use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
+    logger.info("background second pass: %.1f%% of the pixels were foreground in some frame, %.1f%% re-estimated "
+                "from their non-foreground frames (mean foreground fraction %.1f%%)",
+                100 * float(touched.float().mean()), 100 * float(use.float().mean()), 100 * float(fg.float().mean()))
+    return torch.where(use, med2, med), torch.where(use, est.floor_and_relax(spread2, *relax), std)
