@@ -1,0 +1,57 @@
+"""The real Pose2Sim demo (../shared/data/pose2sim_demo) as a torchtrack sequence folder.
+
+The demo's files are laid out Pose2Sim's way (``videos/cam01.mp4``, a calibration TOML whose cameras are
+``cam_01``..): :func:`pose2sim_sequence` links them into the DESIGN.md layout without copying the videos,
+and :func:`reference_keypoints` reads Pose2Sim's own 3D keypoints (BODY_25B names, TRC, Y up) in our world.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from torchtrack.checks import InputError
+from torchtrack.io.trc import read_trc, y_up_to_world
+
+CALIBRATION = "calibration/Calib_qualisys_pose2sim.toml"
+REFERENCE = "reference_3d/S00_P00_T01_BalancingTrial_0-100.trc"
+
+#: Pose2Sim BODY_25B keypoints -> our landmarks, where the two define the same point.
+LANDMARK_MAP: dict[str, tuple[str, ...]] = {
+    "pelvis": ("RHip", "LHip"), "neck": ("Neck",), "head": ("Head",),
+    "l_shoulder": ("LShoulder",), "l_elbow": ("LElbow",), "l_wrist": ("LWrist",),
+    "r_shoulder": ("RShoulder",), "r_elbow": ("RElbow",), "r_wrist": ("RWrist",),
+    "l_hip": ("LHip",), "l_knee": ("LKnee",), "l_ankle": ("LAnkle",),
+    "r_hip": ("RHip",), "r_knee": ("RKnee",), "r_ankle": ("RAnkle",),
+}
+
+
+def pose2sim_sequence(demo: str | Path, out: str | Path) -> Path:
+    """Make ``out`` a sequence folder of the demo: calibration.toml (a copy), video/<cam>.mp4 (symlinks)."""
+    demo, out = Path(demo), Path(out)
+    videos = sorted((demo / "videos").glob("cam*.mp4"))
+    if not videos or not (demo / CALIBRATION).is_file():
+        raise InputError(f"{demo}: not the Pose2Sim demo folder (needs videos/cam*.mp4 and {CALIBRATION})")
+    (out / "video").mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(demo / CALIBRATION, out / "calibration.toml")
+    for v in videos:
+        link = out / "video" / v.name
+        if not link.exists():
+            link.symlink_to(v.resolve())
+    (out / "meta.toml").write_text("fps = 60.0\nnotes = \"Pose2Sim demo (BalancingTrial), linked\"\n")
+    return out
+
+
+def reference_keypoints(demo: str | Path) -> tuple[list[str], np.ndarray]:
+    """Pose2Sim's 3D keypoints: names (21,) and (T, 21, 3) world positions in metres (Z up)."""
+    trc = read_trc(Path(demo) / REFERENCE)
+    return trc.marker_names, y_up_to_world(trc.positions_m())
+
+
+def reference_landmarks(demo: str | Path) -> tuple[list[str], np.ndarray]:
+    """The reference mapped onto our landmarks (:data:`LANDMARK_MAP`): names (L,), (T, L, 3)."""
+    names, pts = reference_keypoints(demo)
+    out = [pts[:, [names.index(s) for s in src]].mean(axis=1) for src in LANDMARK_MAP.values()]
+    return list(LANDMARK_MAP), np.stack(out, axis=1)
