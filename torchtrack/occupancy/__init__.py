@@ -2,7 +2,8 @@
 
 from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, Occupancy
 from torchtrack.occupancy.grid import GridSpec, VoxelLookup, grid_from_rig
+from torchtrack.occupancy.hull import HullConfig, SparseVoxels, hierarchical_hull, hull_from_images
 from torchtrack.occupancy.silhouette import SilhouetteCarving
 
-__all__ = ["BayesConfig", "BayesianGrid", "GridSpec", "Occupancy", "SilhouetteCarving", "VoxelLookup",
-           "grid_from_rig"]
+__all__ = ["BayesConfig", "BayesianGrid", "GridSpec", "HullConfig", "Occupancy", "SilhouetteCarving",
+           "SparseVoxels", "VoxelLookup", "grid_from_rig", "hierarchical_hull", "hull_from_images"]

@@ -1,0 +1,534 @@
+"""Real-time hierarchical visual hull with colour (Caillette & Howard 2004, §3.2-3.3; ALGORITHMS.md §2).
+
+Conventions (world Z up, metres; OpenCV cameras, pixel centres at integer coordinates):
+
+* Grids. Level 0: cubic voxels of edge ``e0`` from ``lower_m`` (upper side rounded up to whole voxels, as
+  ``GridSpec``); level ``l``: edge ``e0 / 2**l``, voxel ``ijk`` has centre ``lower + (ijk + 0.5) e_l`` and children
+  ``2 ijk + {0, 1}^3``. The finest edge is exactly ``finest_voxel_m`` after
+  ``L = round(log2(extent / (start_resolution * finest_voxel_m)))`` subdivisions (2 m at 1.5 cm: 17 x 17 x 18
+  voxels of 12 cm, then 6, 3, 1.5 cm, a 136^3 finest grid).
+* Sample pattern: a voxel of edge ``e`` is read at the 8 points ``centre + (+-e/4)^3`` (its children's centres),
+  each at its nearest pixel. A view *sees* a voxel when all 8 samples fall inside its image, in front of it, with
+  finite values (NaN pixels, e.g. a dead camera frame, count as unseen). Level 0 is projected exactly (table
+  cached per rig). Below, the paper's pre-computed pattern: per level-0 voxel and camera, a quadratic fitted to
+  the exact (distorted) projections of ``centre + {-3/8 e0, 0, 3/8 e0}^3`` is re-centred on each parent and its
+  cross terms dropped, so a parent's 64 child samples are ``uv_p + f_x(dx) + f_y(dy) + f_z(dz)`` (per-axis
+  quadratics). Error against the exact projection: mean 0.02 px, max 0.11 px at level 1 (12 cm voxels, 3.5 m
+  away), 4x less per level below; the nearest pixel changes only within that distance of a pixel border.
+* Sample values: squared Mahalanobis distances to the background (YUV, 3 channels; the background model's
+  per-pixel foreground test is ``d2 > FOREGROUND_MAHALANOBIS2 = 16``), clipped at ``clip_mahalanobis2``; per view
+  the mean ``m`` and the population variance ``s`` of the 8 samples.
+* Classification (all views at once, then reduced; the same result as the paper's view-by-view order with its
+  early out): background if some seeing view has ``m < t_low`` or fewer than ``min_views`` views see the voxel;
+  else edge if some seeing view has ``s > t_var``; else foreground if every seeing view has ``m > t_high``; else
+  unknown. Edges are split into their 8 children; at the finest level an edge is kept iff every seeing view has
+  ``m >= t_finest_edge``. Unknowns take the majority of their 26 same-level neighbours that are decided
+  (foreground: kept at this or a coarser level; background: discarded); a tie goes to foreground (carving needs
+  evidence). Kept voxels stay at their level: big inside, small at the surface (EM weighs them by size^3).
+* Colours: per kept voxel and view, the mean colour of its samples with ``d2 >= t_low`` (all 8 when none is),
+  NaN where the view does not see it, in the colour space of the ``colour`` input (:func:`hull_from_images`: the
+  background model's gain-normalised YUV).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+import weakref
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.cameras import distortion
+from torchtrack.cameras.rig import MIN_DEPTH
+from torchtrack.checks import InputError, check_shape
+
+__all__ = ["HullConfig", "SparseVoxels", "hierarchical_hull", "hull_from_images"]
+
+#: Largest number of samples (cameras x voxels x 8) evaluated at once; bigger levels are processed in chunks.
+_CHUNK_SAMPLES = 1 << 22
+
+
+@dataclass(frozen=True)
+class HullConfig:
+    """Zone, resolution and thresholds of :func:`hierarchical_hull`.
+
+    Thresholds are in units of the background's squared Mahalanobis distance (3 colour channels: a background
+    pixel has d2 ~ chi-square(3), mean 3; the background model calls a pixel foreground above 16).
+
+    Attributes:
+        lower_m, upper_m: corners of the zone of interest (world, m); None: the caller fills them in.
+        start_resolution: about this many voxels along the longest axis at level 0.
+        finest_voxel_m: edge of the finest voxels (m); subdivision stops there.
+        clip_mahalanobis2: samples are clipped here (64 = 4 x 16): a sample this far from the background is
+            certainly foreground, and the variance then measures the mix of foreground and background samples,
+            not the texture of the foreground.
+        t_low: mean below it in a view -> background. 7: pure background gives about 3 (the chi-square(3)
+            mean; 8 independent samples exceed 7 with probability ~2e-4), one clipped foreground sample among 8
+            gives >= 64 / 8 = 8, so a voxel touched by foreground in every view is not carved.
+        t_high: mean above it in every seeing view -> foreground. 18: just above the per-pixel foreground
+            threshold (16), i.e. the samples are foreground on average.
+        t_var: variance above it in a view -> edge. 200: a mix of 1 clipped foreground and 7 background samples
+            has ~400-450, 4 + 4 ~900; background noise stays near 6 (chi-square(3) variance), a foreground part
+            whose samples all exceed 16 has at most (64 - 16)^2 / 4 = 576 (then it is just subdivided).
+        t_finest_edge: an edge voxel at the finest level is kept when its mean reaches this in every seeing view
+            (32 = half of the clip: about half of its samples are foreground, the voxel centre is about on the
+            silhouette).
+        min_views: fewer views seeing a voxel -> discarded. None: min(2, number of cameras).
+    """
+
+    lower_m: tuple[float, float, float] | None = None
+    upper_m: tuple[float, float, float] | None = None
+    start_resolution: int = 16
+    finest_voxel_m: float = 0.015
+    clip_mahalanobis2: float = 64.0
+    t_low: float = 7.0
+    t_high: float = 18.0
+    t_var: float = 200.0
+    t_finest_edge: float = 32.0
+    min_views: int | None = None
+
+    def __post_init__(self) -> None:
+        if (self.lower_m is None) != (self.upper_m is None):
+            raise InputError("HullConfig: give both lower_m and upper_m, or neither")
+        if self.lower_m is not None:
+            lo, up = tuple(float(v) for v in self.lower_m), tuple(float(v) for v in self.upper_m)  # lists from YAML
+            object.__setattr__(self, "lower_m", lo)
+            object.__setattr__(self, "upper_m", up)
+            if len(lo) != 3 or len(up) != 3 or not all(math.isfinite(x) and y > x for x, y in zip(lo, up)):
+                raise InputError(f"HullConfig: need 3 finite values with upper_m > lower_m, got {lo}, {up}")
+        checks = {"start_resolution >= 1": self.start_resolution >= 1, "finest_voxel_m > 0": self.finest_voxel_m > 0,
+                  "0 <= t_low < t_high < clip_mahalanobis2": 0 <= self.t_low < self.t_high < self.clip_mahalanobis2,
+                  "t_var > 0": self.t_var > 0, "min_views >= 1": self.min_views is None or self.min_views >= 1,
+                  "t_low <= t_finest_edge <= clip_mahalanobis2":
+                      self.t_low <= self.t_finest_edge <= self.clip_mahalanobis2}
+        failed = [rule for rule, ok in checks.items() if not ok]
+        if failed:
+            raise InputError(f"HullConfig: need {', '.join(failed)}; got {self}")
+
+
+@dataclass
+class SparseVoxels:
+    """Kept voxels of several sizes (N voxels, C cameras).
+
+    Attributes:
+        centres: (N, 3) world centres (m). sizes: (N,) edge lengths (m). level: (N,) int64 (0 = coarsest).
+        colours: (N, C, 3) mean sample colour per view (colour space of the input), NaN where unseen.
+        grid_lower_m, finest_voxel_m, finest_shape: the finest grid the voxels are aligned to (defaults of
+            :meth:`to_dense`).
+    """
+
+    centres: Tensor
+    sizes: Tensor
+    colours: Tensor
+    level: Tensor
+    grid_lower_m: tuple[float, float, float] | None = None
+    finest_voxel_m: float | None = None
+    finest_shape: tuple[int, int, int] | None = None
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.centres.shape[0])
+
+    def volume_m3(self) -> float:
+        """Total volume of the kept voxels."""
+        return float((self.sizes.double() ** 3).sum())
+
+    def to_dense(self, lower: tuple[float, float, float] | Tensor | None = None, voxel_size: float | None = None,
+                 shape: tuple[int, int, int] | None = None) -> Tensor:
+        """Boolean occupancy of a regular grid: cell ``ijk`` (centre ``lower + (ijk + 0.5) voxel_size``) is True
+        when its centre lies in a kept voxel (half-open cube ``[c - s/2, c + s/2)``).
+
+        Args:
+            lower, voxel_size, shape: the grid; None: the finest grid of the hull.
+
+        Returns:
+            (nx, ny, nz) bool; flattened, cell ``(i * ny + j) * nz + k`` (as ``GridSpec``).
+        """
+        lower = self.grid_lower_m if lower is None else lower
+        voxel_size = self.finest_voxel_m if voxel_size is None else voxel_size
+        shape = self.finest_shape if shape is None else shape
+        if lower is None or voxel_size is None or shape is None:
+            raise InputError("to_dense: give lower, voxel_size and shape (this SparseVoxels has no grid)")
+        dev = self.centres.device
+        out = torch.zeros(tuple(int(n) for n in shape), dtype=torch.bool, device=dev)
+        lo_m, dims = torch.as_tensor(lower, dtype=torch.float64, device=dev), torch.tensor(out.shape, device=dev)
+        half = self.sizes.double()[:, None] / 2  # (N, 1)
+        first = torch.ceil((self.centres.double() - half - lo_m) / voxel_size - 0.5).long()  # (N, 3)
+        end = torch.ceil((self.centres.double() + half - lo_m) / voxel_size - 0.5).long()  # (N, 3), exclusive
+        span = (end - first).amax(1) if self.num_voxels else end[:, 0]
+        for n in torch.unique(span).tolist():  # per cube size in cells
+            r = torch.arange(max(n, 0), device=dev)
+            cells = first[span == n][:, None] + torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(-1, 3)
+            c = cells[((cells < end[span == n][:, None]) & (cells >= 0) & (cells < dims)).all(-1)]  # (M, 3)
+            out[c[:, 0], c[:, 1], c[:, 2]] = True
+        return out
+
+
+# ---------------------------------------------------------------------------------------------- the plan
+
+
+class _Plan:
+    """What is fixed for one rig, zone and device (cached by :func:`_plan_for`).
+
+    Attributes:
+        lower, lower_t (3,) float64, e0, n0, L, C, H, W: the grids and images.
+        idx0: (C, 8, V0) int32 flat level-0 sample indices in the row-offset layout ``(v + c H) W + u`` (one flat
+            map of all cameras; 0 where unseen); sees0 (C, V0) bool; ijk0 (V0, 3) int64.
+        model: (V0, C * 2 * 13) float64 per level-0 voxel, camera and pixel coordinate: value, gradient (3) and
+            Hessian (3 x 3) w.r.t. the world offset (m) of the quadratic fitted (least squares) to the exact
+            projections of ``centre + {-h, 0, h}^3``, ``h = 3/8 e0``. model_ok: (C, V0) all 27 in front and
+            inside the distortion model's range.
+
+    Sample tables are (C, 8, V), the voxel index innermost, so ops and the 8-sample reductions run on long rows.
+    """
+
+    def __init__(self, rig: nn.Module, config: HullConfig) -> None:
+        if config.lower_m is None:
+            raise InputError("HullConfig.lower_m / upper_m (the zone of interest) must be set")
+        if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
+            raise InputError(f"hierarchical_hull needs cameras of one image size, got {rig.image_size_wh.tolist()}")
+        lo, up = config.lower_m, config.upper_m
+        extent = max(u - l for l, u in zip(lo, up))
+        self.L = max(0, round(math.log2(extent / (config.start_resolution * config.finest_voxel_m))))
+        self.e0 = config.finest_voxel_m * 2 ** self.L
+        self.n0 = [max(1, math.ceil((u - l) / self.e0 - 1e-9)) for l, u in zip(lo, up)]
+        self.n0_t = torch.tensor(self.n0, device=rig.K.device)
+        self.C = rig.num_cameras
+        self.W, self.H = (int(v) for v in rig.image_size_wh[0].tolist())
+        if self.C * self.H * self.W >= 2 ** 31:
+            raise InputError("hierarchical_hull: more than 2^31 pixels over all cameras")
+        dev = self.device = rig.K.device
+        self.lower, self.lower_t = list(lo), torch.tensor(lo, dtype=torch.float64, device=dev)
+        self.tau = torch.tensor(_TAU, dtype=torch.float64, device=dev)[:, None]  # (4, 1)
+        self.size_wh = torch.tensor([self.W, self.H], device=dev)[None, :, None, None]  # (1, 2, 1, 1)
+        self.shift = torch.stack([torch.full((self.C,), 0.5, device=dev),
+                                  torch.arange(self.C, device=dev) * self.H + 0.5], -1)[:, :, None]  # (C, 2, 1)
+        self.child = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], device=dev)[:, None]
+        self.neighbours = _NEIGHBOURS.to(dev)
+        self.corner = torch.tensor([4, 2, 1], device=dev)  # (3,) index of a child / corner of a 2 x 2 x 2 block
+        axes = [torch.arange(n, device=dev) for n in self.n0]
+        self.ijk0 = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (V0, 3)
+        self.strides = [torch.tensor([n[1] * n[2], n[2], 1], device=dev)
+                        for n in ([k * 2 ** level for k in self.n0] for level in range(self.L + 1))]
+        self.pixel0 = torch.arange(self.C, device=dev)[:, None, None] * (self.H * self.W)  # (C, 1, 1)
+        self._cast: dict[tuple[str, torch.dtype], Tensor] = {}
+        with torch.no_grad():
+            self._level0(rig)
+            self._model(rig)
+
+    def edge(self, level: int) -> float:
+        return self.e0 / 2 ** level
+
+    def as_(self, name: str, dtype: torch.dtype) -> Tensor:
+        """Attribute ``name`` cast to ``dtype`` (cached)."""
+        if (name, dtype) not in self._cast:
+            self._cast[name, dtype] = getattr(self, name).to(dtype)
+        return self._cast[name, dtype]
+
+    def _level0(self, rig: nn.Module) -> None:
+        """Exact sample pixels of every level-0 voxel (``CameraRig.project``, nearest pixel)."""
+        sign = torch.tensor([-0.25, 0.25], dtype=torch.float64, device=self.device)
+        pattern = torch.stack(torch.meshgrid(sign, sign, sign, indexing="ij"), -1).reshape(8, 1, 3)
+        uv, valid = rig.project((self.lower_t + (self.ijk0 + 0.5 + pattern) * self.e0).to(rig.K.dtype))
+        px = torch.floor(uv + 0.5).long()  # (C, 8, V0, 2)
+        idx = (px[..., 1] + torch.arange(self.C, device=self.device)[:, None, None] * self.H) * self.W + px[..., 0]
+        self.idx0 = torch.where(valid, idx, torch.zeros_like(idx)).to(torch.int32)  # (C, 8, V0)
+        self.sees0 = valid.all(1)  # (C, V0)
+        for c in range(self.C):
+            if not bool(valid[c].any()):
+                warnings.warn(f"hierarchical_hull: camera {rig.names[c]!r} sees none of the zone {self.lower} - "
+                              f"{[l + n * self.e0 for l, n in zip(self.lower, self.n0)]}; it is skipped",
+                              UserWarning, stacklevel=5)
+
+    def _model(self, rig: nn.Module) -> None:
+        """Quadratic projection model of every level-0 voxel (see the class docstring)."""
+        C, V0, h = self.C, self.ijk0.shape[0], 0.375 * self.e0
+        r = torch.tensor([-h, 0.0, h], dtype=torch.float64, device=self.device)
+        offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(27, 3)
+        pts = offs[:, None] + self.lower_t + (self.ijk0 + 0.5) * self.e0  # (27, V0, 3)
+        uv, ok = _project_unclipped(rig, pts.reshape(-1, 3).to(rig.K.dtype))  # (C, 27 V0, 2), (C, 27 V0)
+        x, y, z = offs.T
+        basis = torch.stack([torch.ones_like(x), x, y, z, x * x / 2, x * y / 2, x * z / 2, x * y / 2, y * y / 2,
+                             y * z / 2, x * z / 2, y * z / 2, z * z / 2], -1)  # (27, 13) for value, grad, Hessian
+        coef = torch.linalg.pinv(basis) @ uv.double().reshape(C, 27, V0, 2).permute(1, 0, 3, 2).reshape(27, -1)
+        self.model = coef.reshape(13, C * 2, V0).permute(2, 1, 0).reshape(V0, C * 26).contiguous()
+        self.model_ok = ok.reshape(C, 27, V0).all(1)  # (C, V0)
+
+
+def _project_unclipped(rig: nn.Module, pts: Tensor) -> tuple[Tensor, Tensor]:
+    """(N, 3) world points -> distorted pixels (C, N, 2) and ok (C, N): in front and inside the radius where the
+    distortion model is monotonic; unlike ``CameraRig.project``, not clipped to the image."""
+    cam = rig.world_to_camera(pts)  # (C, N, 3)
+    z = cam[..., 2]
+    ok = z > MIN_DEPTH
+    xy = cam[..., :2] / torch.where(ok, z, torch.ones_like(z))[..., None]  # (C, N, 2)
+    ok &= (xy * xy).sum(-1) < distortion.fold_radius_sq(rig.dist, rig.fisheye_mask)[:, None]
+    xy_d = distortion.distort(xy, rig.dist.to(xy.dtype), rig.fisheye_mask)  # (C, N, 2)
+    K = rig.K.to(xy.dtype)
+    return xy_d * torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, None, :] + K[:, None, :2, 2], ok
+
+
+_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _plan_for(rig: nn.Module, config: HullConfig) -> _Plan:
+    """The cached plan of ``rig`` and the zone (rebuilt when the rig's buffers are replaced or changed in place)."""
+    buffers = (rig.K, rig.R_cam_world, rig.t_cam_world, rig.dist, rig.image_size_wh, rig.fisheye_mask)
+    state = tuple((b.data_ptr(), b._version, b.device, b.dtype) for b in buffers)
+    key = (config.lower_m, config.upper_m, config.start_resolution, config.finest_voxel_m)
+    plans = _PLANS.setdefault(rig, {})
+    if plans.get(key, (None,))[0] != state:
+        while len(plans) >= 4:  # a few zones per rig
+            plans.pop(next(iter(plans)))
+        plans[key] = (state, _Plan(rig, config))
+    return plans[key][1]
+
+
+# -------------------------------------------------------------------------------------- sampling a level
+
+#: Per axis, the children's sample offsets from the parent centre in parent edges, index ``2 s + c`` for sample s
+#: of child c: child 0 (centre -1/4) samples at -3/8 and -1/8, child 1 (centre +1/4) at +1/8 and +3/8.
+_TAU = (-0.375, 0.125, -0.125, 0.375)
+_NEIGHBOURS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                            if (a, b, c) != (0, 0, 0)])  # (26, 3)
+_BG, _UNKNOWN, _FG, _EDGE = -1, 0, 1, 2
+
+
+def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """Sample pixels of the 8 children of every parent, from the quadratic of the parent's level-0 ancestor
+    re-centred on the parent (exact for a quadratic) without its cross terms.
+
+    Args:
+        level: the children's level (>= 1). parents: (P, 3) int64 at ``level - 1``. dtype: of the pixel arithmetic.
+
+    Returns:
+        ijk (8P, 3) int64 children (voxel ``g P + p`` is child g of parent p), idx (C, 8, 8P) int32 flat sample
+        indices (row-offset layout, clamped into the maps; meaningful where seen), sees (C, 8P) bool.
+    """
+    C, P, n0 = plan.C, parents.shape[0], plan.n0
+    e_p, b = plan.edge(level - 1), 2 ** (level - 1)
+    anc = torch.div(parents, b, rounding_mode="floor")  # (P, 3) level-0 ancestors
+    a = (anc[:, 0] * n0[1] + anc[:, 1]) * n0[2] + anc[:, 2]  # (P,)
+    delta = ((parents - anc * b + 0.5) * e_p - 0.5 * plan.e0).T.to(dtype)  # (3, P) parent centre - ancestor's
+    model = plan.as_("model", dtype).index_select(0, a).T.reshape(C, 2, 13, P).contiguous()  # (C, 2, 13, P)
+    h_delta = (model[:, :, 4:].reshape(C, 2, 3, 3, P) * delta).sum(3)  # (C, 2, 3, P) Hessian @ delta
+    grad = model[:, :, 1:4] + h_delta  # (C, 2, 3, P) at the parent centre
+    uv0 = model[:, :, 0] + ((model[:, :, 1:4] + 0.5 * h_delta) * delta).sum(2)  # (C, 2, P)
+    tau = plan.as_("tau", dtype) * e_p  # (4, 1)
+    curv = 0.5 * model[:, :, (4, 8, 12)]  # (C, 2, 3, P) half the Hessian's diagonal
+    f = grad[:, :, :, None] * tau + curv[:, :, :, None] * (tau * tau)  # (C, uv, axis, 4, P) pixel offsets
+    f = f.reshape(C, 2, 3, 2, 2, P)  # (C, uv, axis, sample, child half, P)
+    # A child is seen when the bounding box of its 8 samples lies inside the image.
+    lo = uv0[:, :, None] + _axis_sum(f.amin(3))  # (C, uv, 8, P)
+    hi = uv0[:, :, None] + _axis_sum(f.amax(3))
+    sees = ((lo >= -0.5) & (hi < plan.size_wh - 0.5)).all(1) & plan.model_ok[:, a][:, None]  # (C, 8, P)
+    base = uv0 + plan.as_("shift", dtype)  # (C, 2, P): +0.5 so that truncation rounds; camera c's rows offset by c H
+    pix = []
+    for k in range(2):  # u, v: (C, sx, sy, sz, cx, cy, cz, P)
+        fk = f[:, k]  # (C, axis, sample, child, P)
+        p = (base[:, k].reshape(C, 1, 1, 1, 1, 1, 1, P) + fk[:, 0].reshape(C, 2, 1, 1, 2, 1, 1, P)
+             + fk[:, 1].reshape(C, 1, 2, 1, 1, 2, 1, P)) + fk[:, 2].reshape(C, 1, 1, 2, 1, 1, 2, P)
+        pix.append(p.to(torch.int32))
+    idx = pix[1].mul_(plan.W).add_(pix[0]).clamp_(0, C * plan.H * plan.W - 1)
+    ijk = (plan.child + parents * 2).reshape(-1, 3)
+    return ijk, idx.reshape(C, 8, 8 * P), sees.reshape(C, 8 * P)
+
+
+def _axis_sum(g: Tensor) -> Tensor:
+    """(C, uv, 3, 2, P) per-axis values of each child half -> (C, uv, 8, P) their sum per child (cx, cy, cz)."""
+    C, _, _, _, P = g.shape
+    out = (g[:, :, 0].reshape(C, 2, 2, 1, 1, P) + g[:, :, 1].reshape(C, 2, 1, 2, 1, P)
+           + g[:, :, 2].reshape(C, 2, 1, 1, 2, P))
+    return out.reshape(C, 2, 8, P)
+
+
+# -------------------------------------------------------------------------------------- classification
+
+
+def _classify(m: Tensor, s: Tensor, sees: Tensor, config: HullConfig, min_views: int, finest: bool) -> Tensor:
+    """Per voxel label (V,) int8 (-1 background, 0 unknown, 1 foreground, 2 edge) from the per-view mean ``m``,
+    variance ``s`` and ``sees``, all (C, V); at the finest level edges become foreground or background. The
+    rules read the seeing views only: the smallest mean decides background / foreground, the largest variance
+    edges."""
+    unseen = ~sees
+    m_min = m.masked_fill(unseen, float("inf")).amin(0)  # (V,) the most background-like seeing view
+    edge = s.masked_fill(unseen, 0.0).amax(0) > config.t_var  # (V,)
+    label = (m_min > config.t_high).to(torch.int8)  # foreground or unknown
+    if finest:
+        label.masked_fill_(edge, _FG).masked_fill_(edge & (m_min < config.t_finest_edge), _BG)
+    else:
+        label.masked_fill_(edge, _EDGE)
+    return label.masked_fill_((m_min < config.t_low) | (sees.sum(0) < min_views), _BG)
+
+
+def _keys(ijk: Tensor, level: int, plan: _Plan) -> Tensor:
+    """(..., 3) integer coordinates at ``level`` -> (...,) linear keys ``(i * ny + j) * nz + k`` of its grid."""
+    return (ijk * plan.strides[level]).sum(-1)
+
+
+def _find(keys: Tensor, query: Tensor) -> tuple[Tensor, Tensor]:
+    """Look ``query`` (any shape) up in ``keys`` (N,): found (bool) and the index into ``keys`` where found."""
+    if keys.numel() == 0:
+        return torch.zeros_like(query, dtype=torch.bool), torch.zeros_like(query)
+    sorted_keys, order = torch.sort(keys)
+    pos = torch.searchsorted(sorted_keys, query).clamp_(max=keys.numel() - 1)
+    return sorted_keys[pos] == query, order[pos]
+
+
+def _ancestors(plan: _Plan, pos: Tensor, up: int) -> tuple[Tensor, Tensor]:
+    """The cells ``up`` levels coarser that contain the 26 neighbours of each cell ``pos`` (U, 3): at most 2 per
+    axis, returned as (U, 8, 3) candidates and, per neighbour, the index (U, 26) of its own among them."""
+    base = (pos - 1) >> up  # (U, 3) the ancestor of pos - (1, 1, 1)
+    own = ((pos[:, None, :] + plan.neighbours) >> up) - base[:, None, :]  # (U, 26, 3) in {0, 1}
+    return base[:, None, :] + plan.child[:, 0], (own * plan.corner).sum(-1)
+
+
+def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor, parents: Tensor | None, step: int,
+                     kept: list[tuple[int, Tensor, Tensor]]) -> Tensor:
+    """Unknown voxels (label 0) take the majority of their 26 decided same-level neighbours; tie -> foreground.
+
+    A neighbour votes foreground when it is a foreground candidate or lies in a kept coarser voxel, background
+    when it is a background candidate or neither (discarded earlier), nothing when it is an edge or unknown
+    candidate or outside the zone.
+
+    Args:
+        ijk: (V, 3) candidates of ``level``; label: (V,) int8 as :func:`_classify`. parents: (P, 3) edges of
+            ``level - 1`` whose children the candidates are, in chunks of ``step`` parents (child g of parent p
+            in the chunk from p0 is candidate ``8 p0 + g P_chunk + p - p0``); None at level 0 (the whole grid).
+        kept: (level, ijk, colours) of the kept voxels of coarser levels.
+
+    Returns:
+        (V,) int8 labels without unknowns.
+    """
+    unknown = (label == _UNKNOWN).nonzero()[:, 0]
+    if unknown.numel() == 0:
+        return label
+    pos = ijk[unknown]  # (U, 3)
+    q = pos[:, None, :] + plan.neighbours  # (U, 26, 3)
+    inside = ((q >= 0) & (q < plan.n0_t * 2 ** level)).all(-1)
+    if parents is None:
+        found, at = inside, _keys(q, 0, plan).clamp(0, label.numel() - 1)
+    else:
+        p, corner = _ancestors(plan, pos, 1)
+        found, p = (x.gather(1, corner) for x in _find(_keys(parents, level - 1, plan), _keys(p, level - 1, plan)))
+        p0 = torch.div(p, step, rounding_mode="floor") * step  # first parent of the chunk
+        at = 8 * p0 + ((q & 1) * plan.corner).sum(-1) * (parents.shape[0] - p0).clamp(max=step) + p - p0
+    vote = label[at].to(torch.int32).masked_fill_(~found, _BG)  # (U, 26): candidates' labels, else background
+    vote.masked_fill_(vote == _EDGE, 0)
+    if kept:  # cells inside a kept coarser voxel: their ancestors, in one key set over the levels
+        offset = [0] + [math.prod(plan.n0) * 8 ** k for k, _, _ in kept[:-1]]
+        offset = [sum(offset[:i + 1]) for i in range(len(kept))]  # key ranges of the levels, one after the other
+        keys = torch.cat([_keys(ijk_k, k, plan) + o for (k, ijk_k, _), o in zip(kept, offset)])
+        anc, corners = zip(*(_ancestors(plan, pos, level - k) for k, _, _ in kept))  # (U, 8, 3), (U, 26)
+        anc = torch.stack([_keys(x, k, plan) + o for x, (k, _, _), o in zip(anc, kept, offset)], -1)
+        in_kept = _find(keys, anc)[0]  # (U, 8, levels)
+        in_kept = torch.stack([in_kept[..., i].gather(1, c) for i, c in enumerate(corners)], -1).any(-1)
+        vote.masked_fill_(in_kept & ~found, _FG)
+    total = (vote * inside).sum(-1)  # (U,) foreground minus background neighbours
+    label = label.clone()
+    label[unknown] = (total >= 0).to(torch.int8) * 2 - 1  # tie -> foreground
+    return label
+
+
+def _colours(colour: Tensor, idx: Tensor, d: Tensor, sees: Tensor, t_low: float, pixel0: Tensor) -> Tensor:
+    """Mean colour of the samples, (K, C, 3): over the samples with ``d >= t_low`` (all 8 when none is), NaN where
+    unseen. colour: (C, 3, H, W); idx: (C, 8, K) row-offset sample indices ``c H W + pixel``; d: (C, 8, K)
+    clipped distances; sees: (C, K); pixel0: (C, 1, 1) ``c H W``."""
+    C, _, K = idx.shape
+    HW = colour.shape[2] * colour.shape[3]
+    w = d >= t_low
+    w = (w | ~w.any(1, keepdim=True)).to(colour.dtype)  # (C, 8, K)
+    pixel = idx.long() - pixel0  # (C, 8, K) within the camera
+    pixel.clamp_(0, HW - 1)  # unseen views (NaN below) may point anywhere
+    col = colour.reshape(C, 3, HW).gather(2, pixel.reshape(C, 1, 8 * K).expand(C, 3, 8 * K)).reshape(C, 3, 8, K)
+    mean = (col * w[:, None]).sum(2) / w.sum(1)[:, None]  # (C, 3, K)
+    return mean.masked_fill_(~sees[:, None], float("nan")).permute(2, 0, 1)
+
+
+# ------------------------------------------------------------------------------------------- the hull
+
+
+def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: HullConfig) -> SparseVoxels:
+    """Hierarchical visual hull of one frame (see the module docstring for the pattern and the rules).
+
+    Args:
+        rig: ``CameraRig`` of C cameras, all of image size W x H (the plan of rig and zone is cached).
+        mahal2: (C, H, W) squared Mahalanobis distance of every pixel to its background (NaN: no data).
+        colour: (C, 3, H, W) colour image stored per voxel (any colour space; YUV in :func:`hull_from_images`).
+        config: zone (required), resolution and thresholds.
+
+    Returns:
+        :class:`SparseVoxels` of the kept voxels (possibly none), centres and sizes in ``mahal2.dtype``.
+
+    Raises:
+        ShapeError: shapes do not fit the rig. InputError: no zone, mixed image sizes, devices, min_views > C.
+    """
+    plan = _plan_for(rig, config)
+    C, H, W = plan.C, plan.H, plan.W
+    check_shape(mahal2, (C, H, W), "mahal2")
+    check_shape(colour, (C, 3, H, W), "colour")
+    for name, x in (("mahal2", mahal2), ("colour", colour)):
+        if not x.is_floating_point() or x.device != plan.device:
+            raise InputError(f"{name}: expected a floating point tensor on {plan.device} (the rig's device), got "
+                             f"{x.dtype} on {x.device}")
+    min_views = min(2, C) if config.min_views is None else config.min_views
+    if min_views > C:
+        raise InputError(f"HullConfig.min_views = {min_views} exceeds the {C} cameras")
+    flat, dtype = mahal2.reshape(-1), mahal2.dtype
+    kept: list[tuple[int, Tensor, Tensor]] = []  # (level, ijk (K, 3), colours (K, C, 3))
+    parents, step = None, max(1, _CHUNK_SAMPLES // (64 * C))  # parents per chunk
+    for level in range(plan.L + 1):
+        many = level > 0 and parents.shape[0] > step
+        chunks = [(plan.ijk0, plan.idx0, plan.sees0)] if level == 0 else (
+            _children_samples(plan, level, parents[i:i + step], dtype) for i in range(0, parents.shape[0], step))
+        ijks, labels, stash = [], [], []
+        for ijk, idx, sees in chunks:  # (V, 3), (C, 8, V), (C, V)
+            d = flat.index_select(0, idx.reshape(-1)).reshape(idx.shape).clamp_(max=config.clip_mahalanobis2)
+            m = d.sum(1) / 8  # (C, V)
+            s = (d * d).sum(1) / 8 - m * m  # population variance of the 8 samples
+            sees = sees & torch.isfinite(m)
+            label = _classify(m, s, sees, config, min_views, level == plan.L)
+            if many:  # keep only what the colours may need
+                rows = ((label == _FG) | (label == _UNKNOWN)).nonzero()[:, 0]
+                idx, d, sees = idx.index_select(2, rows), d.index_select(2, rows), sees[:, rows]
+            ijks.append(ijk)
+            labels.append(label)
+            stash.append((idx, d, sees))
+        ijk, label = (ijks[0], labels[0]) if len(ijks) == 1 else (torch.cat(ijks), torch.cat(labels))
+        idx, d, sees = stash[0] if len(stash) == 1 else (torch.cat(x, -1) for x in zip(*stash))
+        rows = ((label == _FG) | (label == _UNKNOWN)).nonzero()[:, 0] if many else None  # the stashed voxels
+        label = _resolve_unknown(plan, level, ijk, label, parents if level else None, step, kept)
+        keep = (label == _FG).nonzero()[:, 0]  # (K,)
+        if keep.numel():
+            at = keep if rows is None else torch.searchsorted(rows, keep)
+            kept.append((level, ijk[keep], _colours(colour, idx.index_select(2, at), d.index_select(2, at),
+                                                    sees[:, at], config.t_low, plan.pixel0)))
+        parents = ijk[label == _EDGE]
+        if parents.shape[0] == 0:
+            break
+    return _assemble(plan, kept, dtype, colour.dtype)
+
+
+def _assemble(plan: _Plan, kept: list[tuple[int, Tensor, Tensor]], dtype: torch.dtype,
+              colour_dtype: torch.dtype) -> SparseVoxels:
+    dev = plan.device
+    kept = kept or [(0, torch.zeros(0, 3, dtype=torch.long, device=dev), torch.zeros(0, plan.C, 3, device=dev))]
+    centres = torch.cat([plan.lower_t + (ijk + 0.5) * plan.edge(k) for k, ijk, _ in kept])
+    sizes = torch.cat([torch.full((ijk.shape[0],), plan.edge(k), device=dev) for k, ijk, _ in kept])
+    levels = torch.cat([torch.full((ijk.shape[0],), k, dtype=torch.long, device=dev) for k, ijk, _ in kept])
+    colours = torch.cat([c for _, _, c in kept])
+    n_fine = tuple(n * 2 ** plan.L for n in plan.n0)
+    return SparseVoxels(centres.to(dtype), sizes.to(dtype), colours.to(colour_dtype), levels, tuple(plan.lower),
+                        plan.edge(plan.L), n_fine)
+
+
+def hull_from_images(rig: nn.Module, background: nn.Module, images: Tensor, config: HullConfig) -> SparseVoxels:
+    """:func:`hierarchical_hull` of one frame of RGB images ``(C, 3, H, W)`` in [0, 1] against a
+    :class:`~torchtrack.background.BackgroundModel` (its ``mahalanobis2`` and ``normalise``); the voxel colours
+    are the model's gain-normalised YUV."""
+    C, W, H = rig.num_cameras, *(int(v) for v in rig.image_size_wh[0].tolist())
+    check_shape(images, (C, 3, H, W), "images")
+    mahal2 = background.mahalanobis2(images[None])[0]  # (C, H, W)
+    return hierarchical_hull(rig, mahal2, background.normalise(images[None])[0], config)
