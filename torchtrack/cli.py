@@ -17,6 +17,7 @@ from torchtrack.checks import InputError
 COMMAND_MODULES = (
     "torchtrack.synth.cli",
     "torchtrack.cameras.cli",
+    "torchtrack.occupancy.cli",
 )
 
 

@@ -1,0 +1,97 @@
+"""`torchtrack observe`: 3D occupancy of a sequence (Bayesian grid, hull or silhouette carving) with
+TensorBoard logs and a sparse ``occupancy.npz``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("observe", help="3D occupancy of a sequence folder, logged to TensorBoard",
+                       description="Compute per-frame occupancy of a sequence folder and write OUT/occupancy.npz "
+                                   "(occupied voxel centres and sizes per frame) and TensorBoard logs in OUT/tb.")
+    p.add_argument("seq", type=Path, help="sequence folder (calibration.toml, video/ or frames/)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--model", choices=("bayes", "hull", "silhouette"), default="bayes")
+    p.add_argument("--voxel", type=float, default=0.02, help="voxel size in metres (the hull's finest level)")
+    p.add_argument("--scale", type=float, default=1.0, help="process the images at this fraction of their size")
+    p.add_argument("--window", type=int, default=1, help="Bayesian grid: k of the k x k sampling window")
+    p.add_argument("--min-views", type=int, default=None, help="cameras that must see a voxel (default: all)")
+    p.add_argument("--start", type=int, default=0)
+    p.add_argument("--stop", type=int, default=None)
+    p.add_argument("--batch", type=int, default=4, help="frames per batch (Bayesian grid, silhouettes)")
+    p.add_argument("--log-every", type=int, default=10, help="log the point cloud and images every N frames")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+    from tqdm import tqdm
+
+    from torchtrack.background import BackgroundModel
+    from torchtrack.io.atomic import atomic_path
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.logging import RunLogger
+    from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, grid_from_rig,
+                                      hull_from_images)
+
+    torch.set_grad_enabled(False)
+    device = torch.device(args.device)
+    folder = SequenceFolder(args.seq)
+    full = folder.rig
+    W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
+    rig = full.resized(W, H).float().to(device)
+    bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
+    spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)
+    if args.model == "bayes":
+        model = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views)).to(device)
+    elif args.model == "silhouette":
+        model = SilhouetteCarving(rig, spec, bg, min_views=args.min_views).to(device)
+    else:
+        hull_cfg = HullConfig(lower_m=spec.lower_m, upper_m=spec.upper_m, finest_voxel_m=args.voxel,
+                              min_views=args.min_views)
+    centres_all = spec.centres(device=device)
+    stop = folder.num_frames if args.stop is None else min(args.stop, folder.num_frames)
+    frames_out, centres_out, sizes_out = [], [], []
+    args.out.mkdir(parents=True, exist_ok=True)
+    with RunLogger(args.out / "tb") as tb, tqdm(total=stop - args.start, unit="frame", desc="observe") as bar:
+        for batch in folder.iter_batches(args.batch, args.start, stop, device=device, size_wh=(W, H)):
+            t0 = time.perf_counter()
+            if args.model == "hull":
+                results = [hull_from_images(rig, bg, img, hull_cfg) for img in batch.images]
+                per_frame = [(v.centres, v.sizes) for v in results]
+            else:
+                occ = model(batch.images).occupied()  # (B, V)
+                per_frame = [(centres_all[o], torch.full((int(o.sum()),), spec.voxel_size_m, device=device))
+                             for o in occ]
+            ms = 1e3 * (time.perf_counter() - t0) / len(per_frame)
+            for i, (c, s) in enumerate(per_frame):
+                t = int(batch.frame_index[i])
+                frames_out.append(t)
+                centres_out.append(c.cpu().float().numpy())
+                sizes_out.append(s.cpu().float().numpy())
+                tb.scalars(t, voxels=float(c.shape[0]), volume_m3=float((s ** 3).sum()), ms_per_frame=ms,
+                           cameras_unreadable=float((~batch.valid[i]).sum()))
+                if (t - args.start) % args.log_every == 0:
+                    tb.occupancy_cloud(t, "occupancy/voxels", c)
+                    fg = torch.sigmoid(bg.log_uniform - bg.log_likelihood(batch.images[i:i + 1]))[0]  # (C, H, W)
+                    tb.probability_images(t, "foreground/probability", torch.nan_to_num(fg, nan=0.0), rig.names)
+                    tb.camera_images(t, "cameras/input", torch.nan_to_num(batch.images[i], nan=0.0), rig.names)
+            bar.update(len(per_frame))
+    offsets = np.cumsum([0] + [len(c) for c in centres_out])
+    with atomic_path(args.out / "occupancy.npz", suffix=".npz") as tmp:
+        np.savez_compressed(tmp, frame_index=np.asarray(frames_out, np.int64), frame_offsets=offsets,
+                            centres=np.concatenate(centres_out) if centres_out else np.zeros((0, 3), np.float32),
+                            sizes=np.concatenate(sizes_out) if sizes_out else np.zeros((0,), np.float32),
+                            grid_lower_m=np.asarray(spec.lower_m), grid_upper_m=np.asarray(spec.upper_m),
+                            voxel_size_m=np.float64(spec.voxel_size_m), model=np.asarray(args.model))
+    print(f"wrote {args.out / 'occupancy.npz'} ({len(frames_out)} frames, mean "
+          f"{offsets[-1] / max(1, len(frames_out)):.0f} voxels) and TensorBoard logs in {args.out / 'tb'}")
+    return 0
