@@ -31,6 +31,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import torch
+
+    with torch.no_grad():
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
     from tqdm import tqdm
@@ -42,7 +49,6 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, grid_from_rig,
                                       hull_from_images)
 
-    torch.set_grad_enabled(False)
     device = torch.device(args.device)
     folder = SequenceFolder(args.seq)
     full = folder.rig

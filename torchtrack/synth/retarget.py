@@ -137,17 +137,18 @@ def _fit(skel: Skeleton, theta0: torch.Tensor, target: torch.Tensor, joint_idx: 
     lower, upper = skel.lower.double(), skel.upper.double()
     theta = theta0.detach().clone().requires_grad_(True)
     opt = torch.optim.Adam([theta], lr=lr)
-    for it in range(iterations):
-        opt.zero_grad()
-        pred = skel(theta).joints[:, joint_idx]  # (T, n, 3)
-        loss = ((pred - target) ** 2).sum(-1).mean() + rest_weight * ((theta[:, 6:] - rest[6:]) ** 2).mean()
-        loss.backward()
-        opt.step()
-        with torch.no_grad():
-            theta.copy_(torch.clamp(theta, lower, upper))
-        if it == iterations // 2:
-            for group in opt.param_groups:
-                group["lr"] = lr / 3
+    with torch.enable_grad():  # also when the caller runs under no_grad
+        for it in range(iterations):
+            opt.zero_grad()
+            pred = skel(theta).joints[:, joint_idx]  # (T, n, 3)
+            loss = ((pred - target) ** 2).sum(-1).mean() + rest_weight * ((theta[:, 6:] - rest[6:]) ** 2).mean()
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                theta.copy_(torch.clamp(theta, lower, upper))
+            if it == iterations // 2:
+                for group in opt.param_groups:
+                    group["lr"] = lr / 3
     return theta.detach()
 
 
