@@ -123,6 +123,9 @@ class BackgroundModel(nn.Module):
         self.camera_names = _camera_names(camera_names, mean_yuv.shape[0])
         self.register_buffer("mean_yuv", mean_yuv)
         self.register_buffer("std_yuv", std_yuv)
+        # derived once, used every frame: 1 / std and the Gaussian's log normaliser (C, H, W)
+        self.register_buffer("inv_std_yuv", 1.0 / std_yuv, persistent=False)
+        self.register_buffer("log_norm", std_yuv.log().sum(1) + 1.5 * math.log(2 * math.pi), persistent=False)
 
     # ------------------------------------------------------------------------------------------ estimation
 
@@ -279,9 +282,10 @@ class BackgroundModel(nn.Module):
         compensation), directly comparable with :attr:`log_uniform`. NaN where the image is NaN or dead.
         """
         yuv, g, _ = self._normalise(images)
-        mean, std = self._params(yuv)
-        d2 = ((yuv - mean) / std).square().sum(2)  # (B, C, H, W)
-        log_norm = std.log().sum(1) + 1.5 * math.log(2 * math.pi)  # (C, H, W)
+        mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
+        inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
+        d2 = ((yuv - mean) * inv_std).square().sum(2)  # (B, C, H, W)
+        log_norm = self.log_norm.to(device=yuv.device, dtype=yuv.dtype)  # (C, H, W)
         return -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
 
     def extra_repr(self) -> str:

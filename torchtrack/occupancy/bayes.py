@@ -83,12 +83,10 @@ def pixel_log_ratio(log_bg: torch.Tensor, log_uniform: float, config: BayesConfi
         (...) the log ratio; NaN stays NaN (unreadable pixels).
     """
     f1, f0 = config.detection_probabilities()
-    lu = torch.full_like(log_bg, log_uniform)
-
-    def log_p(pf: float) -> torch.Tensor:  # log( pf U + (1 - pf) N ), stable
-        return torch.logaddexp(lu + math.log(pf), log_bg + math.log1p(-pf))
-
-    return log_p(f1) - log_p(f0)
+    # log(f U + (1 - f) N) = log U + log f + softplus(x + log((1 - f) / f)), x = log N - log U
+    x = log_bg - log_uniform
+    return (math.log(f1 / f0) + F.softplus(x + math.log((1 - f1) / f1))
+            - F.softplus(x + math.log((1 - f0) / f0)))
 
 
 def window_sum(x: torch.Tensor, k: int) -> torch.Tensor:
@@ -166,6 +164,5 @@ class BayesianGrid(nn.Module):
             :class:`Occupancy` with log_odds (B, V).
         """
         ev = self.evidence(images)  # (B, C, H, W)
-        per_cam = self.lookup.gather(ev)  # (B, C, V)
         prior = math.log(self.config.prior / (1 - self.config.prior))
-        return Occupancy(per_cam.sum(dim=1) + prior, self.observed, self.spec)
+        return Occupancy(self.lookup.gather_sum(ev) + prior, self.observed, self.spec)

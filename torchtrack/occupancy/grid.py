@@ -104,10 +104,13 @@ class VoxelLookup(nn.Module):
         pixel_index: (C, V) int64 flat index ``v * W + u`` of the nearest pixel into that camera's (H, W)
             image, or -1 where the centre is behind the camera or outside the image.
         num_views: (V,) int64 number of cameras that see the voxel centre.
+        flat_index: (C * V,) int64 index into the concatenation of all cameras' (H * W) pixels plus one
+            trailing "fill" entry, which unseen voxels point to (one gather per voxel and camera, no masking).
     """
 
     pixel_index: torch.Tensor
     num_views: torch.Tensor
+    flat_index: torch.Tensor
 
     def __init__(self, rig: nn.Module, spec: GridSpec, chunk: int = 1 << 20) -> None:
         super().__init__()
@@ -123,6 +126,13 @@ class VoxelLookup(nn.Module):
             index[:, s:s + chunk] = torch.where(valid, flat, torch.full_like(flat, -1))
         self.register_buffer("pixel_index", index)
         self.register_buffer("num_views", (index >= 0).sum(dim=0))
+        HW = int(wh[0, 0] * wh[0, 1])
+        if bool((wh[:, 0] * wh[:, 1] != HW).any()):
+            raise InputError("VoxelLookup needs one image size for all cameras; got "
+                             + ", ".join(f"{n} {tuple(s.tolist())}" for n, s in zip(rig.names, wh)))
+        offsets = torch.arange(C, device=index.device)[:, None] * HW  # (C, 1)
+        self.register_buffer("flat_index", torch.where(index >= 0, index + offsets, C * HW).reshape(-1),
+                             persistent=False)
         for c in range(C):
             if not bool((index[c] >= 0).any()):
                 log.warning("camera %s sees none of the voxel grid %s-%s", rig.names[c], spec.lower_m, spec.upper_m)
@@ -137,7 +147,9 @@ class VoxelLookup(nn.Module):
             (B, C, V), ``fill`` where the camera does not see the voxel.
         """
         B, C = per_pixel.shape[:2]
-        flat = per_pixel.reshape(B, C, -1)
-        idx = self.pixel_index.clamp(min=0)  # (C, V)
-        out = torch.gather(flat, 2, idx.unsqueeze(0).expand(B, -1, -1))
-        return out.masked_fill((self.pixel_index < 0).unsqueeze(0), fill)
+        flat = torch.cat([per_pixel.reshape(B, -1), per_pixel.new_full((B, 1), fill)], dim=1)  # (B, C*H*W + 1)
+        return flat[:, self.flat_index].view(B, C, -1)
+
+    def gather_sum(self, per_pixel: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) -> (B, V): the sum over cameras of the values at each voxel's pixel (0 where unseen)."""
+        return self.gather(per_pixel, fill=0.0).sum(dim=1)
