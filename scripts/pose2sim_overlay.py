@@ -25,6 +25,7 @@ import torch
 
 from torchtrack.cameras import load_calibration
 from torchtrack.io.atomic import atomic_path
+from torchtrack.io.trc import read_trc
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = (REPO / ".." / "shared" / "data" / "pose2sim_demo").resolve()
@@ -41,15 +42,6 @@ BONES = [
     ("Neck", "RShoulder", RIGHT), ("RShoulder", "RElbow", RIGHT), ("RElbow", "RWrist", RIGHT),
     ("Neck", "LShoulder", LEFT), ("LShoulder", "LElbow", LEFT), ("LElbow", "LWrist", LEFT),
 ]
-
-
-def read_trc(path: Path) -> tuple[list[str], np.ndarray]:
-    """Minimal TRC reader (private to this script): marker names and ``(T, M, 3)`` positions as stored."""
-    lines = path.read_text().splitlines()
-    names = [n for n in lines[3].split("\t")[2:] if n.strip()]
-    rows = [line.split("\t") for line in lines[5:] if line.strip()]
-    data = np.array([[float(v) for v in row[2:2 + 3 * len(names)]] for row in rows])
-    return names, data.reshape(len(rows), len(names), 3)
 
 
 def read_frame(video: Path, index: int) -> np.ndarray:
@@ -109,7 +101,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     rig = load_calibration(args.data / "calibration" / args.calibration, dtype=torch.float64)
-    names, xyz = read_trc(args.data / TRC)
+    trc = read_trc(args.data / TRC)
+    names, xyz = trc.marker_names, trc.positions
     world = torch.from_numpy(xyz[args.frame][:, [2, 0, 1]].copy())  # TRC Y-up -> world Z-up, (21, 3)
     pelvis = (world[names.index("RHip")] + world[names.index("LHip")]) / 2
     world = torch.cat([world, pelvis[None]])

@@ -21,6 +21,7 @@ from torchtrack.background import (
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
+from torchtrack.io.trc import read_trc
 
 # kornia.color.rgb_to_yuv (BT.470 M/PAL), written out: yuv = M_YUV @ rgb.
 M_YUV = np.array([[0.299, 0.587, 0.114],
@@ -392,15 +393,6 @@ P2S_SIZE_WH = (272, 480)  # a quarter of the calibrated 1088 x 1920
 P2S_SCALE = 0.25
 
 
-def _read_trc(path: Path) -> tuple[list[str], np.ndarray]:
-    """Marker names and (T, M, 3) positions as stored (TRC is Y up)."""
-    lines = path.read_text().splitlines()
-    names = [n for n in lines[3].split("\t")[2:] if n.strip()]
-    rows = [line.split("\t") for line in lines[5:] if line.strip()]
-    data = np.array([[float(v) for v in row[2:2 + 3 * len(names)]] for row in rows])
-    return names, data.reshape(len(rows), len(names), 3)
-
-
 @pytest.fixture(scope="module")
 def pose2sim(tmp_path_factory):
     """The real pose2sim demo as a sequence folder without background/, its model, frame 50 and the reference
@@ -417,7 +409,8 @@ def pose2sim(tmp_path_factory):
     padded = [str(w.message) for w in caught if issubclass(w.category, DataWarning) and "padding" in str(w.message)]
     model = BackgroundModel.from_folder(folder, BackgroundConfig(max_frames=12), size_wh=P2S_SIZE_WH)
     frame = folder.read_frame(50, size_wh=P2S_SIZE_WH)[None]  # (1, C, 3, H, W)
-    names, xyz = _read_trc(src / "reference_3d" / "S00_P00_T01_BalancingTrial_0-100.trc")
+    trc = read_trc(src / "reference_3d" / "S00_P00_T01_BalancingTrial_0-100.trc")
+    names, xyz = trc.marker_names, trc.positions
     world = torch.from_numpy(xyz[50][:, [2, 0, 1]].copy())  # TRC Y up -> world Z up: (Z', X', Y')
     uv, _ = folder.rig.project(world.to(folder.rig.K.dtype))  # (C, M, 2) at the calibrated size
     uv = (uv + 0.5) * P2S_SCALE - 0.5  # pixel centres at integers (INTER_AREA by 4)

@@ -17,23 +17,15 @@ import torch
 from conftest import shared_data
 
 from torchtrack.cameras import load_calibration
+from torchtrack.io.trc import read_trc, y_up_to_world
 
 DOWNSCALE = 4  # motion analysis at 1/4 resolution
 FRAMES = (0, 20, 40, 60, 80, 99)
 
 
-def _read_trc(path: Path) -> tuple[list[str], np.ndarray]:
-    """Minimal TRC reader (private to this test): marker names and ``(T, M, 3)`` positions as stored."""
-    lines = path.read_text().splitlines()
-    names = [n for n in lines[3].split("\t")[2:] if n.strip()]
-    rows = [line.split("\t") for line in lines[5:] if line.strip()]
-    data = np.array([[float(v) for v in row[2:2 + 3 * len(names)]] for row in rows])
-    return names, data.reshape(len(rows), len(names), 3)
-
-
 def _trc_to_world(xyz: np.ndarray) -> torch.Tensor:
     """TRC is Y-up: world (Z up) = (Z', X', Y')."""
-    return torch.from_numpy(xyz[..., [2, 0, 1]].copy())
+    return torch.from_numpy(y_up_to_world(xyz))
 
 
 def _motion_box(video: Path) -> tuple[tuple[int, int, int, int], tuple[int, int]]:
@@ -72,7 +64,8 @@ def boxes():
 def scene(request, boxes):
     """Both calibrations of the rig: Pose2Sim's TOML (cameras cam_0N) and the Qualisys export (cam0N)."""
     rig = load_calibration(shared_data("pose2sim_demo", "calibration", request.param), dtype=torch.float64)
-    names, xyz = _read_trc(shared_data("pose2sim_demo", "reference_3d", "S00_P00_T01_BalancingTrial_0-100.trc"))
+    trc = read_trc(shared_data("pose2sim_demo", "reference_3d", "S00_P00_T01_BalancingTrial_0-100.trc"))
+    names, xyz = trc.marker_names, trc.positions
     return rig, names, xyz, {cam: boxes[cam.replace("_", "")] for cam in rig.names}
 
 
