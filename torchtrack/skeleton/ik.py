@@ -55,9 +55,11 @@ class CCDSolver(nn.Module):
         skeleton: the body chain.
         goal_joints: names from ``Skeleton.joint_names`` that get goals.
         config: damping and sweeps.
+        dofs: the DOFs to solve (default: every non-root DOF); the others keep their values.
     """
 
-    def __init__(self, skeleton: Skeleton, goal_joints: Sequence[str], config: CCDConfig = CCDConfig()) -> None:
+    def __init__(self, skeleton: Skeleton, goal_joints: Sequence[str], config: CCDConfig = CCDConfig(),
+                 dofs: Sequence[str] | None = None) -> None:
         super().__init__()
         self.skeleton, self.config = skeleton, config
         unknown = [g for g in goal_joints if g not in JOINT_FRAMES]
@@ -82,7 +84,9 @@ class CCDSolver(nn.Module):
                 link = children[link][0]
             return link
 
-        self.dofs = tuple(d for d in skeleton.dof_names if d not in ROOT_DOFS)
+        self.dofs = tuple(d for d in skeleton.dof_names if d not in ROOT_DOFS and (dofs is None or d in dofs))
+        if dofs is not None and len(self.dofs) != len(set(dofs)):
+            raise InputError(f"CCD dofs must be non-root DOFs of the skeleton; got {list(dofs)}")
         D, G = len(self.dofs), len(self.goal_joints)
         weight = torch.zeros(D, G)  # lambda_j, 0 where goal j is not below DOF i
         dof_below = torch.zeros(D, D, dtype=torch.bool)  # [i, k]: DOF k lies in DOF i's subtree
