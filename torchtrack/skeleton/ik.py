@@ -8,8 +8,8 @@ currently at Q_j with goal G_j, p = Q_j - P and g = G_j - P:
     theta_i <- clamp(theta_i + eta * delta, theta_min, theta_max)                 (eq. 16)
 
 Joints are visited from the leaves to the root. After each joint's step its whole subtree (goal joints,
-the positions and axes of the joints below) is rotated about its axis in closed form, so one sweep costs
-one forward kinematics (to re-synchronise) plus a few tensor ops per joint, for all B problems at once.
+the positions and axes of the joints below) is rotated about its axis in closed form: one forward kinematics
+at the start, then a few tensor ops per joint and sweep, for all B problems at once.
 Root translation and rotation are left to the caller (the tracker fits them to the trunk first).
 """
 
@@ -110,6 +110,8 @@ class CCDSolver(nn.Module):
         self.register_buffer("weight", weight, persistent=False)
         self.register_buffer("dof_below", dof_below, persistent=False)
         self.register_buffer("dof_index", skeleton.dof_index(self.dofs), persistent=False)
+        self._state_index = self.dof_index.tolist()  # python ints: no device sync inside the sweeps
+        self._dofs_below = [dof_below[i].nonzero()[:, 0].tolist() for i in range(D)]
         self.register_buffer("dof_frame", skeleton.frame_index([child_of[d] for d in self.dofs]), persistent=False)
         self.register_buffer("goal_frame", skeleton.frame_index(list(self.goal_joints)), persistent=False)
 
@@ -139,12 +141,12 @@ class CCDSolver(nn.Module):
         upper = skel.upper.to(dev, dt)[self.dof_index.to(dev)]
         axes_local = skel.axes_local.to(dev, dt)[self.dof_index.to(dev)]  # (D, 3)
         eta = self.config.damping
+        T = skel.forward_frames(theta)  # (B, F, 4, 4): one FK; the sweeps then update the chain in closed form
+        Tq = T[:, self.dof_frame.to(dev)]  # (B, D, 4, 4)
+        base = Tq[..., :3, 3].clone()  # (B, D, 3)
+        axis = torch.einsum("bdij,dj->bdi", Tq[..., :3, :3], axes_local)  # (B, D, 3)
+        q = T[:, self.goal_frame.to(dev), :3, 3].clone()  # (B, G, 3) current goal-joint positions
         for _ in range(self.config.sweeps):
-            T = skel.forward_frames(theta)  # (B, F, 4, 4)
-            Tq = T[:, self.dof_frame.to(dev)]  # (B, D, 4, 4)
-            base = Tq[..., :3, 3]  # (B, D, 3)
-            axis = torch.einsum("bdij,dj->bdi", Tq[..., :3, :3], axes_local)  # (B, D, 3)
-            q = T[:, self.goal_frame.to(dev), :3, 3]  # (B, G, 3) current goal-joint positions
             for i in self.order:
                 w, P = axis[:, i], base[:, i]  # (B, 3)
                 li = lam[:, i]  # (B, G)
@@ -163,7 +165,7 @@ class CCDSolver(nn.Module):
                 lj = torch.where(sines > 1e-2, li * sines, 0.0)
                 total = lj.sum(-1)
                 step = torch.where(total > 1e-12, (lj * delta).sum(-1) / total.clamp(min=1e-12), 0.0)
-                k = int(self.dof_index[i])
+                k = self._state_index[i]
                 new = torch.clamp(theta[:, k] + eta * step, lower[i], upper[i])  # eq. 16
                 applied = new - theta[:, k]
                 theta[:, k] = new
@@ -171,8 +173,8 @@ class CCDSolver(nn.Module):
                 below_g = li > 0  # (B, G) goals under this joint (weight > 0)
                 moved = _rotate(q - P[:, None], w, applied) + P[:, None]
                 q = torch.where(below_g[..., None], moved, q)
-                mask = self.dof_below[i].to(dev)  # (D,)
-                if bool(mask.any()):
-                    base[:, mask] = _rotate(base[:, mask] - P[:, None], w, applied) + P[:, None]
-                    axis[:, mask] = _rotate(axis[:, mask], w, applied)
+                below = self._dofs_below[i]  # python list of DOF positions in this joint's subtree
+                if below:
+                    base[:, below] = _rotate(base[:, below] - P[:, None], w, applied) + P[:, None]
+                    axis[:, below] = _rotate(axis[:, below], w, applied)
         return theta
