@@ -84,23 +84,18 @@ def main() -> None:
         spec = grid_from_rig(rig, args.voxel, min_views=3)
         grid = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=3))
         centres = spec.centres()
-        shares, phantoms = [], []
-        best = (-1.0, 0)
+        shares, phantoms, hits = [], [], []  # hits: (T, 21) keypoint within the radius
         for s in range(0, frames.shape[0], 10):
             occ = grid(frames[s:s + 10]).occupied()  # (b, V)
             for i in range(occ.shape[0]):
                 t = s + i
                 pts = centres[occ[i]].numpy()
-                if len(pts) == 0:
-                    shares.append(0.0)
-                    continue
-                d, _ = cKDTree(pts).query(ref[t])
-                shares.append(float((d <= args.radius).mean()))
+                near = cKDTree(pts).query(ref[t])[0] <= args.radius if len(pts) else np.zeros(len(names), bool)
+                hits.append(near)
+                shares.append(float(near.mean()))
                 kp_vox, inside = spec.index_of(torch.from_numpy(ref[t]).float())
                 phantoms.append(components_without_keypoints(occ[i].reshape(spec.shape).numpy(),
                                                              kp_vox[inside].numpy(), args.voxel))
-                if shares[-1] > best[0]:
-                    best = (shares[-1], t)
         elapsed = time.perf_counter() - t0
         shares_a = np.array(shares)
         largest = max((max(p) if p else 0.0) for p in phantoms)
@@ -109,24 +104,13 @@ def main() -> None:
         print(f"  keypoints within {args.radius * 100:.0f} cm of an occupied voxel: mean {shares_a.mean():.3f}, "
               f"worst frame {shares_a.min():.3f} (frame {int(shares_a.argmin())}), frames with >= 90 %: "
               f"{(shares_a >= 0.9).mean():.2f}")
-        print(f"  per keypoint over frames: " + ", ".join(
-            f"{n} {v:.2f}" for n, v in zip(names, _per_keypoint(grid, frames, ref, centres, args.radius))))
+        print("  per keypoint over frames: " + ", ".join(
+            f"{n} {v:.2f}" for n, v in zip(names, np.mean(hits, axis=0))))
         print(f"  largest component without a keypoint: {largest:.2f} m across")
         t = int(shares_a.argmin())
         occ = grid(frames[t:t + 1]).occupied()[0]
         picture(args.picture, folder, rig, centres[occ], t)
         print(f"  wrote {args.picture} (frame {t})")
-
-
-def _per_keypoint(grid, frames, ref, centres, radius) -> np.ndarray:
-    hits = np.zeros(ref.shape[1])
-    for t in range(0, frames.shape[0], 5):
-        occ = grid(frames[t:t + 1]).occupied()[0]
-        pts = centres[occ].numpy()
-        if len(pts):
-            d, _ = cKDTree(pts).query(ref[t])
-            hits += d <= radius
-    return hits / len(range(0, frames.shape[0], 5))
 
 
 if __name__ == "__main__":

@@ -104,3 +104,11 @@ def test_cli_synth(tmp_path, capsys):
     assert (tmp_path / "c" / "video" / "cam1.mp4").is_file()
     assert main(["synth", "--out", str(tmp_path / "d"), "--size", "big"]) == 2
     assert "--size" in capsys.readouterr().err
+
+
+def test_saved_calibration_keeps_the_float64_rig(seq):
+    """The renderer works in float32 on its own copy; the calibration written is the float64 ring rig."""
+    saved = load_calibration(seq / "calibration.toml", dtype=torch.float64)
+    ring = make_ring_rig(RigConfig(num_cameras=3, width=96, height=72))
+    torch.testing.assert_close(saved.R_cam_world, ring.R_cam_world, atol=1e-12, rtol=0)
+    torch.testing.assert_close(saved.t_cam_world, ring.t_cam_world, atol=1e-12, rtol=0)

@@ -236,10 +236,6 @@ class BackgroundModel(nn.Module):
             raise ShapeError(f"images: shape {tuple(images.shape)} (B, C, 3, H, W) does not fit the background "
                              f"model's {C} cameras of {H}x{W} (HxW), i.e. (B, {C}, 3, {H}, {W})")
 
-    def _params(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return (self.mean_yuv.to(device=images.device, dtype=images.dtype),
-                self.std_yuv.to(device=images.device, dtype=images.dtype))
-
     def gain(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C) robust global gain vs the background (clamped, see the module doc); 1
         when ``compensate_gain`` is off; NaN for a dead frame (all NaN or black) or one without usable pixels."""
@@ -271,9 +267,14 @@ class BackgroundModel(nn.Module):
     def mahalanobis2(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) squared Mahalanobis distance to each pixel's background,
         ``sum_k ((I_k / g - mean_k) / std_k)^2`` over Y, U, V. NaN where the image is NaN or the frame dead."""
-        yuv, _, _ = self._normalise(images)
-        mean, std = self._params(yuv)
-        return ((yuv - mean) / std).square().sum(2)  # (B, C, H, W)
+        return self.mahalanobis2_yuv(self._normalise(images)[0])
+
+    def mahalanobis2_yuv(self, yuv: torch.Tensor) -> torch.Tensor:
+        """(..., C, 3, H, W) YUV from :meth:`normalise` -> (..., C, H, W) squared Mahalanobis distance (lets a
+        caller that needs both the colours and the distances convert and gain-correct once)."""
+        mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
+        inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
+        return ((yuv - mean) * inv_std).square().sum(-3)
 
     def log_likelihood(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.

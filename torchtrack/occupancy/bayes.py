@@ -134,15 +134,11 @@ class BayesianGrid(nn.Module):
     def __init__(self, rig: nn.Module, spec: GridSpec, background: nn.Module, config: BayesConfig = BayesConfig()
                  ) -> None:
         super().__init__()
-        sizes = rig.image_size_wh
-        if not bool((sizes == sizes[0]).all()):
-            raise InputError("the Bayesian grid needs one image size for all cameras; got "
-                             + ", ".join(f"{n} {tuple(s.tolist())}" for n, s in zip(rig.names, sizes)))
         self.config = config
         self.spec = spec
         self.camera_names = list(rig.names)
-        self.image_size_wh = tuple(int(v) for v in sizes[0])
-        self.lookup = VoxelLookup(rig, spec)
+        self.lookup = VoxelLookup(rig, spec)  # checks that all cameras share one image size
+        self.image_size_wh = tuple(int(v) for v in rig.image_size_wh[0])
         self.background = background
         need = rig.num_cameras if config.min_views is None else config.min_views
         self.register_buffer("observed", self.lookup.num_views >= need, persistent=False)

@@ -6,6 +6,7 @@ Voxel ``v`` of a grid of shape (nx, ny, nz) has integer coordinates (ix, iy, iz)
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import dataclass
@@ -81,7 +82,7 @@ def grid_from_rig(rig: nn.Module, voxel_size_m: float, floor_z_m: float = 0.0, t
     pts = torch.stack([gx, gy, torch.full_like(gx, floor_z_m)], -1).reshape(-1, 3)  # (n*n, 3)
     top = pts.clone()
     top[:, 2] = top_z_m
-    rig64 = rig.double() if hasattr(rig, "double") else rig
+    rig64 = copy.deepcopy(rig).double()  # nn.Module.double() works in place: never convert the caller's rig
     _, v0 = rig64.project(pts.to(rig64.K.device))
     _, v1 = rig64.project(top.to(rig64.K.device))
     seen = (v0 & v1).sum(dim=0).cpu() >= need  # (n*n,)

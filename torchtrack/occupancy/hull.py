@@ -531,6 +531,4 @@ def hull_from_images(rig: nn.Module, background: nn.Module, images: Tensor, conf
     C, W, H = rig.num_cameras, *(int(v) for v in rig.image_size_wh[0].tolist())
     check_shape(images, (C, 3, H, W), "images")
     yuv = background.normalise(images[None])[0]  # (C, 3, H, W), YUV and gain computed once
-    mean = background.mean_yuv.to(yuv)
-    mahal2 = ((yuv - mean) * background.inv_std_yuv.to(yuv)).square().sum(1)  # (C, H, W), as mahalanobis2
-    return hierarchical_hull(rig, mahal2, yuv, config)
+    return hierarchical_hull(rig, background.mahalanobis2_yuv(yuv), yuv, config)

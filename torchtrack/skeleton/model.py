@@ -118,9 +118,7 @@ class Skeleton(nn.Module):
                    if f not in self.frame_names]
         if missing:
             raise InputError(f"{source}: the body URDF lacks links {sorted(set(missing))}")
-        idx = {n: i for i, n in enumerate(chain.get_all_frame_indices().tolist())}
-        name_to_index = {chain.idx_to_frame[i]: i for i in idx}
-        self._frame_index = name_to_index
+        self._frame_index = {chain.idx_to_frame[i]: i for i in chain.get_all_frame_indices().tolist()}
         self.landmark_names: tuple[str, ...] = LANDMARKS
         self.bone_names: tuple[str, ...] = tuple(BONE_ENDS)
         self.joint_names: tuple[str, ...] = JOINT_FRAMES

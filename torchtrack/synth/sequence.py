@@ -8,6 +8,7 @@ The folder appears atomically when everything is written.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import asdict, dataclass, field
@@ -151,7 +152,9 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
     skel, angles = motion_angles(cfg, Skeleton.from_urdf())
     blobs = BlobModel.from_config(skel)
     rig = make_ring_rig(cfg.rig)
-    renderer = SceneRenderer(rig.float().to(device), cfg.scene).to(device)
+    # .float() and .to() convert a module in place: the renderer gets its own copy, the saved calibration
+    # keeps the rig's float64 values
+    renderer = SceneRenderer(copy.deepcopy(rig).float().to(device), cfg.scene).to(device)
     gen = torch.Generator(device=device).manual_seed(cfg.seed)
     T = angles.shape[0]
     with torch.no_grad():
