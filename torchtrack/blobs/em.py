@@ -1,0 +1,249 @@
+"""Expectation-maximisation of the body blobs on a frame's voxels (Caillette §4.1 eq. 2-3, de Bem §III-C).
+
+Each blob j has a position Gaussian (mu_j, K_j) and a colour Gaussian (mu'_j, K'_j). The E-step gives each voxel
+to the blob of least
+
+    d(v, j) = (P_v - mu_j)^T K_j^-1 (P_v - mu_j) + min_i (C_v,i - mu'_j)^T K'_j^-1 (C_v,i - mu'_j)
+
+where i runs over the views that see the voxel (the best-fitting view's colour; no visibility test). The M-step
+re-estimates the blobs from their voxels with weights w_v (the voxel's volume s_v^3 for the hull, occupancy
+probability times volume for the Bayesian grid), adding each cube's own spread s_v^2/12 to the covariance, then
+pulls each blob back towards its prior (the blob regenerated from the predicted pose) in proportion to the
+prior's expected fill, so a blob that is half hidden or starved keeps its shape. A colour covariance whose
+determinant falls below a floor is rescaled up to it. A blob whose fill (weight over its prior volume) falls
+under ``EMConfig.min_fill`` is de-activated (Caillette §4.3): it keeps its prior and gives no goals.
+
+Shapes: N voxels, C views, K blobs. Colours are whatever space the observation gives (the background model's
+gain-normalised YUV in the tracker); NaN marks a view that does not see the voxel.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import torch
+
+from torchtrack.checks import InputError, check_shape
+
+
+@dataclass(frozen=True)
+class EMConfig:
+    """EM settings.
+
+    Attributes:
+        iterations: E/M passes per frame.
+        gate_mahalanobis2: voxels farther than this (position Mahalanobis^2) from every blob are left out
+            (phantoms, distractors).
+        position_prior: strength of the pull of a blob's mean towards its prior, in units of its prior volume.
+        shape_prior: the same for the covariance.
+        colour_weight: factor on the colour term of the E-step (0 = position only).
+        colour_rate: how fast the colour model follows the frames (running average rate).
+        min_colour_std: floor of the colour covariance's geometric-mean std (the determinant rescale).
+        min_fill: de-activate a blob whose fill falls under this fraction of its prior volume.
+    """
+
+    iterations: int = 3
+    gate_mahalanobis2: float = 64.0
+    position_prior: float = 0.05
+    shape_prior: float = 0.5
+    colour_weight: float = 1.0
+    colour_rate: float = 0.2
+    min_colour_std: float = 0.03
+    min_fill: float = 0.2
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise InputError(f"EMConfig.iterations must be >= 1, got {self.iterations}")
+        for name in ("gate_mahalanobis2", "min_colour_std"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"EMConfig.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("position_prior", "shape_prior", "colour_weight", "min_fill"):
+            if getattr(self, name) < 0:
+                raise InputError(f"EMConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.colour_rate <= 1.0:
+            raise InputError(f"EMConfig.colour_rate must be in [0, 1], got {self.colour_rate}")
+
+
+@dataclass(frozen=True)
+class Blobs:
+    """State of K blobs.
+
+    Attributes:
+        mean: (K, 3) position means (m). cov: (K, 3, 3) position covariances (m^2).
+        colour_mean: (K, 3). colour_cov: (K, 3, 3). colour_known: () bool, whether the colour model is learnt
+            (the E-step ignores colour until it is).
+        fill: (K,) weight assigned over prior volume (1 = as full as expected). active: (K,) bool.
+    """
+
+    mean: torch.Tensor
+    cov: torch.Tensor
+    colour_mean: torch.Tensor
+    colour_cov: torch.Tensor
+    colour_known: bool
+    fill: torch.Tensor
+    active: torch.Tensor
+
+    @property
+    def num_blobs(self) -> int:
+        return int(self.mean.shape[0])
+
+
+def prior_blobs(mean: torch.Tensor, cov: torch.Tensor, colour_mean: torch.Tensor | None = None,
+                colour_std: float = 0.2) -> Blobs:
+    """Blobs at the prior (regenerated) placement, with an uninformative colour model unless given."""
+    check_shape(mean, ("K", 3), "mean")
+    K = mean.shape[0]
+    check_shape(cov, (K, 3, 3), "cov")
+    eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
+    cm = colour_mean if colour_mean is not None else mean.new_zeros(K, 3)
+    return Blobs(mean, cov, cm, (colour_std ** 2) * eye.expand(K, 3, 3).clone(), colour_mean is not None,
+                 mean.new_ones(K), torch.ones(K, dtype=torch.bool, device=mean.device))
+
+
+def ellipsoid_volume(cov: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) covariance of a uniform solid ellipsoid -> (...) its volume (semi-axes = sqrt(5) * std)."""
+    return (4.0 / 3.0) * math.pi * 5.0 ** 1.5 * torch.linalg.det(cov).clamp(min=0).sqrt()
+
+
+def _mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov_inv: torch.Tensor) -> torch.Tensor:
+    """x (..., 3), mean (K, 3), symmetric cov_inv (K, 3, 3) -> (..., K) squared Mahalanobis distances.
+
+    Expanded as x^T A x - 2 x^T A mu + mu^T A mu so that all K blobs take one matrix product.
+    """
+    K = mean.shape[0]
+    Amu = torch.einsum("kij,kj->ki", cov_inv, mean)  # (K, 3)
+    const = (Amu * mean).sum(-1)  # (K,)
+    outer = (x[..., :, None] * x[..., None, :]).reshape(*x.shape[:-1], 9)
+    return outer @ cov_inv.reshape(K, 9).T - 2 * (x @ Amu.T) + const
+
+
+def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Assign every voxel to its blob (eq. 2-3).
+
+    Args:
+        points: (N, 3) voxel centres. colours: (N, C, 3) per-view colours (NaN: unseen) or None.
+
+    Returns:
+        assign (N,) int64 blob index, -1 for voxels outside the gate; view (N,) int64 the view whose colour
+        was used (-1 if none); cost (N,) the least distance.
+    """
+    K = blobs.num_blobs
+    inv = torch.linalg.inv(blobs.cov)  # (K, 3, 3)
+    d_pos = _mahalanobis2(points, blobs.mean, inv)  # (N, K)
+    d_pos = torch.where(blobs.active, d_pos, torch.inf)
+    view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
+    cost = d_pos
+    best_view = None
+    if colours is not None and blobs.colour_known and config.colour_weight > 0:
+        cinv = torch.linalg.inv(blobs.colour_cov)
+        d_col = _mahalanobis2(colours, blobs.colour_mean, cinv)  # (N, C, K)
+        d_col = torch.nan_to_num(d_col, nan=torch.inf)
+        d_col_min, best_view = d_col.min(dim=1)  # (N, K)
+        seen = torch.isfinite(d_col_min)
+        cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
+    least, assign = cost.min(dim=1)
+    gated = d_pos.gather(1, assign[:, None])[:, 0] > config.gate_mahalanobis2
+    assign = torch.where(gated | ~torch.isfinite(least), -1, assign)
+    if best_view is not None:
+        v = best_view.gather(1, assign.clamp(min=0)[:, None])[:, 0]
+        has = torch.isfinite(colours[..., 0]).any(dim=1)
+        view = torch.where((assign >= 0) & has, v, -1)
+    return assign, view, least
+
+
+def _weighted_moments(x: torch.Tensor, w: torch.Tensor, assign: torch.Tensor, K: int
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-blob sum of weights (K,), mean (K, 3) and second moment (K, 3, 3) of rows of x with weights w."""
+    onehot = torch.zeros(x.shape[0], K, dtype=x.dtype, device=x.device)
+    ok = assign >= 0
+    onehot[ok.nonzero()[:, 0], assign[ok]] = 1.0
+    W = onehot * w[:, None]  # (N, K)
+    total = W.sum(0)  # (K,)
+    safe = total.clamp(min=1e-30)
+    mean = (W.T @ x) / safe[:, None]
+    second = (W.T @ (x[:, :, None] * x[:, None, :]).reshape(-1, 9)).view(K, 3, 3) / safe[:, None, None]
+    return total, mean, second
+
+
+def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, colours: torch.Tensor | None,
+           assign: torch.Tensor, view: torch.Tensor, blobs: Blobs, prior: Blobs, config: EMConfig,
+           learn_colour: bool = True) -> Blobs:
+    """Re-estimate the blobs from their voxels, pulled towards ``prior`` (see the module docstring).
+
+    Args:
+        points (N, 3), weights (N,), sizes (N,) voxel edge (m), colours (N, C, 3) or None, assign and view
+        from :func:`e_step`; blobs: the current estimate (its colour model is updated); prior: the regenerated
+        blobs (position mean and covariance used).
+    """
+    K = blobs.num_blobs
+    total, mu, second = _weighted_moments(points, weights, assign, K)
+    own = torch.zeros(K, dtype=points.dtype, device=points.device)
+    own.index_add_(0, assign.clamp(min=0), torch.where(assign >= 0, weights * sizes ** 2 / 12.0, 0.0))
+    eye = torch.eye(3, dtype=points.dtype, device=points.device)
+    cov = second - mu[:, :, None] * mu[:, None, :] + (own / total.clamp(min=1e-30))[:, None, None] * eye
+    prior_volume = ellipsoid_volume(prior.cov)  # (K,)
+    fill = total / prior_volume
+    # MAP-style blend with the prior: weights of pseudo-observations proportional to the prior volume
+    wp = config.position_prior * prior_volume
+    ws = config.shape_prior * prior_volume
+    mean = (total[:, None] * mu + wp[:, None] * prior.mean) / (total + wp).clamp(min=1e-30)[:, None]
+    # covariance about the new mean: observed scatter plus the prior's shape centred at the new mean
+    d = mu - mean
+    scatter = cov + d[:, :, None] * d[:, None, :]
+    cov = (total[:, None, None] * scatter + ws[:, None, None] * prior.cov) / (total + ws).clamp(min=1e-30)[:, None, None]
+    active = fill >= config.min_fill
+    mean = torch.where(active[:, None], mean, prior.mean)
+    cov = torch.where(active[:, None, None], cov, prior.cov)
+    colour_mean, colour_cov, known = blobs.colour_mean, blobs.colour_cov, blobs.colour_known
+    if colours is not None and learn_colour:
+        has = (assign >= 0) & (view >= 0)
+        idx = has.nonzero()[:, 0]
+        c = colours[idx, view[idx]]  # (n, 3) the chosen view's colour
+        ctot, cmu, csec = _weighted_moments(c, weights[idx], assign[idx], K)
+        ccov = csec - cmu[:, :, None] * cmu[:, None, :]
+        ccov = _floor_determinant(ccov + 1e-6 * eye, config.min_colour_std)
+        rate = config.colour_rate if known else 1.0
+        upd = (ctot > 0) & active
+        colour_mean = torch.where(upd[:, None], (1 - rate) * colour_mean + rate * cmu, colour_mean)
+        colour_cov = torch.where(upd[:, None, None], (1 - rate) * colour_cov + rate * ccov, colour_cov)
+        known = True
+    return Blobs(mean, cov, colour_mean, colour_cov, known, fill, active)
+
+
+def _floor_determinant(cov: torch.Tensor, min_std: float) -> torch.Tensor:
+    """Rescale (K, 3, 3) covariances whose geometric-mean std is under ``min_std`` up to it."""
+    gstd = torch.linalg.det(cov).clamp(min=1e-30) ** (1.0 / 6.0)
+    scale = torch.where(gstd < min_std, (min_std / gstd) ** 2, torch.ones_like(gstd))
+    return cov * scale[:, None, None]
+
+
+def fit_blobs(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, colours: torch.Tensor | None,
+              prior: Blobs, config: EMConfig = EMConfig(), learn_colour: bool = True
+              ) -> tuple[Blobs, torch.Tensor]:
+    """EM from the prior blobs (with its colour model) on one frame's voxels.
+
+    Args:
+        points: (N, 3) voxel centres (m). weights: (N,). sizes: (N,) voxel edges (m).
+        colours: (N, C, 3) or None. prior: :class:`Blobs` regenerated from the predicted pose.
+
+    Returns:
+        the fitted blobs and ``assign (N,)`` of the last E-step (-1: left out).
+    """
+    N = points.shape[0]
+    check_shape(points, (N, 3), "points")
+    check_shape(weights, (N,), "weights")
+    check_shape(sizes, (N,), "sizes")
+    if colours is not None:
+        check_shape(colours, (N, None, 3), "colours")
+    blobs = prior
+    assign = torch.full((N,), -1, dtype=torch.long, device=points.device)
+    for it in range(config.iterations):
+        assign, view, _ = e_step(points, colours, blobs, config)
+        last = it == config.iterations - 1
+        blobs = m_step(points, weights, sizes, colours, assign, view, blobs, prior, config,
+                       learn_colour=learn_colour and last)
+        if not last:  # keep every blob in play for the next E-step; activity is decided on the last pass
+            blobs = replace(blobs, active=prior.active)
+    return blobs, assign

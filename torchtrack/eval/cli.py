@@ -1,0 +1,46 @@
+"""`torchtrack eval`: accuracy of a poses.npz against a reference (gt.npz): MPJPE per landmark, PCK, lost
+frames; a table on stdout and optionally a JSON file."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    from torchtrack.conventions import LANDMARKS
+    from torchtrack.eval.metrics import DEFAULT_PCK_THRESHOLDS_M
+
+    p = sub.add_parser("eval", help="pose accuracy (MPJPE, PCK, lost frames) of poses.npz against gt.npz",
+                       description="Compare a predicted poses.npz with a reference in the same schema (such as "
+                                   "the gt.npz of `torchtrack synth`) on their common frames and print MPJPE per "
+                                   "landmark, root-aligned MPJPE, median and worst frame, PCK and lost frames "
+                                   "(frames the prediction marks invalid, left out of the errors).")
+    p.add_argument("pred", type=Path, help="predicted poses.npz")
+    p.add_argument("gt", type=Path, help="reference poses (gt.npz)")
+    p.add_argument("--pck", type=float, nargs="+", default=list(DEFAULT_PCK_THRESHOLDS_M), metavar="M",
+                   help="PCK thresholds in metres (default: %(default)s)")
+    p.add_argument("--landmarks", nargs="+", default=None, metavar="NAME",
+                   help=f"joints to evaluate (default: the 16 landmarks {', '.join(LANDMARKS)})")
+    p.add_argument("--root", default="pelvis", help="joint subtracted for the root-aligned MPJPE (default: pelvis)")
+    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the report as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+
+    from torchtrack.eval.metrics import evaluate
+    from torchtrack.io.atomic import write_text_atomic
+    from torchtrack.io.poses import load_poses
+
+    pred, truth = load_poses(args.pred), load_poses(args.gt)
+    report = evaluate(pred, truth, landmarks=args.landmarks, pck_thresholds_m=args.pck, root=args.root,
+                      pred_name=str(args.pred), truth_name=str(args.gt))
+    print(f"{args.pred} vs {args.gt}")
+    print(report.format())
+    if args.json is not None:
+        doc = {"pred": str(args.pred), "gt": str(args.gt), **report.to_dict()}
+        write_text_atomic(args.json, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+        print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,203 @@
+"""Joint goals from fitted blobs (de Bem Algorithm 2, Caillette §4.2) and the root fit.
+
+Every blob rides on a bone. Given the bone's predicted world placement (R_b, P_b) and the blob's fitted mean mu
+and covariance, the blob says where its bone should be:
+
+* orientation: the predicted blob axis a is turned onto the fitted main axis u by the least rotation R_min
+  (u from a few power iterations of the covariance started at a, so it stays on a's side: no flips). Round
+  blobs (no main axis) keep the predicted orientation;
+* position: the bone's origin goes where the blob's centre lands on mu, ``P = mu - R_min R_b offset``.
+
+Each kinematic joint rigidly attached to a bone (its proximal joint, distal joint and any joint whose position is
+fixed in the bone's frame, such as the hips in the pelvis or the shoulders in the torso) gets a goal from every
+blob of that bone; a joint's goal merges the goals of its own bone and its parent's, weighted by the blobs' fill.
+The root is then the weighted least-squares rigid fit (Kabsch) of the trunk joints onto their goals, with the
+change of orientation from the prediction bounded, and CCD moves the limbs onto the remaining goals.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from torchtrack.blobs.model import BlobModel
+from torchtrack.checks import check_shape
+from torchtrack.skeleton.model import JOINT_FRAMES, Skeleton
+
+#: Joints whose goals fit the root (hips, trunk and shoulders).
+TRUNK_JOINTS: tuple[str, ...] = ("pelvis", "l_thigh", "r_thigh", "torso", "thorax", "l_upperarm", "r_upperarm")
+
+
+def least_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit vectors a, b -> (..., 3, 3) the rotation of least angle taking a onto b."""
+    v = torch.cross(a, b, dim=-1)
+    c = (a * b).sum(-1).clamp(-1.0, 1.0)
+    s = v.norm(dim=-1)
+    k = v / s.clamp(min=1e-12)[..., None]
+    zero = torch.zeros_like(c)
+    Kx = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
+                     dim=-1).view(*c.shape, 3, 3)
+    eye = torch.eye(3, dtype=a.dtype, device=a.device).expand_as(Kx)
+    return eye + s[..., None, None] * Kx + (1 - c)[..., None, None] * (Kx @ Kx)
+
+
+def main_axis(cov: torch.Tensor, start: torch.Tensor, iterations: int = 4) -> torch.Tensor:
+    """Main eigenvector of (..., 3, 3) covariances by power iteration from (..., 3) ``start`` (same side as it)."""
+    u = start
+    for _ in range(iterations):
+        u = torch.einsum("...ij,...j->...i", cov, u)
+        u = u / u.norm(dim=-1, keepdim=True).clamp(min=1e-30)
+    return u
+
+
+def weighted_kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rigid transform (R, t) minimising sum_i w_i |R src_i + t - dst_i|^2.
+
+    Args:
+        src, dst: (B, N, 3). w: (B, N) non-negative weights (at least three non-collinear points weighted).
+
+    Returns:
+        R (B, 3, 3) proper rotations and t (B, 3).
+    """
+    wn = w / w.sum(-1, keepdim=True).clamp(min=1e-30)
+    cs = (wn[..., None] * src).sum(1)  # (B, 3)
+    cd = (wn[..., None] * dst).sum(1)
+    H = torch.einsum("bn,bni,bnj->bij", wn, src - cs[:, None], dst - cd[:, None])  # (B, 3, 3)
+    U, _, Vh = torch.linalg.svd(H)
+    d = torch.sign(torch.linalg.det(Vh.transpose(-1, -2) @ U.transpose(-1, -2)))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
+    R = Vh.transpose(-1, -2) @ D @ U.transpose(-1, -2)
+    return R, cd - torch.einsum("bij,bj->bi", R, cs)
+
+
+def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
+    """(B, 3, 3) rotations with their angle clipped to ``max_angle`` (rad) about the same axis."""
+    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
+    angle = torch.acos(cos)
+    axis = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    clipped = angle.clamp(max=max_angle)
+    v = axis * clipped[:, None]
+    return axis_angle_to_matrix(v)
+
+
+def axis_angle_to_matrix(v: torch.Tensor) -> torch.Tensor:
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues)."""
+    angle = v.norm(dim=-1)
+    k = v / angle.clamp(min=1e-12)[..., None]
+    zero = torch.zeros_like(angle)
+    Kx = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
+                     dim=-1).view(*angle.shape, 3, 3)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand_as(Kx)
+    return eye + angle.sin()[..., None, None] * Kx + (1 - angle.cos())[..., None, None] * (Kx @ Kx)
+
+
+def zyx_euler(R: torch.Tensor) -> torch.Tensor:
+    """(B, 3, 3) R = Rz(a) Ry(b) Rx(c) -> (B, 3) (a, b, c), the root's (rz, ry, rx)."""
+    a = torch.atan2(R[:, 1, 0], R[:, 0, 0])
+    b = torch.asin((-R[:, 2, 0]).clamp(-1.0, 1.0))
+    c = torch.atan2(R[:, 2, 1], R[:, 2, 2])
+    return torch.stack([a, b, c], dim=-1)
+
+
+def zyx_matrix(euler: torch.Tensor) -> torch.Tensor:
+    """(B, 3) (rz, ry, rx) -> (B, 3, 3) Rz Ry Rx."""
+    z, y, x = euler.unbind(-1)
+    zero, one = torch.zeros_like(z), torch.ones_like(z)
+    Rz = torch.stack([z.cos(), -z.sin(), zero, z.sin(), z.cos(), zero, zero, zero, one], -1).view(-1, 3, 3)
+    Ry = torch.stack([y.cos(), zero, y.sin(), zero, one, zero, -y.sin(), zero, y.cos()], -1).view(-1, 3, 3)
+    Rx = torch.stack([one, zero, zero, zero, x.cos(), -x.sin(), zero, x.sin(), x.cos()], -1).view(-1, 3, 3)
+    return Rz @ Ry @ Rx
+
+
+class GoalModel(nn.Module):
+    """Which joints ride on which bone, and where, for turning fitted blobs into joint goals.
+
+    Buffers:
+        attached: (nb, G) bool, joint g (``JOINT_FRAMES`` order) is fixed in bone b's frame.
+        local: (nb, G, 3) its position in the bone's frame (m).
+        elongated: (K,) bool, the blob has a main axis (along semi-axis 1.25x its largest cross semi-axis).
+    """
+
+    def __init__(self, skeleton: Skeleton, blobs: BlobModel) -> None:
+        super().__init__()
+        self.skeleton, self.blob_model = skeleton, blobs
+        gen = torch.Generator().manual_seed(0)
+        poses = [skeleton.rest_angles().double()]
+        for _ in range(3):
+            r = torch.rand(skeleton.num_dofs, generator=gen, dtype=torch.float64)
+            poses.append(skeleton.lower.double() + r * (skeleton.upper.double() - skeleton.lower.double()))
+        poses[1:] = [torch.nan_to_num(p, posinf=0.0, neginf=0.0) for p in poses[1:]]
+        fk = skeleton.forward(torch.stack(poses))
+        T = fk.bone_frames  # (P, nb, 4, 4)
+        R, t = T[..., :3, :3], T[..., :3, 3]
+        local = torch.einsum("pbji,pbgj->pbgi", R, fk.joints[:, None] - t[:, :, None])  # (P, nb, G, 3)
+        attached = (local - local[:1]).norm(dim=-1).amax(0) < 1e-6  # (nb, G)
+        self.register_buffer("attached", attached, persistent=False)
+        self.register_buffer("local", local[0].float(), persistent=False)
+        semi = blobs.semi_axes
+        self.register_buffer("elongated", semi[:, 0] > 1.25 * semi[:, 1:].amax(-1), persistent=False)
+        self.trunk_index = [JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]
+
+    def joint_goals(self, bone_frames: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, weight: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Merged goals of the 22 kinematic joints.
+
+        Args:
+            bone_frames: (B, nb, 4, 4) predicted bone placements.
+            mean, cov: (B, K, 3), (B, K, 3, 3) fitted blobs. weight: (B, K) blob confidence (0 = no goals).
+
+        Returns:
+            goals (B, G, 3) and their weights (B, G) (0 where no blob informs the joint).
+        """
+        B = bone_frames.shape[0]
+        K = self.blob_model.num_blobs
+        check_shape(mean, (B, K, 3), "mean")
+        bm = self.blob_model
+        dt = mean.dtype
+        bone = bm.bone_of_blob
+        Rb = bone_frames[:, bone, :3, :3]  # (B, K, 3, 3)
+        a = Rb @ bm.R_bone_blob.to(dt)[:, :, 0:1]  # (B, K, 3, 1) predicted along axis
+        a = a[..., 0]
+        u = main_axis(cov, a)
+        Rmin = least_rotation(a, u)
+        Rmin = torch.where(self.elongated[None, :, None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))
+        Rnew = Rmin @ Rb  # (B, K, 3, 3)
+        Pnew = mean - torch.einsum("bkij,kj->bki", Rnew, bm.offset_local.to(dt))  # bone origin
+        local = self.local.to(dt)[bone]  # (K, G, 3)
+        goals_k = torch.einsum("bkij,kgj->bkgi", Rnew, local) + Pnew[:, :, None]  # (B, K, G, 3)
+        w = weight[:, :, None] * self.attached[bone].to(dt)[None]  # (B, K, G)
+        total = w.sum(1)  # (B, G)
+        goals = (w[..., None] * goals_k).sum(1) / total.clamp(min=1e-12)[..., None]
+        return goals, total
+
+    def fit_root(self, angles: torch.Tensor, joints: torch.Tensor, goals: torch.Tensor, weights: torch.Tensor,
+                 max_rotation: float = math.radians(20)) -> torch.Tensor:
+        """Move the root so the trunk joints best fit their goals (bounded rotation change).
+
+        Args:
+            angles: (B, D) current states. joints: (B, G, 3) their joint positions. goals, weights: (B, G, 3),
+            (B, G) from :meth:`joint_goals`.
+
+        Returns:
+            (B, D) with the root translation and rotation updated (unchanged where too few trunk goals).
+        """
+        skel = self.skeleton
+        idx = self.trunk_index
+        src, dst, w = joints[:, idx], goals[:, idx], weights[:, idx]
+        R, t = weighted_kabsch(src, dst, w)
+        R = bound_rotation(R, max_rotation)
+        cs = (w[..., None] * src).sum(1) / w.sum(-1, keepdim=True).clamp(min=1e-12)
+        cd = (w[..., None] * dst).sum(1) / w.sum(-1, keepdim=True).clamp(min=1e-12)
+        t = cd - torch.einsum("bij,bj->bi", R, cs)
+        root_t = skel.dof_index(["root_tx", "root_ty", "root_tz"]).tolist()
+        root_r = skel.dof_index(["root_rz", "root_ry", "root_rx"]).tolist()
+        R_root = zyx_matrix(angles[:, root_r])
+        out = angles.clone()
+        out[:, root_t] = torch.einsum("bij,bj->bi", R, angles[:, root_t]) + t
+        out[:, root_r] = zyx_euler(R @ R_root)
+        ok = (w > 0).sum(-1) >= 3
+        return torch.where(ok[:, None], out, angles)

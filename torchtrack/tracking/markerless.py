@@ -1,0 +1,348 @@
+"""Markerless tracking, frame after frame (de Bem §III, Caillette §4): no I/O here.
+
+Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
+
+1. predict the pose (damped constant velocity of the state vector) and regenerate the blobs from it
+   (eq. 17-18): they are EM's starting point and prior;
+2. EM of the blobs on the voxels (position and colour; :mod:`torchtrack.blobs.em`);
+3. joint goals from the blobs (Algorithm 2; :class:`~torchtrack.tracking.goals.GoalModel`), the root as the
+   bounded Kabsch fit of the trunk goals, then CCD of the limbs onto their goals (eq. 11-16); steps 3 is
+   repeated ``refinements`` times, each time from the updated bones;
+4. check the fit: a frame whose goals the solved skeleton misses by more than ``lost_residual_m`` on average,
+   or whose blobs find little of the voxels, counts as diverging; after ``lost_frames`` of them the tracker
+   re-initialises from the voxels (several heading hypotheses around the last good pose, the best EM fit wins)
+   instead of drifting. A frame without enough voxels (nobody there, unreadable cameras) is not tracked and is
+   returned ``valid = False``.
+
+Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic from the starfish pose (Caillette §4.2):
+position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms lie
+along the main one) and the feet (the toes point forwards), subject height from the highest voxel; the
+skeleton is scaled to it and the blobs learn their colours over the first frames. Or the caller gives an
+initial state vector and height (de Bem's reusable initialisation, e.g. a previous run's ``poses.npz``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from typing import Any
+
+import torch
+
+from torchtrack.blobs.em import Blobs, EMConfig, ellipsoid_volume, e_step, fit_blobs, prior_blobs
+from torchtrack.blobs.model import BlobModel, load_blob_specs
+from torchtrack.checks import InputError, check_shape
+from torchtrack.skeleton.ik import CCDConfig, CCDSolver
+from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, Skeleton
+from torchtrack.tracking.goals import GoalModel
+from torchtrack.tracking.observation import VoxelObservation
+
+#: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
+CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Tracker settings (``configs/markerless.yaml`` holds the defaults a run uses).
+
+    Attributes:
+        em, ccd: EM and CCD settings.
+        refinements: goals -> root -> CCD passes per frame.
+        max_root_rotation_deg: bound on the root's change of orientation per pass (no front/back flips).
+        velocity: factor of the constant-velocity prediction (0 = previous pose).
+        min_voxels, min_volume_m3: below either, the frame has nobody in it (valid = False).
+        lost_residual_m: mean goal-to-joint distance above which a frame counts as diverging.
+        min_explained: fraction of the voxel weight the blobs must take (else diverging).
+        lost_frames: diverging frames in a row before re-initialising.
+        init_passes: EM/IK passes on the first frame during initialisation.
+        blobs: blob config file (``configs/`` name or path).
+    """
+
+    em: EMConfig = field(default_factory=EMConfig)
+    ccd: CCDConfig = field(default_factory=lambda: CCDConfig(damping=0.3, sweeps=8))
+    refinements: int = 2
+    max_root_rotation_deg: float = 25.0
+    velocity: float = 0.5
+    min_voxels: int = 30
+    min_volume_m3: float = 0.01
+    lost_residual_m: float = 0.08
+    min_explained: float = 0.6
+    lost_frames: int = 3
+    init_passes: int = 12
+    blobs: str = "blobs.yaml"
+
+    def __post_init__(self) -> None:
+        if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
+            raise InputError("TrackerConfig: refinements, lost_frames and init_passes must be >= 1")
+        if not 0.0 <= self.velocity <= 1.0:
+            raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
+
+    @classmethod
+    def from_dict(cls, doc: dict[str, Any], source: str = "<config>") -> TrackerConfig:
+        """Build from a mapping (the YAML file's ``tracker`` section), naming unknown keys."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(doc) - known
+        if unknown:
+            raise InputError(f"{source}: unknown tracker settings {sorted(unknown)}; known: {sorted(known)}")
+        kw = dict(doc)
+        try:
+            if "em" in kw:
+                kw["em"] = EMConfig(**kw["em"])
+            if "ccd" in kw:
+                kw["ccd"] = CCDConfig(**kw["ccd"])
+            return cls(**kw)
+        except TypeError as exc:
+            raise InputError(f"{source}: {exc}") from None
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One tracked frame.
+
+    Attributes:
+        angles: (D,) state vector. output_points: (22, 3) the skeleton's output points (``output_names``).
+        confidence: (22,) 0..1 per output point. valid: whether the frame was tracked.
+        residual_m: mean goal-to-joint distance after IK. explained: fraction of voxel weight in blobs.
+        reinitialised: the tracker re-initialised on this frame. blobs: the fitted blobs (None if invalid).
+        bone_frames: (nb, 4, 4) of the solved pose.
+    """
+
+    angles: torch.Tensor
+    output_points: torch.Tensor
+    confidence: torch.Tensor
+    valid: bool
+    residual_m: float
+    explained: float
+    reinitialised: bool
+    blobs: Blobs | None
+    bone_frames: torch.Tensor
+
+
+class _Subject:
+    """The subject-specific models: skeleton scaled to the subject, its blobs, goals and CCD."""
+
+    def __init__(self, skeleton: Skeleton, config: TrackerConfig) -> None:
+        specs, ref = load_blob_specs(config.blobs)
+        self.skeleton = skeleton
+        self.blobs = BlobModel(skeleton, specs, ref)
+        self.goals = GoalModel(skeleton, self.blobs)
+        self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
+        self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
+        self.output_joint = torch.tensor([JOINT_FRAMES.index(LANDMARK_FRAMES.get(n, n)) if
+                                          LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
+                                          for n in skeleton.output_names])
+
+    def to(self, device: torch.device, dtype: torch.dtype) -> _Subject:
+        for m in (self.skeleton, self.blobs, self.goals, self.ccd):
+            m.to(device)
+        return self
+
+
+def _unwrap(angle: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    return angle + 2 * math.pi * torch.round((reference - angle) / (2 * math.pi))
+
+
+class MarkerlessTracker:
+    """Tracks one subject through a sequence of voxel observations (see the module docstring).
+
+    Args:
+        skeleton: the generic body (scaled to the subject at initialisation).
+        config: tracker settings.
+    """
+
+    def __init__(self, skeleton: Skeleton, config: TrackerConfig = TrackerConfig()) -> None:
+        self.generic, self.config = skeleton, config
+        self.subject: _Subject | None = None
+        self.angles: torch.Tensor | None = None  # (D,) last good pose
+        self.previous: torch.Tensor | None = None  # (D,) the one before (velocity)
+        self.colour: Blobs | None = None  # carries the learnt colour model
+        self.lost = 0
+        self.height_m: float | None = None
+
+    # ------------------------------------------------------------------------------------ initialisation
+    @property
+    def initialized(self) -> bool:
+        return self.subject is not None
+
+    def _setup(self, height_m: float, device: torch.device, dtype: torch.dtype) -> None:
+        self.height_m = float(height_m)
+        skel = self.generic.scaled_to_height(height_m)
+        self.subject = _Subject(skel, self.config).to(device, dtype)
+
+    def initialize_from_pose(self, angles: torch.Tensor, height_m: float) -> None:
+        """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall."""
+        check_shape(angles, (self.generic.num_dofs,), "angles")
+        self._setup(height_m, angles.device, angles.dtype)
+        self.angles = self.previous = angles.clone()
+        self.colour = None
+        self.lost = 0
+
+    def _starfish_top_ratio(self) -> float:
+        """Head-top height in the starfish pose over standing height (the spread legs lower the body)."""
+        g = self.generic
+        top = g.forward_frames(g.starfish_angles()[None])[0, g.frame_index(["head_top"])[0], 2, 3]
+        return float(top) / g.height()
+
+    def initialize(self, obs: VoxelObservation) -> FrameResult:
+        """Automatic initialisation from a starfish frame (see the module docstring).
+
+        Raises:
+            InputError: the voxels do not look like a person in the starfish pose.
+        """
+        pts, w = obs.points, obs.weights
+        if obs.num_voxels < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
+            raise InputError("initialisation: the first frame has nobody in the tracking volume")
+        top = float(torch.quantile(pts[:, 2], 0.998)) + 0.5 * float(obs.sizes.max())
+        height = min(max(top / self._starfish_top_ratio(), 0.5), 2.5)
+        self._setup(height, pts.device, pts.dtype)
+        skel = self.subject.skeleton
+        c = (w[:, None] * pts).sum(0) / w.sum()
+        d = pts[:, :2] - c[:2]
+        cov = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / w.sum()
+        evals, evecs = torch.linalg.eigh(cov)
+        lateral = evecs[:, 1]  # the arms and legs spread left-right
+        facing = torch.stack([lateral[1], -lateral[0]])
+        low = pts[:, 2] < 0.08 * height
+        if bool(low.any()):
+            feet = (w[low, None] * d[low]).sum(0) / w[low].sum()
+            if float(feet @ facing) < 0:
+                facing = -facing
+        yaw = math.atan2(float(facing[1]), float(facing[0]))
+        best = None
+        for candidate in (yaw, yaw + math.pi):  # the feet decide, the fit confirms
+            a = skel.starfish_angles().to(pts)
+            a[skel.dof_names.index("root_tx")] = c[0]
+            a[skel.dof_names.index("root_ty")] = c[1]
+            a[skel.dof_names.index("root_rz")] = candidate
+            self.angles = self.previous = a
+            self.colour, self.lost = None, 0
+            res = None
+            for _ in range(self.config.init_passes):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = res.angles
+            cost = res.residual_m + 0.1 * (1 - res.explained)
+            if best is None or cost < best[0]:
+                best = (cost, res)
+        res = best[1]
+        self.angles = self.previous = res.angles
+        self.colour = None
+        if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
+            self.subject = None
+            raise InputError(
+                f"initialisation: the first frame does not fit a person in the starfish pose (goal residual "
+                f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). Start the "
+                "sequence with the subject standing arms and legs spread, or give an initial pose with "
+                "--init-pose POSES.npz (the first valid frame of a poses.npz of this subject, e.g. from an "
+                "earlier run)")
+        # learn the colours on the initial frame
+        res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        self.angles = self.previous = res.angles
+        return replace(res, reinitialised=True)
+
+    # ------------------------------------------------------------------------------------------ tracking
+    def _regenerate(self, angles: torch.Tensor) -> tuple[torch.Tensor, Blobs]:
+        sub = self.subject
+        fk = sub.skeleton.forward(angles[None])
+        mean, cov = sub.blobs.gaussians(fk.bone_frames)
+        prior = prior_blobs(mean[0], cov[0])
+        if self.colour is not None:
+            prior = replace(prior, colour_mean=self.colour.colour_mean, colour_cov=self.colour.colour_cov,
+                            colour_known=self.colour.colour_known)
+        return fk.bone_frames, prior
+
+    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float) -> FrameResult:
+        sub, cfg = self.subject, self.config
+        a = self.angles + cfg.velocity * (self.angles - self.previous)
+        a = sub.skeleton.clamp(a)
+        _, prior = self._regenerate(a)
+        blobs, assign = fit_blobs(obs.points, obs.weights, obs.sizes, obs.colours, prior, cfg.em,
+                                  learn_colour=learn_colour)
+        weight = (blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
+        residual = torch.zeros((), dtype=a.dtype, device=a.device)
+        goal_w = None
+        state = a[None]
+        for _ in range(cfg.refinements):
+            fk = sub.skeleton.forward(state)
+            goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
+            state = sub.goals.fit_root(state, fk.joints, goals, goal_w, max_rotation=max_rot)
+            rz = sub.skeleton.dof_names.index("root_rz")
+            state[:, rz] = _unwrap(state[:, rz], a[rz])
+            idx = sub.ccd_goal_index
+            state = sub.ccd(state, goals[:, idx], goal_w[:, idx])
+        fk = sub.skeleton.forward(state)
+        wsum = goal_w.sum().clamp(min=1e-12)
+        residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
+        explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
+        if learn_colour:
+            self.colour = blobs
+        conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
+        oj = sub.output_joint.to(conf_joint.device)
+        conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
+        return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
+                           fk.bone_frames[0])
+
+    def _invalid(self) -> FrameResult:
+        sub = self.subject
+        D = self.generic.num_dofs
+        if sub is None or self.angles is None:
+            nan = torch.full((D,), torch.nan)
+            return FrameResult(nan, torch.full((len(self.generic.output_names), 3), torch.nan),
+                               torch.zeros(len(self.generic.output_names)), False, math.nan, 0.0, False, None,
+                               torch.full((len(self.generic.bone_names), 4, 4), torch.nan))
+        fk = sub.skeleton.forward(self.angles[None])
+        return FrameResult(self.angles.clone(), fk.output_points[0], torch.zeros(fk.output_points.shape[1]).to(
+            self.angles), False, math.nan, 0.0, False, None, fk.bone_frames[0])
+
+    def _has_person(self, obs: VoxelObservation) -> bool:
+        return obs.num_voxels >= self.config.min_voxels and obs.volume_m3() >= self.config.min_volume_m3
+
+    def step(self, obs: VoxelObservation) -> FrameResult:
+        """Track one frame (initialising on the first frame with a person in it)."""
+        if not self._has_person(obs):
+            self.previous = self.angles  # no velocity across a gap
+            self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back
+            return self._invalid()
+        if not self.initialized:
+            return self.initialize(obs)
+        if self.angles is not None and self.lost >= self.config.lost_frames:
+            return self._reacquire(obs)
+        res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        if self._diverging(res):
+            self.lost += 1
+            if self.lost >= self.config.lost_frames:
+                return self._reacquire(obs)
+            self.previous = self.angles  # keep the last good pose, without velocity
+            return replace(res, valid=False)
+        self.lost = 0
+        self.previous, self.angles = self.angles, res.angles
+        return res
+
+    def _diverging(self, res: FrameResult) -> bool:
+        return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
+
+    def _reacquire(self, obs: VoxelObservation) -> FrameResult:
+        """Re-initialise around the last good pose: moved onto the voxels' centroid, four headings, the fit with
+        the least residual wins; the colour model is kept."""
+        pts, w = obs.points, obs.weights
+        c = (w[:, None] * pts).sum(0) / w.sum()
+        skel = self.subject.skeleton
+        base = self.angles.clone()
+        ix, iy, irz = (skel.dof_names.index(n) for n in ("root_tx", "root_ty", "root_rz"))
+        best = None
+        for turn in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
+            a = base.clone()
+            a[ix], a[iy] = c[0], c[1]
+            a[irz] = base[irz] + turn
+            self.angles = self.previous = a
+            res = None
+            for _ in range(max(2, self.config.init_passes // 2)):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = res.angles
+            if best is None or res.residual_m < best.residual_m:
+                best = res
+        self.angles = self.previous = best.angles
+        if self._diverging(best):
+            self.lost += 1
+            return replace(best, valid=False, reinitialised=True)
+        self.lost = 0
+        return replace(best, reinitialised=True)

@@ -1,0 +1,108 @@
+"""A frame's 3D observation as a weighted, coloured voxel set, from either observation model.
+
+* ``bayes``: the Franco-Boyer grid (de Bem); voxels with P(occupied) > threshold, weight P * s^3, each voxel's
+  colour in a view is the background model's gain-normalised YUV at the pixel its centre projects to.
+* ``hull``: the hierarchical colour visual hull (Caillette); voxels of several sizes, weight s^3, with the mean
+  sample colour per view the hull computes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from torchtrack.checks import InputError
+from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, grid_from_rig, hull_from_images
+
+MODELS = ("bayes", "hull")
+
+
+@dataclass(frozen=True)
+class VoxelObservation:
+    """Occupied voxels of one frame (N voxels, C views).
+
+    Attributes:
+        points: (N, 3) centres (m). sizes: (N,) edges (m). weights: (N,) EM weights.
+        colours: (N, C, 3) per-view colour (gain-normalised YUV), NaN where the view does not see the voxel.
+        cameras_valid: (C,) bool, the cameras whose frame was readable.
+    """
+
+    points: torch.Tensor
+    sizes: torch.Tensor
+    weights: torch.Tensor
+    colours: torch.Tensor
+    cameras_valid: torch.Tensor
+
+    @property
+    def num_voxels(self) -> int:
+        return int(self.points.shape[0])
+
+    def volume_m3(self) -> float:
+        return float((self.sizes.double() ** 3).sum())
+
+
+class Observer(nn.Module):
+    """Turns batches of camera frames into :class:`VoxelObservation` s.
+
+    Args:
+        rig: CameraRig at the processing image size. background: BackgroundModel of the same size.
+        model: "bayes" or "hull". voxel_size_m: grid voxel (bayes) or finest hull voxel.
+        lower_m, upper_m: the tracking volume (default: the cameras' common view, floor to 2.1 m).
+        threshold: occupancy probability above which a Bayesian voxel is kept.
+        bayes, hull: optional model configs (their volume and voxel fields are overridden).
+    """
+
+    def __init__(self, rig: nn.Module, background: nn.Module, model: str = "bayes", voxel_size_m: float = 0.03,
+                 lower_m: tuple[float, float, float] | None = None, upper_m: tuple[float, float, float] | None = None,
+                 threshold: float = 0.5, min_views: int | None = None, bayes: BayesConfig | None = None,
+                 hull: HullConfig | None = None) -> None:
+        super().__init__()
+        if model not in MODELS:
+            raise InputError(f"observation model must be one of {MODELS}, got {model!r}")
+        self.model, self.threshold, self.rig, self.background = model, threshold, rig, background
+        if lower_m is None or upper_m is None:
+            spec = grid_from_rig(rig, voxel_size_m, min_views=min_views)
+        else:
+            from torchtrack.occupancy import GridSpec
+
+            spec = GridSpec(tuple(lower_m), tuple(upper_m), voxel_size_m)
+        self.spec = spec
+        if model == "bayes":
+            cfg = bayes or BayesConfig(min_views=min_views)
+            self.grid = BayesianGrid(rig, spec, background, cfg)
+            self.register_buffer("centres", spec.centres(dtype=rig.K.dtype, device=rig.K.device), persistent=False)
+        else:
+            base = hull or HullConfig()
+            fields = {**base.__dict__, "lower_m": spec.lower_m, "upper_m": spec.upper_m,
+                      "finest_voxel_m": voxel_size_m, "min_views": min_views}
+            self.hull_config = HullConfig(**fields)
+
+    def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor | None = None) -> list[VoxelObservation]:
+        """(B, C, 3, H, W) RGB frames (NaN: unreadable) -> B observations."""
+        B, C = images.shape[:2]
+        if cameras_valid is None:
+            cameras_valid = torch.isfinite(images.flatten(2)).all(-1)
+        out = []
+        if self.model == "hull":
+            for b in range(B):
+                v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
+                w = v.sizes ** 3
+                out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b]))
+            return out
+        occ = self.grid(images)
+        prob = occ.probability()  # (B, V)
+        keep = prob > self.threshold
+        yuv = self.background.normalise(images)  # (B, C, 3, H, W)
+        s = self.spec.voxel_size_m
+        for b in range(B):
+            idx = keep[b].nonzero()[:, 0]
+            pts = self.centres[idx]
+            pix = self.grid.lookup.pixel_index[:, idx]  # (C, n)
+            flat = yuv[b].flatten(2)  # (C, 3, H*W)
+            col = flat.gather(2, pix.clamp(min=0)[:, None, :].expand(-1, 3, -1))  # (C, 3, n)
+            col = torch.where((pix >= 0)[:, None, :], col, torch.nan).permute(2, 0, 1)  # (n, C, 3)
+            sizes = torch.full_like(pts[:, 0], s)
+            out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b]))
+        return out
