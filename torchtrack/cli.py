@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "torchtrack.synth.cli",
     "torchtrack.cameras.cli",
     "torchtrack.occupancy.cli",
+    "torchtrack.tracking.cli",
     "torchtrack.eval.cli",
 )
 

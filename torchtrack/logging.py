@@ -161,6 +161,39 @@ class RunLogger:
             rgb = _to_uint8(colours[keep.to(colours.device)], nan=0.0)[None]  # (1, n, 3)
         self._writer.add_mesh(tag, vertices=vertices, colors=rgb, global_step=step)
 
+    def pose_cloud(self, step: int, tag: str, voxel_centres: torch.Tensor, landmarks: torch.Tensor,
+                   voxel_colours: torch.Tensor | None = None, points_per_bone: int = 20,
+                   max_voxels: int = 50_000) -> None:
+        """Voxels and a skeleton as one coloured point cloud (mesh plugin), to see the pose inside the occupancy.
+
+        Args:
+            voxel_centres: (V, 3) occupied voxel centres, world metres.
+            landmarks: (J, 3) world positions of LANDMARKS (J = 16); non-finite ones (lost) leave their bones out.
+            voxel_colours: (V, 3) RGB in [0, 1], or None for grey (:data:`torchtrack.tracking.draw.VOXEL_RGB`).
+            points_per_bone: points along each bone (:func:`torchtrack.tracking.draw.skeleton_cloud`), coloured
+                by body side.
+            max_voxels: beyond this, an evenly spread deterministic subset of the voxels
+                (:func:`subsample_indices`); the skeleton is always kept whole.
+
+        Writes tags ``{tag}_VERTEX`` and ``{tag}_COLOR``, shapes (1, v + P, 3): the v kept voxels, then the
+        P skeleton points.
+        """
+        from torchtrack.tracking.draw import VOXEL_RGB, skeleton_cloud  # lazy: it imports the cameras
+
+        check_shape(voxel_centres, ("V", 3), "voxel_centres")
+        check_finite(voxel_centres, "voxel_centres")
+        V = voxel_centres.shape[0]
+        if voxel_colours is None:
+            voxel_colours = voxel_centres.new_tensor(VOXEL_RGB).expand(V, 3)
+        check_shape(voxel_colours, (V, 3), "voxel_colours")
+        bone_points, bone_colours = skeleton_cloud(landmarks.detach(), points_per_bone)  # (P, 3), (P, 3)
+        finite = torch.isfinite(bone_points).all(-1)  # (P,)
+        keep = subsample_indices(V, max_voxels).to(voxel_centres.device)  # (v,)
+        points = torch.cat([voxel_centres.detach()[keep].float().cpu(), bone_points[finite].float().cpu()])
+        colours = torch.cat([voxel_colours.detach()[keep.to(voxel_colours.device)].float().cpu(),
+                             bone_colours[finite].float().cpu()])
+        self.occupancy_cloud(step, tag, points, colours, max_points=max(points.shape[0], 1))
+
     # ------------------------------------------------------------------------------------------ images
     def camera_images(self, step: int, tag: str, images: torch.Tensor, names: Sequence[str],
                       grid: bool = False) -> None:

@@ -296,6 +296,12 @@ class MarkerlessTracker:
     def _has_person(self, obs: VoxelObservation) -> bool:
         return obs.num_voxels >= self.config.min_voxels and obs.volume_m3() >= self.config.min_volume_m3
 
+    def skip(self) -> FrameResult:
+        """A frame that cannot be observed (an unreadable camera frame): not tracked, ``valid = False``; the
+        next frame predicts from the last good pose without velocity."""
+        self.previous = self.angles
+        return self._invalid()
+
     def step(self, obs: VoxelObservation) -> FrameResult:
         """Track one frame (initialising on the first frame with a person in it)."""
         if not self._has_person(obs):

@@ -1,0 +1,189 @@
+"""`torchtrack track`: markerless tracking of a sequence folder into ``poses.npz`` with TensorBoard logs."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONFIG = "markerless.yaml"
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "track", help="markerless 3D body tracking of a sequence folder",
+        description="Track the body through a sequence folder from its occupancy (Bayesian grid or colour hull), "
+                    "with blobs fitted by EM, joint goals and CCD inverse kinematics. Writes OUT/poses.npz "
+                    "(DESIGN.md schema) and TensorBoard logs in OUT/tb. The sequence should start with the "
+                    "subject in the starfish pose, or give --init-pose.")
+    p.add_argument("seq", type=Path, help="sequence folder (calibration.toml, video/ or frames/, background/)")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--config", default=DEFAULT_CONFIG, help="tracking config (a configs/ name or a path)")
+    p.add_argument("--model", choices=("bayes", "hull"), default=None, help="observation model (overrides config)")
+    p.add_argument("--voxel", type=float, default=None, help="voxel size in metres (overrides config)")
+    p.add_argument("--scale", type=float, default=None, help="image scale (overrides config)")
+    p.add_argument("--init-pose", type=Path, default=None,
+                   help="poses.npz whose first valid frame is the initial pose (instead of the starfish start)")
+    p.add_argument("--height", type=float, default=None,
+                   help="subject height in metres with --init-pose (default: from the file, else meta.toml)")
+    p.add_argument("--start", type=int, default=0)
+    p.add_argument("--stop", type=int, default=None)
+    p.add_argument("--batch", type=int, default=4, help="frames read and observed per batch")
+    p.add_argument("--log-every", type=int, default=10, help="log images and the 3D view every N frames (0: never)")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.set_defaults(func=run)
+
+
+def load_config(name: str) -> dict[str, Any]:
+    """The YAML tracking config as a dict with ``observation`` and ``tracker`` sections."""
+    import yaml
+
+    from torchtrack.checks import InputError
+    from torchtrack.resources import config_path
+
+    path = config_path(name)
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker"}:
+        raise InputError(f"{path}: expected the sections 'observation' and 'tracker' only")
+    doc.setdefault("observation", {})
+    doc.setdefault("tracker", {})
+    doc["source"] = str(path)
+    return doc
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    with torch.no_grad():
+        return _run(args)
+
+
+def _initial_pose(path: Path, skeleton_dofs: tuple[str, ...]) -> tuple[Any, float | None]:
+    import numpy as np
+
+    from torchtrack.checks import InputError
+    from torchtrack.io.poses import load_poses
+
+    poses = load_poses(path)
+    if list(poses.dof_names) != list(skeleton_dofs):
+        raise InputError(f"{path}: dof_names do not match the body model's ({len(poses.dof_names)} vs "
+                         f"{len(skeleton_dofs)} DOFs)")
+    ok = np.flatnonzero(poses.valid)
+    if ok.size == 0:
+        raise InputError(f"{path}: no valid frame to start from")
+    height = poses.extra.get("subject_height_m")
+    return poses.angles[ok[0]], (float(height) if height is not None else None)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import numpy as np
+    import torch
+    from tqdm import tqdm
+
+    from torchtrack.background import BackgroundModel
+    from torchtrack.checks import InputError
+    from torchtrack.io.poses import Poses, save_poses
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.logging import RunLogger
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.tracking.draw import draw_pose_overlays
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+    from torchtrack.tracking.observation import Observer
+
+    cfg = load_config(args.config)
+    ocfg = dict(cfg["observation"])
+    model = args.model or ocfg.get("model", "bayes")
+    voxel = float(args.voxel or ocfg.get("voxel_m", 0.03))
+    scale = float(args.scale or ocfg.get("scale", 1.0))
+    if not 0.05 <= scale <= 1.0:
+        raise InputError(f"--scale must be in [0.05, 1], got {scale}")
+    tcfg = TrackerConfig.from_dict(cfg["tracker"], cfg["source"])
+    device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available to PyTorch")
+
+    folder = SequenceFolder(args.seq)
+    W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
+    rig = folder.rig.resized(W, H).float().to(device)
+    bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
+    observer = Observer(rig, bg, model, voxel, threshold=float(ocfg.get("threshold", 0.5)),
+                        min_views=ocfg.get("min_views")).to(device)
+    tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
+    if args.init_pose is not None:
+        angles, height = _initial_pose(args.init_pose, tracker.generic.dof_names)
+        height = args.height or height or folder.meta.subject_height_m or 1.75
+        tracker.initialize_from_pose(torch.as_tensor(angles, dtype=torch.float32, device=device), height)
+
+    stop = folder.num_frames if args.stop is None else min(args.stop, folder.num_frames)
+    if stop <= args.start:
+        raise InputError(f"{args.seq}: no frames in [{args.start}, {stop}) ({folder.num_frames} frames)")
+    names = tracker.generic.output_names
+    T = stop - args.start
+    D = tracker.generic.num_dofs
+    frame_index = np.arange(args.start, stop, dtype=np.int64)
+    joints3d = np.full((T, len(names), 3), np.nan, np.float32)
+    angles_out = np.full((T, D), np.nan, np.float32)
+    valid = np.zeros(T, bool)
+    confidence = np.zeros((T, len(names)), np.float32)
+    residual = np.full(T, np.nan, np.float32)
+    explained = np.zeros(T, np.float32)
+    reinit = np.zeros(T, bool)
+    args.out.mkdir(parents=True, exist_ok=True)
+    t_start = time.perf_counter()
+    with RunLogger(args.out / "tb") as tb, tqdm(total=T, unit="frame", desc="track") as bar:
+        for batch in folder.iter_batches(args.batch, args.start, stop, device=device, size_wh=(W, H)):
+            t0 = time.perf_counter()
+            observations = observer(batch.images, batch.valid)
+            t_obs = (time.perf_counter() - t0) / len(observations)
+            for i, obs in enumerate(observations):
+                t1 = time.perf_counter()
+                t = int(batch.frame_index[i])
+                k = t - args.start
+                unreadable = int((~batch.valid[i]).sum())
+                if unreadable:  # a corrupt or missing camera frame: not tracked, marked invalid
+                    log.warning("frame %d: %d camera frame(s) unreadable (%s); marked invalid", t, unreadable,
+                                ", ".join(n for n, ok in zip(rig.names, batch.valid[i].tolist()) if not ok))
+                    res = tracker.skip()
+                else:
+                    try:
+                        res = tracker.step(obs)
+                    except InputError as exc:
+                        raise InputError(f"{args.seq}, frame {t}: {exc}") from None
+                joints3d[k] = res.output_points.cpu().numpy()
+                angles_out[k] = res.angles.cpu().numpy()
+                valid[k] = res.valid
+                confidence[k] = res.confidence.cpu().numpy() if res.valid else 0.0
+                residual[k] = res.residual_m
+                explained[k] = res.explained
+                reinit[k] = res.reinitialised
+                dt = t_obs + time.perf_counter() - t1
+                tb.scalars(t, voxels=float(obs.num_voxels), ik_residual_mm=1e3 * res.residual_m,
+                           explained=res.explained, valid=float(res.valid), em_iterations=float(tcfg.em.iterations),
+                           fps=1.0 / max(dt, 1e-9), observation_ms=1e3 * t_obs)
+                if args.log_every and k % args.log_every == 0 and res.valid:
+                    lm = res.output_points[:16]
+                    cen = R = semi = None
+                    if res.blobs is not None:
+                        evals, evecs = torch.linalg.eigh(res.blobs.cov)
+                        cen, R, semi = res.blobs.mean, evecs, (5.0 * evals.clamp(min=0)).sqrt()
+                    img = torch.nan_to_num(batch.images[i], nan=0.0)
+                    tb.camera_images(t, "cameras/pose", draw_pose_overlays(img, rig, lm, cen, R, semi), rig.names)
+                    tb.pose_cloud(t, "pose/voxels_skeleton", obs.points, lm)
+                bar.update(1)
+                bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
+    elapsed = time.perf_counter() - t_start
+    extra = {"subject_height_m": np.float64(tracker.height_m or np.nan), "observation_model": np.asarray(model),
+             "ik_residual_m": residual, "explained": explained, "reinitialised": reinit}
+    save_poses(Poses(fps=folder.fps, frame_index=frame_index, joint_names=list(names), joints3d=joints3d,
+                     dof_names=list(tracker.generic.dof_names), angles=angles_out, valid=valid,
+                     confidence=confidence, extra=extra), args.out / "poses.npz")
+    print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
+          f"{reinit.sum()} (re)initialisations), {T / elapsed:.1f} frames/s; TensorBoard logs in {args.out / 'tb'}")
+    return 0
