@@ -58,6 +58,24 @@ def load_config(name: str) -> dict[str, Any]:
     return doc
 
 
+def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
+    """The :class:`~torchtrack.tracking.observation.Observer` of a config's ``observation`` section."""
+    from torchtrack.checks import InputError
+    from torchtrack.occupancy import HullConfig
+    from torchtrack.tracking.observation import Observer
+
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull"}
+    unknown = set(ocfg) - known
+    if unknown:
+        raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
+    try:
+        hull = HullConfig(**(ocfg.get("hull") or {}))
+    except TypeError as exc:
+        raise InputError(f"observation config, hull: {exc}") from None
+    return Observer(rig, background, model, voxel_m, threshold=float(ocfg.get("threshold", 0.5)),
+                    min_views=ocfg.get("min_views"), hull=hull)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -83,19 +101,16 @@ def _initial_pose(path: Path, skeleton_dofs: tuple[str, ...]) -> tuple[Any, floa
 
 
 def _run(args: argparse.Namespace) -> int:
-    import numpy as np
     import torch
-    from tqdm import tqdm
 
     from torchtrack.background import BackgroundModel
     from torchtrack.checks import InputError
-    from torchtrack.io.poses import Poses, save_poses
+    from torchtrack.io.poses import save_poses
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
     from torchtrack.skeleton import Skeleton
-    from torchtrack.tracking.draw import draw_pose_overlays
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
-    from torchtrack.tracking.observation import Observer
+    from torchtrack.tracking.run import track_sequence
 
     cfg = load_config(args.config)
     ocfg = dict(cfg["observation"])
@@ -113,77 +128,19 @@ def _run(args: argparse.Namespace) -> int:
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float().to(device)
     bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
-    observer = Observer(rig, bg, model, voxel, threshold=float(ocfg.get("threshold", 0.5)),
-                        min_views=ocfg.get("min_views")).to(device)
+    observer = observer_from_config(rig, bg, ocfg, model, voxel).to(device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
         angles, height = _initial_pose(args.init_pose, tracker.generic.dof_names)
         height = args.height or height or folder.meta.subject_height_m or 1.75
         tracker.initialize_from_pose(torch.as_tensor(angles, dtype=torch.float32, device=device), height)
 
-    stop = folder.num_frames if args.stop is None else min(args.stop, folder.num_frames)
-    if stop <= args.start:
-        raise InputError(f"{args.seq}: no frames in [{args.start}, {stop}) ({folder.num_frames} frames)")
-    names = tracker.generic.output_names
-    T = stop - args.start
-    D = tracker.generic.num_dofs
-    frame_index = np.arange(args.start, stop, dtype=np.int64)
-    joints3d = np.full((T, len(names), 3), np.nan, np.float32)
-    angles_out = np.full((T, D), np.nan, np.float32)
-    valid = np.zeros(T, bool)
-    confidence = np.zeros((T, len(names)), np.float32)
-    residual = np.full(T, np.nan, np.float32)
-    explained = np.zeros(T, np.float32)
-    reinit = np.zeros(T, bool)
     args.out.mkdir(parents=True, exist_ok=True)
-    t_start = time.perf_counter()
-    with RunLogger(args.out / "tb") as tb, tqdm(total=T, unit="frame", desc="track") as bar:
-        for batch in folder.iter_batches(args.batch, args.start, stop, device=device, size_wh=(W, H)):
-            t0 = time.perf_counter()
-            observations = observer(batch.images, batch.valid)
-            t_obs = (time.perf_counter() - t0) / len(observations)
-            for i, obs in enumerate(observations):
-                t1 = time.perf_counter()
-                t = int(batch.frame_index[i])
-                k = t - args.start
-                unreadable = int((~batch.valid[i]).sum())
-                if unreadable:  # a corrupt or missing camera frame: not tracked, marked invalid
-                    log.warning("frame %d: %d camera frame(s) unreadable (%s); marked invalid", t, unreadable,
-                                ", ".join(n for n, ok in zip(rig.names, batch.valid[i].tolist()) if not ok))
-                    res = tracker.skip()
-                else:
-                    try:
-                        res = tracker.step(obs)
-                    except InputError as exc:
-                        raise InputError(f"{args.seq}, frame {t}: {exc}") from None
-                joints3d[k] = res.output_points.cpu().numpy()
-                angles_out[k] = res.angles.cpu().numpy()
-                valid[k] = res.valid
-                confidence[k] = res.confidence.cpu().numpy() if res.valid else 0.0
-                residual[k] = res.residual_m
-                explained[k] = res.explained
-                reinit[k] = res.reinitialised
-                dt = t_obs + time.perf_counter() - t1
-                tb.scalars(t, voxels=float(obs.num_voxels), ik_residual_mm=1e3 * res.residual_m,
-                           explained=res.explained, valid=float(res.valid), em_iterations=float(tcfg.em.iterations),
-                           fps=1.0 / max(dt, 1e-9), observation_ms=1e3 * t_obs)
-                if args.log_every and k % args.log_every == 0 and res.valid:
-                    lm = res.output_points[:16]
-                    cen = R = semi = None
-                    if res.blobs is not None:
-                        evals, evecs = torch.linalg.eigh(res.blobs.cov)
-                        cen, R, semi = res.blobs.mean, evecs, (5.0 * evals.clamp(min=0)).sqrt()
-                    img = torch.nan_to_num(batch.images[i], nan=0.0)
-                    tb.camera_images(t, "cameras/pose", draw_pose_overlays(img, rig, lm, cen, R, semi), rig.names)
-                    tb.pose_cloud(t, "pose/voxels_skeleton", obs.points, lm)
-                bar.update(1)
-                bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
-    elapsed = time.perf_counter() - t_start
-    extra = {"subject_height_m": np.float64(tracker.height_m or np.nan), "observation_model": np.asarray(model),
-             "ik_residual_m": residual, "explained": explained, "reinitialised": reinit}
-    save_poses(Poses(fps=folder.fps, frame_index=frame_index, joint_names=list(names), joints3d=joints3d,
-                     dof_names=list(tracker.generic.dof_names), angles=angles_out, valid=valid,
-                     confidence=confidence, extra=extra), args.out / "poses.npz")
+    with RunLogger(args.out / "tb") as tb:
+        poses, elapsed = track_sequence(folder, observer, tracker, args.start, args.stop, args.batch, device,
+                                        logger=tb, log_every=args.log_every, progress=True)
+    save_poses(poses, args.out / "poses.npz")
+    T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
     print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
           f"{reinit.sum()} (re)initialisations), {T / elapsed:.1f} frames/s; TensorBoard logs in {args.out / 'tb'}")
     return 0

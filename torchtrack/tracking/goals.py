@@ -23,7 +23,7 @@ import torch
 from torch import nn
 
 from torchtrack.blobs.model import BlobModel
-from torchtrack.checks import check_shape
+from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.model import JOINT_FRAMES, Skeleton
 
 #: Joints whose goals fit the root (hips, trunk and shoulders).
@@ -140,6 +140,13 @@ class GoalModel(nn.Module):
         self.register_buffer("local", local[0].float(), persistent=False)
         semi = blobs.semi_axes
         self.register_buffer("elongated", semi[:, 0] > 1.25 * semi[:, 1:].amax(-1), persistent=False)
+        # a bone with two blobs (torso: abdomen and chest; head: neck and head) is oriented by the line through
+        # their centres, which is better defined than either blob's own axis
+        bone = blobs.bone_of_blob.tolist()
+        partner = [next((j for j in range(len(bone)) if j != k and bone[j] == bone[k]), -1) for k in range(len(bone))]
+        if any(bone.count(b) > 2 for b in bone):
+            raise InputError("GoalModel: at most two blobs per bone")
+        self.register_buffer("partner", torch.tensor(partner), persistent=False)
         self.trunk_index = [JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]
 
     def joint_goals(self, bone_frames: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, weight: torch.Tensor
@@ -165,6 +172,16 @@ class GoalModel(nn.Module):
         u = main_axis(cov, a)
         Rmin = least_rotation(a, u)
         Rmin = torch.where(self.elongated[None, :, None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))
+        paired = self.partner >= 0  # (K,)
+        if bool(paired.any()):
+            other = self.partner.clamp(min=0)
+            c_pred = torch.einsum("bkij,kj->bki", Rb, bm.offset_local.to(dt))  # blob centre - bone origin
+            v_pred = c_pred[:, other] - c_pred  # (B, K, 3) towards the partner, predicted
+            v_fit = mean[:, other] - mean
+            pair_ok = paired & (weight[:, other] > 0) & (weight > 0)  # (B, K)
+            Rpair = least_rotation(v_pred / v_pred.norm(dim=-1, keepdim=True).clamp(min=1e-9),
+                                   v_fit / v_fit.norm(dim=-1, keepdim=True).clamp(min=1e-9))
+            Rmin = torch.where(pair_ok[..., None, None], Rpair, Rmin)
         Rnew = Rmin @ Rb  # (B, K, 3, 3)
         Pnew = mean - torch.einsum("bkij,kj->bki", Rnew, bm.offset_local.to(dt))  # bone origin
         local = self.local.to(dt)[bone]  # (K, G, 3)

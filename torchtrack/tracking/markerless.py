@@ -225,6 +225,18 @@ class MarkerlessTracker:
                 best = (cost, res)
         res = best[1]
         self.angles = self.previous = res.angles
+        # the voxels' top is a coarse height: refine the subject's scale by least squares of the fitted blob
+        # means about their centroid against the model's (fitted ~ s * model)
+        for _ in range(2):
+            s = self._scale_from_blobs(res)
+            if abs(s - 1.0) < 0.005:
+                break
+            angles = res.angles.clone()
+            self._setup(min(max(self.height_m * s, 0.5), 2.5), pts.device, pts.dtype)
+            self.angles = self.previous = angles
+            for _ in range(max(2, self.config.init_passes // 3)):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = res.angles
         self.colour = None
         if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
             self.subject = None
@@ -238,6 +250,14 @@ class MarkerlessTracker:
         res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
         self.angles = self.previous = res.angles
         return replace(res, reinitialised=True)
+
+    def _scale_from_blobs(self, res: FrameResult) -> float:
+        """Least-squares scale of the fitted blob means about their centroid relative to the model's blobs."""
+        model_mean, _ = self.subject.blobs.gaussians(res.bone_frames[None])
+        m, f = model_mean[0], res.blobs.mean
+        w = (res.blobs.active.to(m.dtype) * res.blobs.fill.clamp(0, 1))[:, None]
+        cm, cf = (w * m).sum(0) / w.sum(), (w * f).sum(0) / w.sum()
+        return float((w * (f - cf) * (m - cm)).sum() / (w * (m - cm) ** 2).sum().clamp(min=1e-12))
 
     # ------------------------------------------------------------------------------------------ tracking
     def _regenerate(self, angles: torch.Tensor) -> tuple[torch.Tensor, Blobs]:

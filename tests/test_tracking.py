@@ -1,0 +1,352 @@
+"""Markerless tracking: EM, goals, root fit, the tracker loop on voxelised ground-truth bodies, `torchtrack track`.
+
+References are independent of the code under test: scipy's rotations, ground-truth poses of procedural motions
+and the voxels of their ellipsoids, a plain-loop EM assignment.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from torchtrack.blobs import BlobModel
+from torchtrack.blobs.em import EMConfig, e_step, fit_blobs, prior_blobs
+from torchtrack.checks import InputError
+from torchtrack.occupancy.metrics import inside_ellipsoids
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.motion import procedural_motion
+from torchtrack.tracking.goals import (GoalModel, bound_rotation, least_rotation, weighted_kabsch, zyx_euler,
+                                       zyx_matrix)
+from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.observation import VoxelObservation
+
+torch.set_grad_enabled(False)
+
+
+@pytest.fixture(scope="module")
+def skel() -> Skeleton:
+    return Skeleton.from_urdf()
+
+
+# ------------------------------------------------------------------------------------------------ rotations
+def test_zyx_euler_matches_scipy():
+    rng = np.random.default_rng(0)
+    e = rng.uniform([-3, -1.4, -3], [3, 1.4, 3], size=(50, 3))
+    R_ref = Rotation.from_euler("ZYX", e).as_matrix()  # intrinsic z, y, x: Rz Ry Rx
+    R = zyx_matrix(torch.tensor(e))
+    np.testing.assert_allclose(R.numpy(), R_ref, atol=1e-12)
+    np.testing.assert_allclose(zyx_euler(torch.tensor(R_ref)).numpy(), e, atol=1e-9)
+
+
+def test_least_rotation_takes_a_onto_b_with_the_least_angle():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(40, 3))
+    b = rng.normal(size=(40, 3))
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    R = least_rotation(torch.tensor(a), torch.tensor(b)).numpy()
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R, a), b, atol=1e-12)
+    angle = Rotation.from_matrix(R).magnitude()
+    np.testing.assert_allclose(angle, np.arccos(np.clip((a * b).sum(1), -1, 1)), atol=1e-9)
+
+
+def test_weighted_kabsch_recovers_a_rigid_motion_and_matches_scipy():
+    rng = np.random.default_rng(2)
+    src = rng.normal(size=(3, 7, 3))
+    R_true = Rotation.random(3, random_state=3).as_matrix()
+    t_true = rng.normal(size=(3, 3))
+    dst = np.einsum("bij,bnj->bni", R_true, src) + t_true[:, None]
+    w = rng.uniform(0.1, 2.0, size=(3, 7))
+    R, t = weighted_kabsch(torch.tensor(src), torch.tensor(dst), torch.tensor(w))
+    np.testing.assert_allclose(R.numpy(), R_true, atol=1e-10)
+    np.testing.assert_allclose(t.numpy(), t_true, atol=1e-10)
+    # with noise: the same rotation as scipy's weighted align_vectors on centred points
+    noisy = dst + rng.normal(scale=0.05, size=dst.shape)
+    R, _ = weighted_kabsch(torch.tensor(src), torch.tensor(noisy), torch.tensor(w))
+    for b in range(3):
+        wn = w[b] / w[b].sum()
+        cs, cd = (wn[:, None] * src[b]).sum(0), (wn[:, None] * noisy[b]).sum(0)
+        ref, _ = Rotation.align_vectors(noisy[b] - cd, src[b] - cs, weights=w[b])
+        np.testing.assert_allclose(R[b].numpy(), ref.as_matrix(), atol=1e-8)
+
+
+def test_bound_rotation_clips_the_angle_about_the_same_axis():
+    rv = np.array([[0.0, 0.0, 2.0], [0.3, -0.2, 0.1]])
+    R = bound_rotation(torch.tensor(Rotation.from_rotvec(rv).as_matrix()), 0.5).numpy()
+    out = Rotation.from_matrix(R).as_rotvec()
+    np.testing.assert_allclose(out[0], [0, 0, 0.5], atol=1e-9)
+    np.testing.assert_allclose(out[1], rv[1], atol=1e-9)  # under the bound: unchanged
+
+
+# ------------------------------------------------------------------------------------------------------ EM
+def _voxelise(centres, R, semi, voxel=0.03, lower=(-1.5, -1.5, 0.0), upper=(1.5, 1.5, 2.1)):
+    """Voxel centres of a 3D grid inside any of the ellipsoids, and which ellipsoid (nearest in unit distance)."""
+    axes = [torch.arange(lo + voxel / 2, hi, voxel, dtype=torch.float64) for lo, hi in zip(lower, upper)]
+    g = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = inside_ellipsoids(g, centres, R, semi)
+    pts = g[inside]
+    local = torch.einsum("nkj,kji->nki", pts[:, None] - centres[None], R) / semi[None]
+    owner = (local ** 2).sum(-1).argmin(1)
+    return pts, owner
+
+
+def _observation(skel, blobs, angles, voxel=0.03, shift=(0.0, 0.0, 0.0), cameras=4):
+    fk = skel.forward(angles[None].double())
+    centres, R = blobs.ellipsoids(fk.bone_frames)
+    pts, owner = _voxelise(centres[0] + torch.tensor(shift, dtype=torch.float64), R[0], blobs.semi_axes.double(),
+                           voxel)
+    colour = blobs.colour.double()[owner]  # (N, 3) every view sees the blob's colour
+    colours = colour[:, None, :].expand(-1, cameras, -1).clone()
+    sizes = torch.full((pts.shape[0],), voxel, dtype=torch.float64)
+    return VoxelObservation(pts.float(), sizes.float(), (sizes ** 3).float(), colours.float(),
+                            torch.ones(cameras, dtype=torch.bool))
+
+
+def test_e_step_matches_a_plain_loop():
+    gen = torch.Generator().manual_seed(0)
+    K, N, C = 4, 60, 3
+    mean = torch.randn(K, 3, generator=gen, dtype=torch.float64)
+    A = torch.randn(K, 3, 3, generator=gen, dtype=torch.float64)
+    cov = A @ A.transpose(-1, -2) + 0.1 * torch.eye(3, dtype=torch.float64)
+    blobs = prior_blobs(mean, cov)
+    cm = torch.rand(K, 3, generator=gen, dtype=torch.float64)
+    B = torch.randn(K, 3, 3, generator=gen, dtype=torch.float64)
+    ccov = B @ B.transpose(-1, -2) * 0.01 + 0.01 * torch.eye(3, dtype=torch.float64)
+    blobs = dataclasses.replace(blobs, colour_mean=cm, colour_cov=ccov, colour_known=True)
+    pts = torch.randn(N, 3, generator=gen, dtype=torch.float64)
+    col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
+    col[::5, 1] = float("nan")
+    cfg = EMConfig(gate_mahalanobis2=1e9)
+    assign, view, _ = e_step(pts, col, blobs, cfg)
+    for n in range(N):
+        best, best_view = None, None
+        for k in range(K):
+            d = pts[n] - mean[k]
+            cost = float(d @ torch.linalg.solve(cov[k], d))
+            dc_best, v_best = math.inf, None
+            for v in range(C):
+                if torch.isnan(col[n, v]).any():
+                    continue
+                e = col[n, v] - cm[k]
+                dc = float(e @ torch.linalg.solve(ccov[k], e))
+                if dc < dc_best:
+                    dc_best, v_best = dc, v
+            cost += dc_best
+            if best is None or cost < best[0]:
+                best, best_view = (cost, k), v_best
+        assert int(assign[n]) == best[1]
+        assert int(view[n]) == best_view
+
+
+def test_em_recovers_displaced_blobs(skel):
+    """Blobs predicted 3 cm and 0.06 rad per joint off converge onto the voxels of the true pose."""
+    blobs = BlobModel.from_config(skel)
+    T = procedural_motion(skel, "walk", 1.0, 30, starfish_s=0.0)
+    truth = T[20]
+    obs = _observation(skel, blobs, truth)
+    pred = truth.clone()
+    pred[0] += 0.03
+    pred[6:] += 0.06
+    mean_p, cov_p = blobs.gaussians(skel.forward(skel.clamp(pred)[None]).bone_frames)
+    mean_t, _ = blobs.gaussians(skel.forward(truth[None]).bone_frames)
+    fitted, _ = fit_blobs(obs.points, obs.weights, obs.sizes, None, prior_blobs(mean_p[0], cov_p[0]),
+                          EMConfig(iterations=6))
+    before = (mean_p[0] - mean_t[0]).norm(dim=-1)
+    after = (fitted.mean - mean_t[0]).norm(dim=-1)
+    assert float(after.median()) < 0.5 * float(before.median())
+    near = before < 0.06  # blobs that overlap their voxels at the start (the far ones may lose them)
+    assert int(near.sum()) >= 8
+    assert float(after[near].max()) < 0.025
+    assert bool(fitted.active[near].all())
+
+
+# --------------------------------------------------------------------------------------------------- goals
+def test_goals_from_exact_blobs_are_the_true_joints(skel):
+    """Blobs placed by the true pose, bones predicted 0.1 rad off: every joint's goal is its true position."""
+    blobs = BlobModel.from_config(skel).double()
+    gm = GoalModel(skel, blobs).double()
+    truth = procedural_motion(skel, "kick", 1.0, 30, starfish_s=0.0)[15].double()
+    pred = truth.clone()
+    pred[6:] += 0.1 * torch.cos(torch.arange(pred.shape[0] - 6, dtype=torch.float64))
+    fk_t, fk_p = skel.forward(truth[None]), skel.forward(skel.clamp(pred)[None])
+    mean, cov = blobs.gaussians(fk_t.bone_frames)
+    goals, w = gm.joint_goals(fk_p.bone_frames, mean, cov, torch.ones(1, blobs.num_blobs, dtype=torch.float64))
+    # joints whose bones have elongated blobs (limbs) get their true positions exactly; round blobs (pelvis,
+    # hands, feet) keep the predicted orientation, so their far joints are only close
+    err = (goals - fk_t.joints).norm(dim=-1)[0]
+    assert bool((w > 0).all())
+    from torchtrack.skeleton.model import JOINT_FRAMES
+
+    for name in ("l_forearm", "r_forearm", "l_shank", "r_shank", "l_hand", "r_foot"):
+        assert float(err[JOINT_FRAMES.index(name)]) < 0.03, name
+    assert float(err.median()) < 0.03
+
+
+def test_fit_root_recovers_a_moved_trunk(skel):
+    blobs = BlobModel.from_config(skel)
+    gm = GoalModel(skel, blobs)
+    truth = skel.rest_angles().clone()
+    truth[3] = 0.3  # yaw
+    truth[0:2] = torch.tensor([0.2, -0.1])
+    start = skel.rest_angles()
+    fk_t, fk_s = skel.forward(truth[None]), skel.forward(start[None])
+    w = torch.ones(1, fk_t.joints.shape[1])
+    out = gm.fit_root(start[None], fk_s.joints, fk_t.joints, w, max_rotation=1.0)
+    np.testing.assert_allclose(out[0, :6].numpy(), truth[:6].numpy(), atol=1e-5)
+    bounded = gm.fit_root(start[None], fk_s.joints, fk_t.joints, w, max_rotation=0.1)
+    assert abs(float(bounded[0, 3]) - 0.1) < 1e-5  # the heading change is clipped
+
+
+# --------------------------------------------------------------------------------------------- the tracker
+def _landmarks(skel, angles):
+    return skel.forward(angles[None]).landmarks[0]
+
+
+def _track(skel, motion, frames, tracker=None, edit=None):
+    """Track voxelised ground truth of a subject 1.80 m tall (the tracker starts from the generic 1.75 m body)."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, motion, frames / 30, 30, starfish_s=0.3)
+    tracker = tracker or MarkerlessTracker(skel)
+    errs, results = [], []
+    for t in range(T.shape[0]):
+        obs = _observation(subj, blobs, T[t])
+        if edit is not None:
+            obs = edit(t, obs)
+        r = tracker.step(obs)
+        results.append(r)
+        if r.valid:
+            errs.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+    return tracker, np.array(errs), results
+
+
+@pytest.mark.parametrize("motion", ["walk", "kick"])
+def test_tracker_follows_voxelised_ground_truth(skel, motion):
+    tracker, errs, results = _track(skel, motion, 24)
+    assert abs(tracker.height_m - 1.80) < 0.04  # estimated from the starfish voxels
+    assert all(r.valid for r in results)
+    assert errs.mean() < 0.03, errs
+    assert errs.max() < 0.06, errs
+
+
+def test_frames_with_nobody_are_invalid_and_tracking_resumes(skel):
+    """A gap of empty frames, and the person coming back 0.4 m away: invalid during the gap, then re-acquired."""
+    def edit(t, obs):
+        if 14 <= t < 18:
+            return VoxelObservation(obs.points[:0], obs.sizes[:0], obs.weights[:0], obs.colours[:0],
+                                    obs.cameras_valid)
+        if t >= 18:
+            return dataclasses.replace(obs, points=obs.points + torch.tensor([0.4, 0.0, 0.0]))
+        return obs
+
+    _, errs, results = _track(skel, "walk", 30, edit=edit)
+    valid = np.array([r.valid for r in results])
+    assert not valid[14:18].any()
+    assert valid[:14].all() and valid[19:].all()
+    # after the gap the estimate follows the moved body (errors measured against the unmoved truth + 0.4 m)
+    assert all(np.isfinite(r.output_points.numpy()).all() for r in results)
+    late = [r for r in results[19:]]
+    assert all(r.output_points[0, 0] > 0.25 for r in late)
+
+
+def test_no_starfish_start_gives_a_clear_error(skel):
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    crouch = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[12]  # mid-squat, arms forward
+    obs = _observation(subj, blobs, crouch)
+    with pytest.raises(InputError, match="--init-pose"):
+        MarkerlessTracker(skel).step(obs)
+
+
+def test_initial_pose_replaces_the_starfish(skel):
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, "squat", 0.5, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    tracker.initialize_from_pose(T[0], 1.75)
+    errs = []
+    for t in range(T.shape[0]):
+        r = tracker.step(_observation(subj, blobs, T[t]))
+        assert r.valid
+        errs.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+    assert np.mean(errs) < 0.03
+
+
+def test_tracker_config_from_dict_names_unknown_keys():
+    cfg = TrackerConfig.from_dict({"refinements": 3, "em": {"iterations": 2}, "ccd": {"sweeps": 4}})
+    assert cfg.refinements == 3 and cfg.em.iterations == 2 and cfg.ccd.sweeps == 4
+    with pytest.raises(InputError, match="nonsense"):
+        TrackerConfig.from_dict({"nonsense": 1}, "x.yaml")
+    with pytest.raises(InputError):
+        TrackerConfig.from_dict({"em": {"iterations": 0}})
+
+
+# --------------------------------------------------------------------------------------------------- CLI
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory) -> Path:
+    from torchtrack.synth.scene import SceneConfig
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+
+    cfg = SynthConfig(motion="walk", duration_s=0.5, starfish_s=0.2, fps=20, background_frames=4,
+                      video_format="png", rig=RigConfig(num_cameras=4, width=320, height=240),
+                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
+    return write_sequence(cfg, tmp_path_factory.mktemp("track") / "seq", progress=False)
+
+
+@pytest.mark.parametrize("model", ["bayes", "hull"])
+def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses
+
+    out = tmp_path / model
+    assert main(["track", str(seq), "--out", str(out), "--model", model, "--scale", "1", "--voxel", "0.03",
+                 "--log-every", "5"]) == 0
+    poses = load_poses(out / "poses.npz")
+    gt = load_poses(seq / "gt.npz")
+    assert poses.num_frames == gt.num_frames and poses.valid.all()
+    err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
+    assert err < 0.045, err
+    capsys.readouterr()
+    assert main(["eval", str(out / "poses.npz"), str(seq / "gt.npz")]) == 0
+    printed = capsys.readouterr().out
+    assert f"{1e3 * err:.1f}" in printed
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(out / "tb"))
+    acc.Reload()
+    assert {"ik_residual_mm", "voxels", "fps"} <= set(acc.Tags()["scalars"])
+    assert any(t.startswith("cameras/pose") for t in acc.Tags()["images"])
+
+
+def test_track_cli_marks_a_corrupt_frame_invalid_and_goes_on(seq, tmp_path, capsys):
+    import shutil
+
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses
+
+    bad = tmp_path / "seq"
+    shutil.copytree(seq, bad)
+    frames = sorted((bad / "video").rglob("*.png"))
+    victim = [f for f in frames if f.stem.endswith("0008")]
+    assert victim, frames[:3]
+    victim[0].write_bytes(b"not a png")
+    out = tmp_path / "out"
+    assert main(["track", str(bad), "--out", str(out), "--scale", "1", "--log-every", "0"]) == 0
+    poses = load_poses(out / "poses.npz")
+    assert not poses.valid[8]
+    assert poses.valid[:8].all() and poses.valid[9:].all()
+
+
+def test_track_cli_bad_input(tmp_path, seq, capsys):
+    from torchtrack.cli import main
+
+    assert main(["track", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
+    assert "missing" in capsys.readouterr().err
+    assert main(["track", str(seq), "--out", str(tmp_path / "o"), "--init-pose", str(tmp_path / "none.npz")]) == 2
+    assert "none.npz" in capsys.readouterr().err

@@ -1,0 +1,111 @@
+"""Tracking a whole sequence folder: read, observe, track, log; the loop behind `torchtrack track`."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import torch
+
+from torchtrack.checks import InputError
+from torchtrack.io.poses import Poses
+from torchtrack.io.sequence import SequenceFolder
+from torchtrack.tracking.markerless import MarkerlessTracker
+from torchtrack.tracking.observation import Observer
+
+log = logging.getLogger(__name__)
+
+
+def track_sequence(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int = 0,
+                   stop: int | None = None, batch: int = 4, device: torch.device | str | None = None,
+                   logger=None, log_every: int = 10, progress: bool = True) -> tuple[Poses, float]:
+    """Track frames ``[start, stop)`` of ``folder``.
+
+    A frame with an unreadable camera frame is not tracked and comes out ``valid = False``; so does a frame
+    with nobody in the volume. Errors of the tracker name the frame.
+
+    Args:
+        folder: the sequence. observer: the observation model at the processing size (its rig's size is the
+            size frames are read at). tracker: a fresh or initialised :class:`MarkerlessTracker`.
+        logger: a :class:`~torchtrack.logging.RunLogger` or None; it gets per-frame scalars and, every
+            ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton.
+
+    Returns:
+        the poses (DESIGN.md schema; ``extra`` holds ``subject_height_m``, ``observation_model``,
+        ``ik_residual_m``, ``explained``, ``reinitialised``) and the seconds taken.
+    """
+    from tqdm import tqdm
+
+    rig = observer.rig
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
+    if stop <= start:
+        raise InputError(f"{folder.root}: no frames in [{start}, {stop}) ({folder.num_frames} frames)")
+    names = tracker.generic.output_names
+    T, D = stop - start, tracker.generic.num_dofs
+    joints3d = np.full((T, len(names), 3), np.nan, np.float32)
+    angles = np.full((T, D), np.nan, np.float32)
+    valid = np.zeros(T, bool)
+    confidence = np.zeros((T, len(names)), np.float32)
+    residual = np.full(T, np.nan, np.float32)
+    explained = np.zeros(T, np.float32)
+    reinit = np.zeros(T, bool)
+    t_start = time.perf_counter()
+    with tqdm(total=T, unit="frame", desc="track", disable=not progress) as bar:
+        for fb in folder.iter_batches(batch, start, stop, device=device, size_wh=(W, H)):
+            t0 = time.perf_counter()
+            observations = observer(fb.images, fb.valid)
+            t_obs = (time.perf_counter() - t0) / len(observations)
+            for i, obs in enumerate(observations):
+                t1 = time.perf_counter()
+                t = int(fb.frame_index[i])
+                k = t - start
+                if not bool(fb.valid[i].all()):  # a corrupt or missing camera frame: not tracked
+                    bad = [n for n, ok in zip(rig.names, fb.valid[i].tolist()) if not ok]
+                    log.warning("frame %d: unreadable frame from camera(s) %s; marked invalid", t, ", ".join(bad))
+                    res = tracker.skip()
+                else:
+                    try:
+                        res = tracker.step(obs)
+                    except InputError as exc:
+                        raise InputError(f"{folder.root}, frame {t}: {exc}") from None
+                joints3d[k] = res.output_points.cpu().numpy()
+                angles[k] = res.angles.cpu().numpy()
+                valid[k] = res.valid
+                if res.valid:
+                    confidence[k] = res.confidence.cpu().numpy()
+                residual[k] = res.residual_m
+                explained[k] = res.explained
+                reinit[k] = res.reinitialised
+                dt = t_obs + time.perf_counter() - t1
+                if logger is not None:
+                    _log_frame(logger, t, k, obs, res, fb.images[i], rig, dt, t_obs, log_every)
+                bar.update(1)
+                bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
+    elapsed = time.perf_counter() - t_start
+    extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
+             "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
+             "reinitialised": reinit}
+    poses = Poses(fps=folder.fps, frame_index=np.arange(start, stop, dtype=np.int64), joint_names=list(names),
+                  joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
+                  confidence=confidence, extra=extra)
+    return poses, elapsed
+
+
+def _log_frame(tb, t: int, k: int, obs, res, images: torch.Tensor, rig, dt: float, t_obs: float,
+               log_every: int) -> None:
+    from torchtrack.tracking.draw import draw_pose_overlays
+
+    tb.scalars(t, voxels=float(obs.num_voxels), ik_residual_mm=1e3 * res.residual_m, explained=res.explained,
+               valid=float(res.valid), fps=1.0 / max(dt, 1e-9), observation_ms=1e3 * t_obs)
+    if not (log_every and k % log_every == 0 and res.valid):
+        return
+    lm = res.output_points[:16]
+    cen = R = semi = None
+    if res.blobs is not None:
+        evals, evecs = torch.linalg.eigh(res.blobs.cov)
+        cen, R, semi = res.blobs.mean, evecs, (5.0 * evals.clamp(min=0)).sqrt()
+    img = torch.nan_to_num(images, nan=0.0)
+    tb.camera_images(t, "cameras/pose", draw_pose_overlays(img, rig, lm, cen, R, semi), rig.names)
+    tb.pose_cloud(t, "pose/voxels_skeleton", obs.points, lm)
