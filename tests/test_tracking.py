@@ -85,9 +85,13 @@ def test_bound_rotation_clips_the_angle_about_the_same_axis():
 
 
 # ------------------------------------------------------------------------------------------------------ EM
-def _voxelise(centres, R, semi, voxel=0.03, lower=(-1.5, -1.5, 0.0), upper=(1.5, 1.5, 2.1)):
-    """Voxel centres of a 3D grid inside any of the ellipsoids, and which ellipsoid (nearest in unit distance)."""
-    axes = [torch.arange(lo + voxel / 2, hi, voxel, dtype=torch.float64) for lo, hi in zip(lower, upper)]
+def _voxelise(centres, R, semi, voxel=0.03):
+    """Voxel centres of a 3D grid (cells aligned to the origin) inside any of the ellipsoids, and which ellipsoid
+    (nearest in unit distance) each belongs to."""
+    reach = float(semi.max())
+    lower = torch.floor((centres.amin(0) - reach) / voxel) * voxel
+    upper = centres.amax(0) + reach
+    axes = [torch.arange(float(lo) + voxel / 2, float(hi), voxel, dtype=torch.float64) for lo, hi in zip(lower, upper)]
     g = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     inside = inside_ellipsoids(g, centres, R, semi)
     pts = g[inside]
@@ -162,7 +166,8 @@ def test_em_recovers_displaced_blobs(skel):
     assert float(after.median()) < 0.5 * float(before.median())
     near = before < 0.06  # blobs that overlap their voxels at the start (the far ones may lose them)
     assert int(near.sum()) >= 8
-    assert float(after[near].max()) < 0.025
+    assert float(after[near].max()) < 0.035
+    assert float(after[near].median()) < 0.015
     assert bool(fitted.active[near].all())
 
 

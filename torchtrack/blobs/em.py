@@ -106,16 +106,18 @@ def ellipsoid_volume(cov: torch.Tensor) -> torch.Tensor:
     return (4.0 / 3.0) * math.pi * 5.0 ** 1.5 * torch.linalg.det(cov).clamp(min=0).sqrt()
 
 
-def _mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov_inv: torch.Tensor) -> torch.Tensor:
-    """x (..., 3), mean (K, 3), symmetric cov_inv (K, 3, 3) -> (..., K) squared Mahalanobis distances.
+def _mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+    """x (..., 3), mean (K, 3), covariances (K, 3, 3) -> (..., K) squared Mahalanobis distances.
 
-    Expanded as x^T A x - 2 x^T A mu + mu^T A mu so that all K blobs take one matrix product.
+    Whitened with the inverse Cholesky factors W_k (W_k^T W_k = cov_k^-1): ``|W_k x - W_k mu_k|^2``, all K blobs
+    in one matrix product; the subtraction is of first-order terms, so float32 keeps its precision.
     """
     K = mean.shape[0]
-    Amu = torch.einsum("kij,kj->ki", cov_inv, mean)  # (K, 3)
-    const = (Amu * mean).sum(-1)  # (K,)
-    outer = (x[..., :, None] * x[..., None, :]).reshape(*x.shape[:-1], 9)
-    return outer @ cov_inv.reshape(K, 9).T - 2 * (x @ Amu.T) + const
+    eye = torch.eye(3, dtype=cov.dtype, device=cov.device).expand_as(cov)
+    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # (K, 3, 3)
+    Wmu = torch.einsum("kij,kj->ki", W, mean)  # (K, 3)
+    y = (x @ W.reshape(K * 3, 3).T).unflatten(-1, (K, 3)) - Wmu  # (..., K, 3)
+    return y.square().sum(-1)
 
 
 def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig
@@ -130,15 +132,13 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         was used (-1 if none); cost (N,) the least distance.
     """
     K = blobs.num_blobs
-    inv = torch.linalg.inv(blobs.cov)  # (K, 3, 3)
-    d_pos = _mahalanobis2(points, blobs.mean, inv)  # (N, K)
+    d_pos = _mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
     d_pos = torch.where(blobs.active, d_pos, torch.inf)
     view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
     cost = d_pos
     best_view = None
     if colours is not None and blobs.colour_known and config.colour_weight > 0:
-        cinv = torch.linalg.inv(blobs.colour_cov)
-        d_col = _mahalanobis2(colours, blobs.colour_mean, cinv)  # (N, C, K)
+        d_col = _mahalanobis2(colours, blobs.colour_mean, blobs.colour_cov)  # (N, C, K)
         d_col = torch.nan_to_num(d_col, nan=torch.inf)
         d_col_min, best_view = d_col.min(dim=1)  # (N, K)
         seen = torch.isfinite(d_col_min)
@@ -155,16 +155,17 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
 
 def _weighted_moments(x: torch.Tensor, w: torch.Tensor, assign: torch.Tensor, K: int
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Per-blob sum of weights (K,), mean (K, 3) and second moment (K, 3, 3) of rows of x with weights w."""
-    onehot = torch.zeros(x.shape[0], K, dtype=x.dtype, device=x.device)
+    """Per-blob sum of weights (K,), weighted mean (K, 3) and covariance about that mean (K, 3, 3) of the rows of
+    x assigned to it (``assign`` -1: none). Two passes (mean, then centred scatter) to keep float32 precise."""
     ok = assign >= 0
-    onehot[ok.nonzero()[:, 0], assign[ok]] = 1.0
-    W = onehot * w[:, None]  # (N, K)
-    total = W.sum(0)  # (K,)
+    a, xs, ws = assign[ok], x[ok], w[ok]
+    total = torch.zeros(K, dtype=x.dtype, device=x.device).index_add_(0, a, ws)
     safe = total.clamp(min=1e-30)
-    mean = (W.T @ x) / safe[:, None]
-    second = (W.T @ (x[:, :, None] * x[:, None, :]).reshape(-1, 9)).view(K, 3, 3) / safe[:, None, None]
-    return total, mean, second
+    mean = torch.zeros(K, 3, dtype=x.dtype, device=x.device).index_add_(0, a, ws[:, None] * xs) / safe[:, None]
+    d = xs - mean[a]
+    cov = torch.zeros(K, 9, dtype=x.dtype, device=x.device).index_add_(
+        0, a, ws[:, None] * (d[:, :, None] * d[:, None, :]).reshape(-1, 9)).view(K, 3, 3) / safe[:, None, None]
+    return total, mean, cov
 
 
 def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, colours: torch.Tensor | None,
@@ -178,11 +179,11 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
         blobs (position mean and covariance used).
     """
     K = blobs.num_blobs
-    total, mu, second = _weighted_moments(points, weights, assign, K)
+    total, mu, scatter_obs = _weighted_moments(points, weights, assign, K)
     own = torch.zeros(K, dtype=points.dtype, device=points.device)
     own.index_add_(0, assign.clamp(min=0), torch.where(assign >= 0, weights * sizes ** 2 / 12.0, 0.0))
     eye = torch.eye(3, dtype=points.dtype, device=points.device)
-    cov = second - mu[:, :, None] * mu[:, None, :] + (own / total.clamp(min=1e-30))[:, None, None] * eye
+    cov = scatter_obs + (own / total.clamp(min=1e-30))[:, None, None] * eye
     prior_volume = ellipsoid_volume(prior.cov)  # (K,)
     fill = total / prior_volume
     # MAP-style blend with the prior: weights of pseudo-observations proportional to the prior volume
@@ -201,8 +202,7 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
         has = (assign >= 0) & (view >= 0)
         idx = has.nonzero()[:, 0]
         c = colours[idx, view[idx]]  # (n, 3) the chosen view's colour
-        ctot, cmu, csec = _weighted_moments(c, weights[idx], assign[idx], K)
-        ccov = csec - cmu[:, :, None] * cmu[:, None, :]
+        ctot, cmu, ccov = _weighted_moments(c, weights[idx], assign[idx], K)
         ccov = _floor_determinant(ccov + 1e-6 * eye, config.min_colour_std)
         rate = config.colour_rate if known else 1.0
         upd = (ctot > 0) & active

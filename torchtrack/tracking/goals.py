@@ -3,9 +3,10 @@
 Every blob rides on a bone. Given the bone's predicted world placement (R_b, P_b) and the blob's fitted mean mu
 and covariance, the blob says where its bone should be:
 
-* orientation: the predicted blob axis a is turned onto the fitted main axis u by the least rotation R_min
-  (u from a few power iterations of the covariance started at a, so it stays on a's side: no flips). Round
-  blobs (no main axis) keep the predicted orientation;
+* orientation: the predicted main axis a of the blob (its longest: along a limb, across the pelvis) is turned
+  onto the fitted main axis u by the least rotation R_min (u from a few power iterations of the covariance
+  started at a, so it stays on a's side: no flips). A bone with two blobs turns the predicted line between
+  their centres onto the fitted one instead. Round blobs keep the predicted orientation;
 * position: the bone's origin goes where the blob's centre lands on mu, ``P = mu - R_min R_b offset``.
 
 Each kinematic joint rigidly attached to a bone (its proximal joint, distal joint and any joint whose position is
@@ -119,7 +120,7 @@ class GoalModel(nn.Module):
     Buffers:
         attached: (nb, G) bool, joint g (``JOINT_FRAMES`` order) is fixed in bone b's frame.
         local: (nb, G, 3) its position in the bone's frame (m).
-        elongated: (K,) bool, the blob has a main axis (along semi-axis 1.25x its largest cross semi-axis).
+        elongated: (K,) bool, the blob has a main axis (largest semi-axis 1.25x the next); principal: (K,) which.
     """
 
     def __init__(self, skeleton: Skeleton, blobs: BlobModel) -> None:
@@ -139,7 +140,11 @@ class GoalModel(nn.Module):
         self.register_buffer("attached", attached, persistent=False)
         self.register_buffer("local", local[0].float(), persistent=False)
         semi = blobs.semi_axes
-        self.register_buffer("elongated", semi[:, 0] > 1.25 * semi[:, 1:].amax(-1), persistent=False)
+        top2 = semi.topk(2, dim=-1).values
+        # a blob whose largest semi-axis is 1.25x the next has a main axis (the along axis of a limb, the
+        # left-right width of the pelvis, which gives the heading)
+        self.register_buffer("elongated", top2[:, 0] > 1.25 * top2[:, 1], persistent=False)
+        self.register_buffer("principal", semi.argmax(-1), persistent=False)
         # a bone with two blobs (torso: abdomen and chest; head: neck and head) is oriented by the line through
         # their centres, which is better defined than either blob's own axis
         bone = blobs.bone_of_blob.tolist()
@@ -167,8 +172,8 @@ class GoalModel(nn.Module):
         dt = mean.dtype
         bone = bm.bone_of_blob
         Rb = bone_frames[:, bone, :3, :3]  # (B, K, 3, 3)
-        a = Rb @ bm.R_bone_blob.to(dt)[:, :, 0:1]  # (B, K, 3, 1) predicted along axis
-        a = a[..., 0]
+        axes_blob = bm.R_bone_blob.to(dt).gather(2, self.principal[:, None, None].expand(-1, 3, 1))  # (K, 3, 1)
+        a = (Rb @ axes_blob)[..., 0]  # (B, K, 3) predicted main axis
         u = main_axis(cov, a)
         Rmin = least_rotation(a, u)
         Rmin = torch.where(self.elongated[None, :, None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))

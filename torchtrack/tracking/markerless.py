@@ -207,6 +207,14 @@ class MarkerlessTracker:
             feet = (w[low, None] * d[low]).sum(0) / w[low].sum()
             if float(feet @ facing) < 0:
                 facing = -facing
+        along = d @ lateral
+        span = float(torch.quantile(along, 0.995) - torch.quantile(along, 0.005))
+        if span < 0.5 * height:  # a starfish spans about 0.9 of the height hand to hand, a standing body 0.3
+            raise InputError(
+                f"initialisation: the first frame with a person does not look like the starfish pose (arm span "
+                f"{span:.2f} m for a height of {height:.2f} m). Start the sequence with the subject standing arms "
+                "and legs spread, or give an initial pose with --init-pose POSES.npz (the first valid frame of a "
+                "poses.npz of this subject, e.g. from an earlier run)")
         yaw = math.atan2(float(facing[1]), float(facing[0]))
         best = None
         for candidate in (yaw, yaw + math.pi):  # the feet decide, the fit confirms
