@@ -1,6 +1,13 @@
 #!/usr/bin/env bash
-# Render a short synthetic 8-camera sequence on built-in defaults (creates .venv and installs on first use).
-# Extra arguments go to `torchtrack synth`.
+# The main job on built-in defaults (creates .venv and installs on first use): render a synthetic 8-camera
+# walk, track it markerlessly and print the error against its ground truth.
+# Extra arguments go to `torchtrack track` (e.g. --model hull, --device cuda).
+set -euo pipefail
 source "$(dirname "$0")/_setup_venv.sh"
 OUT="${OUT:-out/demo}"
-.venv/bin/torchtrack synth --motion walk --duration 2 --out "$OUT/seq" "$@"
+if [[ ! -f "$OUT/seq/gt.npz" ]]; then
+  .venv/bin/torchtrack synth --motion walk --duration 2 --out "$OUT/seq"
+fi
+.venv/bin/torchtrack track "$OUT/seq" --out "$OUT/track" "$@"
+.venv/bin/torchtrack eval "$OUT/track/poses.npz" "$OUT/seq/gt.npz"
+echo "TensorBoard: .venv/bin/tensorboard --logdir $OUT/track/tb"

@@ -192,8 +192,11 @@ class MarkerlessTracker:
         pts, w = obs.points, obs.weights
         if obs.num_voxels < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
-        top = float(torch.quantile(pts[:, 2], 0.998)) + 0.5 * float(obs.sizes.max())
-        height = min(max(top / self._starfish_top_ratio(), 0.5), 2.5)
+        # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them
+        half = 0.5 * float(obs.sizes.max())
+        sole = float(torch.quantile(pts[:, 2], 0.002)) - half
+        top = float(torch.quantile(pts[:, 2], 0.998)) + half
+        height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
         self._setup(height, pts.device, pts.dtype)
         skel = self.subject.skeleton
         c = (w[:, None] * pts).sum(0) / w.sum()
@@ -219,6 +222,7 @@ class MarkerlessTracker:
         best = None
         for candidate in (yaw, yaw + math.pi):  # the feet decide, the fit confirms
             a = skel.starfish_angles().to(pts)
+            a[skel.dof_names.index("root_tz")] += max(sole, 0.0)
             a[skel.dof_names.index("root_tx")] = c[0]
             a[skel.dof_names.index("root_ty")] = c[1]
             a[skel.dof_names.index("root_rz")] = candidate

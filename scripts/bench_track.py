@@ -1,0 +1,105 @@
+"""End-to-end markerless tracking speed: frames per second of reading, observation, EM and IK.
+
+Cases (issue targets on the 2-core CPU):
+* hull: 4 cameras 320x240, colour hull to 1.5 cm (target >= 30 fps; Caillette & Howard ran 15 fps on one PC);
+* bayes: 8 cameras 640x480, Bayesian grid 64^3.
+
+Renders the sequences once under --work (synthetic walk), then tracks them with the defaults of
+configs/markerless.yaml apart from the observation settings named here, and prints ms per frame by stage.
+
+    .venv/bin/python scripts/bench_track.py [--device cuda] [--frames 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+import torch
+
+from torchtrack.background import BackgroundModel
+from torchtrack.io.sequence import SequenceFolder
+from torchtrack.occupancy import grid_from_rig
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+
+
+def sequence(work: Path, cameras: int, width: int, height: int, seconds: float) -> Path:
+    out = work / f"walk_{cameras}cam_{width}x{height}"
+    if not (out / "gt.npz").is_file():
+        write_sequence(SynthConfig(motion="walk", duration_s=seconds, starfish_s=0.5, video_format="mp4",
+                                   rig=RigConfig(num_cameras=cameras, width=width, height=height)), out,
+                       progress=False)
+    return out
+
+
+def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int | None, frames: int,
+          device: torch.device, config: dict) -> dict[str, float]:
+    """Track the first ``frames`` frames of ``seq`` at ``scale``; ms per frame by stage (frame 0, the
+    initialisation, timed apart)."""
+    folder = SequenceFolder(seq)
+    W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
+    rig = folder.rig.resized(W, H).float().to(device)
+    bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
+    if grid_n is not None:  # voxel so that the common-view box is grid_n voxels along its longest side
+        box = grid_from_rig(rig, 0.05)
+        voxel = max(u - lo for lo, u in zip(box.lower_m, box.upper_m)) / grid_n
+    observer = observer_from_config(rig, bg, config["observation"], model, voxel).to(device)
+    tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    t = {"read": 0.0, "observe": 0.0, "track": 0.0}
+    n, t_init = 0, 0.0
+    batches = folder.iter_batches(1, 0, min(frames, folder.num_frames), device=device, size_wh=(W, H))
+    while True:
+        a = time.perf_counter()
+        fb = next(batches, None)
+        if fb is None:
+            break
+        b = time.perf_counter()
+        obs = observer(fb.images, fb.valid)[0]
+        sync()
+        c = time.perf_counter()
+        tracker.step(obs)
+        sync()
+        d = time.perf_counter()
+        if n:
+            t["read"] += b - a
+            t["observe"] += c - b
+            t["track"] += d - c
+        else:
+            t_init = d - c
+        n += 1
+    m = max(n - 1, 1)
+    return {**{f"{k}_ms": 1e3 * v / m for k, v in t.items()}, "init_s": t_init, "fps": m / sum(t.values())}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--work", type=Path, default=Path("out/bench_track"))
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING)
+    torch.set_grad_enabled(False)
+    device = torch.device(args.device)
+    config = load_config("markerless.yaml")
+    cases = [("hull 4 cams 320x240, 1.5 cm", (4, 320, 240), 1.0, "hull", 0.015, None, 30.0),
+             ("hull 4 cams 320x240, 3 cm", (4, 320, 240), 1.0, "hull", 0.03, None, None),
+             ("bayes 8 cams 640x480, 64^3", (8, 640, 480), 1.0, "bayes", None, 64, None),
+             ("bayes 8 cams 640x480 at 320x240, 3 cm", (8, 640, 480), 0.5, "bayes", 0.03, None, None)]
+    print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads")
+    print(f"{'case':40s} {'read':>8s} {'observe':>8s} {'EM+IK':>8s} {'fps':>6s}  init")
+    for name, (cams, w, h), scale, model, voxel, grid_n, target in cases:
+        seq = sequence(args.work, cams, w, h, 2.0)
+        r = bench(seq, scale, model, voxel, grid_n, args.frames, device, config)
+        verdict = "" if target is None else ("  PASS" if r["fps"] >= target else f"  MISS (target {target:.0f})")
+        print(f"{name:40s} {r['read_ms']:6.1f}ms {r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}"
+              f"  {r['init_s']:.1f}s{verdict}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
