@@ -282,12 +282,16 @@ class BackgroundModel(nn.Module):
         ``log N(I / g; mean, diag std^2) - 3 log g`` (the density of ``I = g B``; ``g = 1`` without gain
         compensation), directly comparable with :attr:`log_uniform`. NaN where the image is NaN or dead.
         """
+        return self.log_likelihood_and_yuv(images)[0]
+
+    def log_likelihood_and_yuv(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`log_likelihood` (B, C, H, W) and :meth:`normalise` (B, C, 3, H, W) from one normalisation."""
         yuv, g, _ = self._normalise(images)
         mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
         inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
         d2 = ((yuv - mean) * inv_std).square().sum(2)  # (B, C, H, W)
         log_norm = self.log_norm.to(device=yuv.device, dtype=yuv.dtype)  # (C, H, W)
-        return -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
+        return -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None], yuv
 
     def extra_repr(self) -> str:
         C, _, H, W = self.mean_yuv.shape

@@ -147,7 +147,10 @@ class BayesianGrid(nn.Module):
         """(B, C, 3, H, W) RGB -> (B, C, H, W) window-summed per-pixel log ratio; 0 for unreadable pixels."""
         W, H = self.image_size_wh
         check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
-        r = pixel_log_ratio(self.background.log_likelihood(images), self.background.log_uniform, self.config)
+        return self._evidence(self.background.log_likelihood(images))
+
+    def _evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
+        r = pixel_log_ratio(log_bg, self.background.log_uniform, self.config)
         return window_sum(torch.nan_to_num(r, nan=0.0), self.config.window)
 
     def forward(self, images: torch.Tensor) -> Occupancy:
@@ -159,6 +162,13 @@ class BayesianGrid(nn.Module):
         Returns:
             :class:`Occupancy` with log_odds (B, V).
         """
-        ev = self.evidence(images)  # (B, C, H, W)
+        W, H = self.image_size_wh
+        check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
+        return self.from_log_likelihood(self.background.log_likelihood(images))
+
+    def from_log_likelihood(self, log_bg: torch.Tensor) -> Occupancy:
+        """Occupancy from the background log-likelihood of every pixel, ``(B, C, H, W)`` (NaN: no evidence),
+        for callers that computed it already (:meth:`BackgroundModel.log_likelihood_and_yuv`)."""
+        ev = self._evidence(log_bg)  # (B, C, H, W)
         prior = math.log(self.config.prior / (1 - self.config.prior))
         return Occupancy(self.lookup.gather_sum(ev) + prior, self.observed, self.spec)

@@ -91,10 +91,9 @@ class Observer(nn.Module):
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b]))
             return out
-        occ = self.grid(images)
-        prob = occ.probability()  # (B, V)
+        log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
+        prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
         keep = prob > self.threshold
-        yuv = self.background.normalise(images)  # (B, C, 3, H, W)
         s = self.spec.voxel_size_m
         for b in range(B):
             idx = keep[b].nonzero()[:, 0]
