@@ -235,12 +235,13 @@ class MarkerlessTracker:
                 "poses.npz of this subject, e.g. from an earlier run)")
         yaw = math.atan2(float(facing[1]), float(facing[0]))
         best = None
-        # the feet decide front from back, the fit confirms; with few cameras the hull's ghosts can make the other
-        # horizontal axis look like the arms' line, so the quarter turns are tried too
-        candidates = [yaw + turn for turn in (0.0, math.pi, 0.5 * math.pi, -0.5 * math.pi)]
-        toes = [float(feet @ feet.new_tensor([math.cos(h), math.sin(h)])) for h in candidates]
-        if max(toes) > 0.03:  # the toes point 5-8 cm ahead of the body's centre: trust them when that clear
-            candidates = [h for h, f in zip(candidates, toes) if f > 0.5 * max(toes)]
+        # the horizontal spread's main axis is the arms' line and the toes tell front from back (they point
+        # 5-8 cm ahead of the body's centre); the fit decides only what these leave open (it cannot tell a
+        # flipped starfish from the right one reliably, as the hull's ghosts fit either)
+        toe = float(feet @ facing)  # >= 0 by the choice of facing
+        candidates = [yaw] if toe > 0.03 else [yaw, yaw + math.pi]
+        if float(evals[1]) < 1.3 * float(evals[0]):  # no clear arms' line: try the quarter turns as well
+            candidates += [h + 0.5 * math.pi for h in candidates]
         for candidate in candidates:
             a = skel.starfish_angles().to(pts)
             a[skel.dof_names.index("root_tz")] += max(sole, 0.0)
