@@ -116,7 +116,8 @@ def _mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> tor
     eye = torch.eye(3, dtype=cov.dtype, device=cov.device).expand_as(cov)
     W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # (K, 3, 3)
     Wmu = torch.einsum("kij,kj->ki", W, mean)  # (K, 3)
-    y = (x @ W.reshape(K * 3, 3).T).unflatten(-1, (K, 3)) - Wmu  # (..., K, 3)
+    flat = x.reshape(-1, 3)  # one matrix product (a strided 3D operand would run as a loop of small ones)
+    y = (flat @ W.reshape(K * 3, 3).T).view(*x.shape[:-1], K, 3) - Wmu  # (..., K, 3)
     return y.square().sum(-1)
 
 
