@@ -13,6 +13,7 @@ configs/markerless.yaml apart from the observation settings named here, and prin
 from __future__ import annotations
 
 import argparse
+import itertools
 import logging
 import time
 from pathlib import Path
@@ -82,22 +83,23 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--work", type=Path, default=Path("out/bench_track"))
+    ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
+                    help="tracking configs to time")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
     device = torch.device(args.device)
-    config = load_config("markerless.yaml")
     cases = [("hull 4 cams 320x240, 1.5 cm", (4, 320, 240), 1.0, "hull", 0.015, None, 30.0),
              ("hull 4 cams 320x240, 3 cm", (4, 320, 240), 1.0, "hull", 0.03, None, None),
              ("bayes 8 cams 640x480, 64^3", (8, 640, 480), 1.0, "bayes", None, 64, None),
              ("bayes 8 cams 640x480 at 320x240, 3 cm", (8, 640, 480), 0.5, "bayes", 0.03, None, None)]
     print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads")
-    print(f"{'case':40s} {'read':>8s} {'observe':>8s} {'EM+IK':>8s} {'fps':>6s}  init")
-    for name, (cams, w, h), scale, model, voxel, grid_n, target in cases:
+    print(f"{'case':40s} {'config':22s} {'read':>8s} {'observe':>8s} {'EM+IK':>8s} {'fps':>6s}  init")
+    for (name, (cams, w, h), scale, model, voxel, grid_n, target), cname in itertools.product(cases, args.config):
         seq = sequence(args.work, cams, w, h, 2.0)
-        r = bench(seq, scale, model, voxel, grid_n, args.frames, device, config)
+        r = bench(seq, scale, model, voxel, grid_n, args.frames, device, load_config(cname))
         verdict = "" if target is None else ("  PASS" if r["fps"] >= target else f"  MISS (target {target:.0f})")
-        print(f"{name:40s} {r['read_ms']:6.1f}ms {r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}"
+        print(f"{name:40s} {cname:22s} {r['read_ms']:6.1f}ms {r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}"
               f"  {r['init_s']:.1f}s{verdict}", flush=True)
 
 

@@ -355,3 +355,17 @@ def test_track_cli_bad_input(tmp_path, seq, capsys):
     assert "missing" in capsys.readouterr().err
     assert main(["track", str(seq), "--out", str(tmp_path / "o"), "--init-pose", str(tmp_path / "none.npz")]) == 2
     assert "none.npz" in capsys.readouterr().err
+
+
+def test_config_extends_overrides_its_base(tmp_path):
+    from torchtrack.tracking.cli import load_config
+
+    base = load_config("markerless.yaml")
+    fast = load_config("markerless_fast.yaml")
+    assert fast["tracker"]["em"]["iterations"] == 2
+    assert fast["tracker"]["em"]["min_fill"] == base["tracker"]["em"]["min_fill"]  # inherited
+    assert fast["observation"] == base["observation"]
+    loop = tmp_path / "loop.yaml"
+    loop.write_text(f"extends: {loop}\n")
+    with pytest.raises(InputError, match="loops"):
+        load_config(str(loop))

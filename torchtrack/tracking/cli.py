@@ -38,8 +38,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def load_config(name: str) -> dict[str, Any]:
-    """The YAML tracking config as a dict with ``observation`` and ``tracker`` sections."""
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The YAML tracking config as a dict with ``observation`` and ``tracker`` sections (and ``source``).
+
+    A file may start from another with ``extends: NAME`` and override some settings.
+    """
     import yaml
 
     from torchtrack.checks import InputError
@@ -50,8 +60,14 @@ def load_config(name: str) -> dict[str, Any]:
         doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker"}:
-        raise InputError(f"{path}: expected the sections 'observation' and 'tracker' only")
+    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "extends"}:
+        raise InputError(f"{path}: expected the sections 'observation' and 'tracker' (and 'extends') only")
+    if "extends" in doc:
+        if str(path) in _seen:
+            raise InputError(f"{path}: 'extends' loops back to itself")
+        base = load_config(str(doc.pop("extends")), _seen + (str(path),))
+        base.pop("source", None)
+        doc = _merge(base, doc)
     doc.setdefault("observation", {})
     doc.setdefault("tracker", {})
     doc["source"] = str(path)
