@@ -45,6 +45,38 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
                  confidence=np.ones((T, len(joint_names)), np.float32))
 
 
+def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.ndarray
+                     ) -> tuple[torch.Tensor, float]:
+    """A state vector and height that put the skeleton's landmarks on ``points (L, 3)`` (named ``names``):
+    height from the reference's head-to-ankle span, root by Kabsch on the trunk, limbs by CCD."""
+    from torchtrack.skeleton.ik import CCDConfig, CCDSolver
+    from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES
+    from torchtrack.tracking.goals import GoalModel
+
+    generic = tracker.generic
+    rest = generic.forward(generic.rest_angles()[None]).landmarks[0]
+    lm = list(generic.output_names[:16])
+    span = lambda p, i, j: float(np.linalg.norm(p[i] - (p[j[0]] + p[j[1]]) / 2))  # noqa: E731
+    ref_span = span(points, names.index("head"), (names.index("l_ankle"), names.index("r_ankle")))
+    model_span = span(rest.numpy(), lm.index("head"), (lm.index("l_ankle"), lm.index("r_ankle")))
+    height = generic.height() * ref_span / model_span
+    skel = generic.scaled_to_height(height)
+    goals = torch.zeros(1, len(JOINT_FRAMES), 3)
+    weights = torch.zeros(1, len(JOINT_FRAMES))
+    for n, p in zip(names, points):
+        j = JOINT_FRAMES.index(LANDMARK_FRAMES[n])
+        goals[0, j], weights[0, j] = torch.as_tensor(p, dtype=torch.float32), 1.0
+    from torchtrack.blobs import BlobModel
+
+    gm = GoalModel(skel, BlobModel.from_config(skel))
+    angles = skel.rest_angles()[None]
+    for _ in range(5):
+        angles = gm.fit_root(angles, skel.forward(angles).joints, goals, weights, max_rotation=3.2)
+    ccd = CCDSolver(skel, JOINT_FRAMES[1:], CCDConfig(damping=0.5, sweeps=40))
+    angles = ccd(angles, goals[:, 1:], weights[:, 1:])
+    return angles[0], height
+
+
 def picture(path: Path, folder: SequenceFolder, poses: Poses, t: int, scale: float) -> None:
     import cv2
 
@@ -69,6 +101,9 @@ def main() -> None:
     ap.add_argument("--voxel", type=float, default=0.03)
     ap.add_argument("--model", choices=("bayes", "hull"), default="bayes")
     ap.add_argument("--picture", type=Path, default=None)
+    ap.add_argument("--init-from-reference", action="store_true",
+                    help="start from the skeleton fitted (Kabsch + CCD) to the reference keypoints of frame 0, "
+                         "de Bem's saved initial pose, instead of the automatic starfish initialisation")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
@@ -82,8 +117,12 @@ def main() -> None:
         bg = BackgroundModel.from_folder(folder, size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
         tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))
-        poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
         names, ref = reference_landmarks(args.demo)
+        if args.init_from_reference:
+            angles, height = fit_to_landmarks(tracker, names, ref[0])
+            tracker.initialize_from_pose(angles, height)
+            print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
+        poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
         print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, {poses.num_frames / elapsed:.1f} "

@@ -268,7 +268,9 @@ class MarkerlessTracker:
                 skel_fit, change = self._fit_bone_lengths(obs, res)
             else:
                 s = self._scale_from_blobs(res)
-                skel_fit, change = self.generic.scaled_to_height(min(max(self.height_m * s, 0.5), 2.5)), abs(s - 1)
+                # within 10% of the voxels' height: the blobs refine it, they must not run away on bad voxels
+                new_h = min(max(self.height_m * s, 0.9 * height, 0.5), 1.1 * height, 2.5)
+                skel_fit, change = self.generic.scaled_to_height(new_h), abs(new_h / self.height_m - 1)
             if change < 0.005:
                 break
             angles = res.angles.clone()
