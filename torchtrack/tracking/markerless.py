@@ -459,9 +459,10 @@ class MarkerlessTracker:
                 self.angles = self.previous = res.angles
             if best is None or res.residual_m < best.residual_m:
                 best = res
-        self.angles = self.previous = best.angles
-        if self._diverging(best):
+        if self._diverging(best):  # keep searching from the last good pose on the next frame
+            self.angles = self.previous = base
             self.lost += 1
             return replace(best, valid=False, reinitialised=True)
+        self.angles = self.previous = best.angles
         self.lost = 0
         return replace(best, reinitialised=True)
