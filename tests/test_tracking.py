@@ -369,3 +369,32 @@ def test_config_extends_overrides_its_base(tmp_path):
     loop.write_text(f"extends: {loop}\n")
     with pytest.raises(InputError, match="loops"):
         load_config(str(loop))
+
+
+def test_pooled_observation_matches_a_plain_loop():
+    gen = torch.Generator().manual_seed(3)
+    N, C = 200, 3
+    pts = torch.rand(N, 3, generator=gen, dtype=torch.float64) * 0.2
+    sizes = torch.full((N,), 0.015, dtype=torch.float64)
+    w = torch.rand(N, generator=gen, dtype=torch.float64)
+    col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
+    col[torch.rand(N, C, generator=gen) < 0.3] = float("nan")
+    obs = VoxelObservation(pts, sizes, w, col, torch.ones(C, dtype=torch.bool))
+    pooled = obs.pooled(0.05)
+    cells: dict[tuple, list[int]] = {}
+    for n in range(N):
+        cells.setdefault(tuple(int(v) for v in torch.floor(pts[n] / 0.05)), []).append(n)
+    assert pooled.num_voxels == len(cells)
+    assert abs(float(pooled.weights.sum()) - float(w.sum())) < 1e-9
+    assert abs(pooled.volume_m3() - obs.volume_m3()) < 1e-12
+    for members in cells.values():
+        ref_p = sum(w[n] * pts[n] for n in members) / sum(w[n] for n in members)
+        m = int((pooled.points - ref_p).norm(dim=-1).argmin())
+        assert float((pooled.points[m] - ref_p).norm()) < 1e-12
+        for c in range(C):
+            seen = [n for n in members if not torch.isnan(col[n, c]).any()]
+            if seen:
+                ref_c = sum(w[n] * col[n, c] for n in seen) / sum(w[n] for n in seen)
+                assert torch.allclose(pooled.colours[m, c], ref_c, atol=1e-12)
+            else:
+                assert bool(torch.isnan(pooled.colours[m, c]).all())

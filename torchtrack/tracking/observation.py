@@ -42,6 +42,29 @@ class VoxelObservation:
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
 
+    def pooled(self, cell_m: float) -> VoxelObservation:
+        """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
+        colours (per view, over the voxels that view sees), summed weights, volume-equivalent sizes."""
+        key3 = torch.floor(self.points / cell_m).long()  # (N, 3)
+        if key3.shape[0] == 0:
+            return self
+        key3 = key3 - key3.amin(0)
+        span = key3.amax(0) + 1
+        key = (key3[:, 0] * span[1] + key3[:, 1]) * span[2] + key3[:, 2]
+        _, inv = torch.unique(key, return_inverse=True)
+        M = int(inv.max()) + 1
+        w = self.weights
+        W = w.new_zeros(M).index_add_(0, inv, w)
+        pts = self.points.new_zeros(M, 3).index_add_(0, inv, w[:, None] * self.points) / W.clamp(min=1e-30)[:, None]
+        vol = self.sizes.new_zeros(M).index_add_(0, inv, self.sizes ** 3)
+        seen = torch.isfinite(self.colours).all(-1)  # (N, C)
+        cw = w[:, None] * seen  # (N, C)
+        csum = self.colours.new_zeros(M, *self.colours.shape[1:]).index_add_(
+            0, inv, cw[..., None] * torch.nan_to_num(self.colours))
+        cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
+        colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
+        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid)
+
 
 class Observer(nn.Module):
     """Turns batches of camera frames into :class:`VoxelObservation` s.
