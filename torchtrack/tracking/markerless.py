@@ -42,11 +42,12 @@ from torchtrack.tracking.observation import VoxelObservation
 log = logging.getLogger(__name__)
 
 #: Bones whose lengths are fitted together at initialisation (left and right tied).
-#: The trunk (pelvis, torso, head) keeps the proportions of the height-scaled body: its blobs overlap and do not
-#: separate its bones' lengths (fitting them made the walk's hips worse); hands and feet are too small to measure.
+#: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
+#: apart); torso and head are fitted separately. Measured with fit_bone_lengths on (8 cameras, Bayesian grid):
+#: CMU 131_02 43.3 -> 34.9 mm, CMU 131_01 64.6 -> 59.4 mm, but the procedural walk 9.4 -> 12.9 mm.
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
-    ("pelvis", "torso", "head", "l_hand", "r_hand", "l_foot", "r_foot"), ("l_upperarm", "r_upperarm"),
-    ("l_forearm", "r_forearm"), ("l_thigh", "r_thigh"), ("l_shank", "r_shank"))
+    ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
+    ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
 
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
 CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
@@ -67,7 +68,7 @@ class TrackerConfig:
         lost_frames: diverging frames in a row before re-initialising.
         init_passes: EM/IK passes on the first frame during initialisation.
         fit_bone_lengths: at initialisation fit the limbs' lengths to the blobs (else one scale for the whole
-            body). Off by default: on the synthetic walk it made MPJPE worse (14.9 vs 9.8 mm), see the issue notes.
+            body). Off by default: it helps the CMU walks but makes the procedural walk worse (see BONE_GROUPS).
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
