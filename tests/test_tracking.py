@@ -398,3 +398,24 @@ def test_pooled_observation_matches_a_plain_loop():
                 assert torch.allclose(pooled.colours[m, c], ref_c, atol=1e-12)
             else:
                 assert bool(torch.isnan(pooled.colours[m, c]).all())
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_tracker_on_cuda_matches_cpu(skel):
+    """The same frames tracked on the GPU give the CPU's landmarks (float32 differences only)."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.2)
+    out = {}
+    for dev in ("cpu", "cuda"):
+        tracker = MarkerlessTracker(Skeleton.from_urdf().to(dev))
+        pts = []
+        for t in range(T.shape[0]):
+            obs = _observation(subj, blobs, T[t])
+            obs = VoxelObservation(*(getattr(obs, f).to(dev) for f in ("points", "sizes", "weights", "colours",
+                                                                        "cameras_valid")))
+            r = tracker.step(obs)
+            assert r.output_points.device.type == dev
+            pts.append(r.output_points[:16].cpu())
+        out[dev] = torch.stack(pts)
+    assert float((out["cpu"] - out["cuda"]).norm(dim=-1).max()) < 0.005
