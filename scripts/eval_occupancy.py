@@ -48,7 +48,8 @@ def ensure_sequence(work: Path, name: str, cams: int, scene: dict, motion: str, 
     return out
 
 
-def evaluate(seq: Path, voxel: float, frames: int) -> dict[str, tuple[list[float], list]]:
+def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: dict[str, float] | None = None
+             ) -> dict[str, tuple[list[float], list]]:
     rig = load_calibration(seq / "calibration.toml")
     folder = SequenceFolder(seq, rig)
     bg = BackgroundModel.from_folder(folder)
@@ -58,7 +59,7 @@ def evaluate(seq: Path, voxel: float, frames: int) -> dict[str, tuple[list[float
     models = {"bayes": BayesianGrid(rig, spec, bg, BayesConfig()), "silhouette": SilhouetteCarving(rig, spec, bg)}
     try:
         from torchtrack.occupancy.hull import HullConfig, hull_from_images
-        hull_cfg = HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel)
+        hull_cfg = HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel, **(hull_overrides or {}))
     except ImportError:
         hull_from_images = None
     res: dict[str, tuple[list[float], list]] = {k: ([], []) for k in (*models, "hull")}
@@ -85,12 +86,18 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("out/eval_occupancy"))
     ap.add_argument("--format", choices=("png", "mp4"), default="png",
                     help="png: lossless frames; mp4: OpenCV's mp4v codec, whose blur at edges costs IoU")
+    ap.add_argument("--hull", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="HullConfig overrides, e.g. t_low=3 t_high=8 t_finest_edge=8 (the tracking settings)")
     args = ap.parse_args()
+    try:
+        hull_overrides = {k: float(v) for k, v in (item.split("=", 1) for item in args.hull)}
+    except ValueError:
+        raise SystemExit(f"--hull: expected FIELD=VALUE items, got {args.hull}") from None
     torch.set_grad_enabled(False)
     for name, case in CASES.items():
         seq = ensure_sequence(args.work, name, case["cams"], case["scene"], args.motion, args.format)
         t0 = time.perf_counter()
-        results = evaluate(seq, args.voxel, args.frames)
+        results = evaluate(seq, args.voxel, args.frames, hull_overrides)
         for model, (ious, comps) in results.items():
             worst = max(comps, key=lambda c: c.largest_voxels)
             print(f"{name:32s} {model:10s} IoU mean {np.mean(ious):.3f} min {np.min(ious):.3f}   "

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 
 import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 from torch import nn
 
 from torchtrack.blobs.model import BlobModel
@@ -34,14 +35,10 @@ TRUNK_JOINTS: tuple[str, ...] = ("pelvis", "l_thigh", "r_thigh", "torso", "thora
 def least_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(..., 3) unit vectors a, b -> (..., 3, 3) the rotation of least angle taking a onto b."""
     v = torch.cross(a, b, dim=-1)
-    c = (a * b).sum(-1).clamp(-1.0, 1.0)
-    s = v.norm(dim=-1)
-    k = v / s.clamp(min=1e-12)[..., None]
-    zero = torch.zeros_like(c)
-    Kx = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
-                     dim=-1).view(*c.shape, 3, 3)
-    eye = torch.eye(3, dtype=a.dtype, device=a.device).expand_as(Kx)
-    return eye + s[..., None, None] * Kx + (1 - c)[..., None, None] * (Kx @ Kx)
+    angle = torch.atan2(v.norm(dim=-1), (a * b).sum(-1))  # (...,) in [0, pi]
+    axis = v / v.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    shape = a.shape[:-1]
+    return axis_angle_to_rotation_matrix((axis * angle[..., None]).reshape(-1, 3)).reshape(*shape, 3, 3)
 
 
 def main_axis(cov: torch.Tensor, start: torch.Tensor, iterations: int = 4) -> torch.Tensor:
@@ -76,24 +73,9 @@ def weighted_kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor
 
 def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
     """(B, 3, 3) rotations with their angle clipped to ``max_angle`` (rad) about the same axis."""
-    cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1.0, 1.0)
-    angle = torch.acos(cos)
-    axis = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)
-    axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    clipped = angle.clamp(max=max_angle)
-    v = axis * clipped[:, None]
-    return axis_angle_to_matrix(v)
-
-
-def axis_angle_to_matrix(v: torch.Tensor) -> torch.Tensor:
-    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues)."""
-    angle = v.norm(dim=-1)
-    k = v / angle.clamp(min=1e-12)[..., None]
-    zero = torch.zeros_like(angle)
-    Kx = torch.stack([zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
-                     dim=-1).view(*angle.shape, 3, 3)
-    eye = torch.eye(3, dtype=v.dtype, device=v.device).expand_as(Kx)
-    return eye + angle.sin()[..., None, None] * Kx + (1 - angle.cos())[..., None, None] * (Kx @ Kx)
+    v = rotation_matrix_to_axis_angle(R)  # (B, 3)
+    angle = v.norm(dim=-1, keepdim=True)
+    return axis_angle_to_rotation_matrix(v * (angle.clamp(max=max_angle) / angle.clamp(min=1e-12)))
 
 
 def zyx_euler(R: torch.Tensor) -> torch.Tensor:
