@@ -131,8 +131,7 @@ def main() -> None:
         if args.picture is not None:
             ok = np.flatnonzero(poses.valid)
             if ok.size:
-                errs = np.nanmean(np.linalg.norm(poses.landmarks()[ok][:, [poses.joint_names.index(n) for n in names]]
-                                                 - ref[ok], axis=-1), axis=1) if False else rep.per_frame_mm
+                errs = rep.per_frame_mm
                 t = int(rep.frame_index[np.argsort(errs)[len(errs) // 2]])
                 picture(args.picture, folder, poses, t, 0.5)
                 print(f"picture of frame {t} (median error) in {args.picture}")

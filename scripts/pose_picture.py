@@ -43,9 +43,11 @@ def main() -> None:
             raise SystemExit(f"{args.poses}: no frame {args.frame}")
         k = int(hits[0])
     elif (args.seq / "gt.npz").is_file():
-        gt = load_poses(args.seq / "gt.npz")
-        err = np.linalg.norm(poses.landmarks()[ok] - gt.landmarks()[poses.frame_index[ok]], axis=-1).mean(1)
-        k = int(ok[np.argsort(err)[len(err) // 2]])
+        from torchtrack.eval import evaluate
+
+        rep = evaluate(poses, load_poses(args.seq / "gt.npz"))
+        t_med = int(rep.frame_index[np.argsort(rep.per_frame_mm)[len(rep.per_frame_mm) // 2]])
+        k = int(np.flatnonzero(poses.frame_index == t_med)[0])
     else:
         k = int(ok[len(ok) // 2])
     t = int(poses.frame_index[k])

@@ -126,13 +126,15 @@ def test_e_step_matches_a_plain_loop():
     pts = torch.randn(N, 3, generator=gen, dtype=torch.float64)
     col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
     col[::5, 1] = float("nan")
-    cfg = EMConfig(gate_mahalanobis2=1e9)
+    cfg = EMConfig(gate_mahalanobis2=2.0)  # gates out some blobs for some points
     assign, view, _ = e_step(pts, col, blobs, cfg)
     for n in range(N):
         best, best_view = None, None
         for k in range(K):
             d = pts[n] - mean[k]
             cost = float(d @ torch.linalg.solve(cov[k], d))
+            if cost > cfg.gate_mahalanobis2:  # outside this blob's gate: it does not compete
+                continue
             dc_best, v_best = math.inf, None
             for v in range(C):
                 if torch.isnan(col[n, v]).any():
@@ -144,6 +146,9 @@ def test_e_step_matches_a_plain_loop():
             cost += dc_best
             if best is None or cost < best[0]:
                 best, best_view = (cost, k), v_best
+        if best is None:
+            assert int(assign[n]) == -1 and int(view[n]) == -1
+            continue
         assert int(assign[n]) == best[1]
         assert int(view[n]) == best_view
 
@@ -189,8 +194,9 @@ def test_goals_from_exact_blobs_are_the_true_joints(skel):
     from torchtrack.skeleton.model import JOINT_FRAMES
 
     for name in ("l_forearm", "r_forearm", "l_shank", "r_shank", "l_hand", "r_foot"):
-        assert float(err[JOINT_FRAMES.index(name)]) < 0.03, name
-    assert float(err.median()) < 0.03
+        assert float(err[JOINT_FRAMES.index(name)]) < 1e-3, name
+    for name in ("pelvis", "torso", "thorax", "head"):  # two-blob bones and the pelvis width: exact too
+        assert float(err[JOINT_FRAMES.index(name)]) < 1e-6, name
 
 
 def test_fit_root_recovers_a_moved_trunk(skel):
@@ -254,10 +260,13 @@ def test_frames_with_nobody_are_invalid_and_tracking_resumes(skel):
     valid = np.array([r.valid for r in results])
     assert not valid[14:18].any()
     assert valid[:14].all() and valid[19:].all()
-    # after the gap the estimate follows the moved body (errors measured against the unmoved truth + 0.4 m)
     assert all(np.isfinite(r.output_points.numpy()).all() for r in results)
-    late = [r for r in results[19:]]
-    assert all(r.output_points[0, 0] > 0.25 for r in late)
+    # after the gap the estimate follows the moved body: errors against the truth moved by 0.4 m
+    subj = skel.scaled_to_height(1.80)
+    T = procedural_motion(subj, "walk", 30 / 30, 30, starfish_s=0.3)
+    late = [float((r.output_points[:16] - _landmarks(subj, T[t]) - torch.tensor([0.4, 0.0, 0.0])).norm(dim=-1).mean())
+            for t, r in enumerate(results) if t >= 19]
+    assert np.mean(late) < 0.05, late
 
 
 def test_no_starfish_start_gives_a_clear_error(skel):
@@ -265,8 +274,12 @@ def test_no_starfish_start_gives_a_clear_error(skel):
     blobs = BlobModel.from_config(subj)
     crouch = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[12]  # mid-squat, arms forward
     obs = _observation(subj, blobs, crouch)
+    tracker = MarkerlessTracker(skel)
     with pytest.raises(InputError, match="--init-pose"):
-        MarkerlessTracker(skel).step(obs)
+        tracker.step(obs)
+    assert not tracker.initialized
+    with pytest.raises(InputError, match="--init-pose"):  # the same clear error again, not a crash
+        tracker.step(obs)
 
 
 def test_initial_pose_replaces_the_starfish(skel):

@@ -144,9 +144,9 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         d_col_min, best_view = d_col.min(dim=1)  # (N, K)
         seen = torch.isfinite(d_col_min)
         cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
+    cost = torch.where(d_pos <= config.gate_mahalanobis2, cost, torch.inf)  # only blobs within the gate compete
     least, assign = cost.min(dim=1)
-    gated = d_pos.gather(1, assign[:, None])[:, 0] > config.gate_mahalanobis2
-    assign = torch.where(gated | ~torch.isfinite(least), -1, assign)
+    assign = torch.where(torch.isfinite(least), assign, -1)
     if best_view is not None:
         v = best_view.gather(1, assign.clamp(min=0)[:, None])[:, 0]
         has = torch.isfinite(colours[..., 0]).any(dim=1)

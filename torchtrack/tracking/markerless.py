@@ -207,8 +207,17 @@ class MarkerlessTracker:
         """Automatic initialisation from a starfish frame (see the module docstring).
 
         Raises:
-            InputError: the voxels do not look like a person in the starfish pose.
+            InputError: the voxels do not look like a person in the starfish pose (the tracker is then left
+            uninitialised, as before the call).
         """
+        try:
+            return self._initialize(obs)
+        except InputError:
+            self.subject = self.angles = self.previous = self.colour = self.height_m = None
+            self.lost = 0
+            raise
+
+    def _initialize(self, obs: VoxelObservation) -> FrameResult:
         pts, w = obs.points, obs.weights
         if obs.num_voxels < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
@@ -295,6 +304,7 @@ class MarkerlessTracker:
         # learn the colours on the initial frame
         res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
         self.angles = self.previous = res.angles
+        self.colour = res.blobs
         return replace(res, reinitialised=True)
 
     def _scale_from_blobs(self, res: FrameResult) -> float:
@@ -350,7 +360,7 @@ class MarkerlessTracker:
         r = torch.cat([r_pos, semi_fit - semi_now]).double()
         w = torch.cat([w_blob.repeat_interleave(3), w_size]).double()
         reg = torch.diag(torch.cat([torch.full((G,), ridge), torch.zeros(3)])).to(A)
-        x = torch.linalg.solve(A.T @ (w[:, None] * A) + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype),
+        x = torch.linalg.solve(A.T @ (w[:, None] * A) + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device),
                                A.T @ (w * r))
         scale = (1.0 + x[:G]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
@@ -390,8 +400,6 @@ class MarkerlessTracker:
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
         explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
-        if learn_colour:
-            self.colour = blobs
         conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
         oj = sub.output_joint.to(conf_joint.device)
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
@@ -402,10 +410,10 @@ class MarkerlessTracker:
         sub = self.subject
         D = self.generic.num_dofs
         if sub is None or self.angles is None:
-            nan = torch.full((D,), torch.nan)
-            return FrameResult(nan, torch.full((len(self.generic.output_names), 3), torch.nan),
-                               torch.zeros(len(self.generic.output_names)), False, math.nan, 0.0, False, None,
-                               torch.full((len(self.generic.bone_names), 4, 4), torch.nan))
+            like = self.generic.lower
+            J, nb = len(self.generic.output_names), len(self.generic.bone_names)
+            return FrameResult(torch.full_like(like, torch.nan), like.new_full((J, 3), torch.nan), like.new_zeros(J),
+                               False, math.nan, 0.0, False, None, like.new_full((nb, 4, 4), torch.nan))
         fk = sub.skeleton.forward(self.angles[None])
         return FrameResult(self.angles.clone(), fk.output_points[0], torch.zeros(fk.output_points.shape[1]).to(
             self.angles), False, math.nan, 0.0, False, None, fk.bone_frames[0])
@@ -421,12 +429,12 @@ class MarkerlessTracker:
 
     def step(self, obs: VoxelObservation) -> FrameResult:
         """Track one frame (initialising on the first frame with a person in it)."""
-        if self.config.em_cell_m > 0:
-            obs = obs.pooled(self.config.em_cell_m)
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap
             self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back
             return self._invalid()
+        if self.config.em_cell_m > 0:
+            obs = obs.pooled(self.config.em_cell_m)
         if not self.initialized:
             return self.initialize(obs)
         if self.angles is not None and self.lost >= self.config.lost_frames:
@@ -440,6 +448,7 @@ class MarkerlessTracker:
             return replace(res, valid=False)
         self.lost = 0
         self.previous, self.angles = self.angles, res.angles
+        self.colour = res.blobs  # the colour model follows accepted frames only
         return res
 
     def _diverging(self, res: FrameResult) -> bool:

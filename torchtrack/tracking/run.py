@@ -70,6 +70,9 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                         res = tracker.step(obs)
                     except InputError as exc:
                         raise InputError(f"{folder.root}, frame {t}: {exc}") from None
+                    except Exception as exc:  # numerical or device errors: say where
+                        exc.add_note(f"while tracking {folder.root}, frame {t}")
+                        raise
                 joints3d[k] = res.output_points.cpu().numpy()
                 angles[k] = res.angles.cpu().numpy()
                 valid[k] = res.valid
