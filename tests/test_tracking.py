@@ -21,8 +21,8 @@ from torchtrack.checks import InputError
 from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import procedural_motion
-from torchtrack.tracking.goals import (GoalModel, bound_rotation, least_rotation, weighted_kabsch, zyx_euler,
-                                       zyx_matrix)
+from torchtrack.skeleton import root_rotation_angles, root_rotation_matrix
+from torchtrack.tracking.goals import GoalModel, bound_rotation, least_rotation, weighted_kabsch
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 
@@ -35,13 +35,18 @@ def skel() -> Skeleton:
 
 
 # ------------------------------------------------------------------------------------------------ rotations
-def test_zyx_euler_matches_scipy():
+def test_root_rotation_matches_scipy_and_the_urdf_chain(skel):
     rng = np.random.default_rng(0)
     e = rng.uniform([-3, -1.4, -3], [3, 1.4, 3], size=(50, 3))
     R_ref = Rotation.from_euler("ZYX", e).as_matrix()  # intrinsic z, y, x: Rz Ry Rx
-    R = zyx_matrix(torch.tensor(e))
+    R = root_rotation_matrix(torch.tensor(e))
     np.testing.assert_allclose(R.numpy(), R_ref, atol=1e-12)
-    np.testing.assert_allclose(zyx_euler(torch.tensor(R_ref)).numpy(), e, atol=1e-9)
+    np.testing.assert_allclose(root_rotation_angles(torch.tensor(R_ref)).numpy(), e, atol=1e-9)
+    # and it is the rotation the URDF's root joints give the pelvis
+    angles = skel.rest_angles().double().repeat(5, 1)
+    angles[:, 3:6] = torch.tensor(e[:5])
+    pelvis = skel.forward_frames(angles)[:, skel.frame_index(["pelvis"])[0], :3, :3]
+    np.testing.assert_allclose(pelvis.numpy(), R_ref[:5], atol=1e-9)
 
 
 def test_least_rotation_takes_a_onto_b_with_the_least_angle():

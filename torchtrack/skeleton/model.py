@@ -61,6 +61,16 @@ JOINT_FRAMES: tuple[str, ...] = (
 DEFAULT_URDF = "body.urdf"
 
 
+def root_rotation_matrix(rz_ry_rx: torch.Tensor) -> torch.Tensor:
+    """(..., 3) root angles (rz, ry, rx) -> (..., 3, 3) ``Rz @ Ry @ Rx``, the URDF's root_rz/ry/rx chain."""
+    return pk.transforms.euler_angles_to_matrix(rz_ry_rx, "ZYX")
+
+
+def root_rotation_angles(R: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation -> (..., 3) root angles (rz, ry, rx) with ``R = Rz Ry Rx``, ry in [-pi/2, pi/2]."""
+    return pk.transforms.matrix_to_euler_angles(R, "ZYX")
+
+
 @dataclass(frozen=True)
 class _UrdfJoint:
     name: str

@@ -26,7 +26,7 @@ from torch import nn
 
 from torchtrack.blobs.model import BlobModel
 from torchtrack.checks import InputError, check_shape
-from torchtrack.skeleton.model import JOINT_FRAMES, Skeleton
+from torchtrack.skeleton.model import JOINT_FRAMES, Skeleton, root_rotation_angles, root_rotation_matrix
 
 #: Joints whose goals fit the root (hips, trunk and shoulders).
 TRUNK_JOINTS: tuple[str, ...] = ("pelvis", "l_thigh", "r_thigh", "torso", "thorax", "l_upperarm", "r_upperarm")
@@ -76,24 +76,6 @@ def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
     v = rotation_matrix_to_axis_angle(R)  # (B, 3)
     angle = v.norm(dim=-1, keepdim=True)
     return axis_angle_to_rotation_matrix(v * (angle.clamp(max=max_angle) / angle.clamp(min=1e-12)))
-
-
-def zyx_euler(R: torch.Tensor) -> torch.Tensor:
-    """(B, 3, 3) R = Rz(a) Ry(b) Rx(c) -> (B, 3) (a, b, c), the root's (rz, ry, rx)."""
-    a = torch.atan2(R[:, 1, 0], R[:, 0, 0])
-    b = torch.asin((-R[:, 2, 0]).clamp(-1.0, 1.0))
-    c = torch.atan2(R[:, 2, 1], R[:, 2, 2])
-    return torch.stack([a, b, c], dim=-1)
-
-
-def zyx_matrix(euler: torch.Tensor) -> torch.Tensor:
-    """(B, 3) (rz, ry, rx) -> (B, 3, 3) Rz Ry Rx."""
-    z, y, x = euler.unbind(-1)
-    zero, one = torch.zeros_like(z), torch.ones_like(z)
-    Rz = torch.stack([z.cos(), -z.sin(), zero, z.sin(), z.cos(), zero, zero, zero, one], -1).view(-1, 3, 3)
-    Ry = torch.stack([y.cos(), zero, y.sin(), zero, one, zero, -y.sin(), zero, y.cos()], -1).view(-1, 3, 3)
-    Rx = torch.stack([one, zero, zero, zero, x.cos(), -x.sin(), zero, x.sin(), x.cos()], -1).view(-1, 3, 3)
-    return Rz @ Ry @ Rx
 
 
 class GoalModel(nn.Module):
@@ -199,9 +181,9 @@ class GoalModel(nn.Module):
         t = cd - torch.einsum("bij,bj->bi", R, cs)
         root_t = skel.dof_index(["root_tx", "root_ty", "root_tz"]).tolist()
         root_r = skel.dof_index(["root_rz", "root_ry", "root_rx"]).tolist()
-        R_root = zyx_matrix(angles[:, root_r])
+        R_root = root_rotation_matrix(angles[:, root_r])
         out = angles.clone()
         out[:, root_t] = torch.einsum("bij,bj->bi", R, angles[:, root_t]) + t
-        out[:, root_r] = zyx_euler(R @ R_root)
+        out[:, root_r] = root_rotation_angles(R @ R_root)
         ok = (w > 0).sum(-1) >= 3
         return torch.where(ok[:, None], out, angles)
