@@ -127,7 +127,7 @@ def test_e_step_matches_a_plain_loop():
     cm = torch.rand(K, 3, generator=gen, dtype=torch.float64)
     B = torch.randn(K, 3, 3, generator=gen, dtype=torch.float64)
     ccov = B @ B.transpose(-1, -2) * 0.01 + 0.01 * torch.eye(3, dtype=torch.float64)
-    blobs = dataclasses.replace(blobs, colour_mean=cm, colour_cov=ccov, colour_known=True)
+    blobs = dataclasses.replace(blobs, colour_mean=cm, colour_cov=ccov, colour_known=torch.ones(K, dtype=torch.bool))
     pts = torch.randn(N, 3, generator=gen, dtype=torch.float64)
     col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
     col[::5, 1] = float("nan")

@@ -71,8 +71,8 @@ class Blobs:
 
     Attributes:
         mean: (K, 3) position means (m). cov: (K, 3, 3) position covariances (m^2).
-        colour_mean: (K, 3). colour_cov: (K, 3, 3). colour_known: () bool, whether the colour model is learnt
-            (the E-step ignores colour until it is).
+        colour_mean: (K, 3). colour_cov: (K, 3, 3). colour_known: (K,) bool, whether each blob's colour is
+            learnt (the E-step ignores colour for a blob until it is).
         fill: (K,) weight assigned over prior volume (1 = as full as expected). active: (K,) bool.
     """
 
@@ -80,7 +80,7 @@ class Blobs:
     cov: torch.Tensor
     colour_mean: torch.Tensor
     colour_cov: torch.Tensor
-    colour_known: bool
+    colour_known: torch.Tensor
     fill: torch.Tensor
     active: torch.Tensor
 
@@ -97,7 +97,8 @@ def prior_blobs(mean: torch.Tensor, cov: torch.Tensor, colour_mean: torch.Tensor
     check_shape(cov, (K, 3, 3), "cov")
     eye = torch.eye(3, dtype=mean.dtype, device=mean.device)
     cm = colour_mean if colour_mean is not None else mean.new_zeros(K, 3)
-    return Blobs(mean, cov, cm, (colour_std ** 2) * eye.expand(K, 3, 3).clone(), colour_mean is not None,
+    known = torch.full((K,), colour_mean is not None, dtype=torch.bool, device=mean.device)
+    return Blobs(mean, cov, cm, (colour_std ** 2) * eye.expand(K, 3, 3).clone(), known,
                  mean.new_ones(K), torch.ones(K, dtype=torch.bool, device=mean.device))
 
 
@@ -130,7 +131,8 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
 
     Returns:
         assign (N,) int64 blob index, -1 for voxels outside the gate; view (N,) int64 the view whose colour
-        was used (-1 if none); cost (N,) the least distance.
+        was used, or for a blob without a colour model yet the first view that sees the voxel (-1 if none);
+        cost (N,) the least distance.
     """
     K = blobs.num_blobs
     d_pos = _mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
@@ -138,19 +140,22 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
     view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
     cost = d_pos
     best_view = None
-    if colours is not None and blobs.colour_known and config.colour_weight > 0:
+    if colours is not None and bool(blobs.colour_known.any()) and config.colour_weight > 0:
         d_col = _mahalanobis2(colours, blobs.colour_mean, blobs.colour_cov)  # (N, C, K)
         d_col = torch.nan_to_num(d_col, nan=torch.inf)
         d_col_min, best_view = d_col.min(dim=1)  # (N, K)
-        seen = torch.isfinite(d_col_min)
+        seen = torch.isfinite(d_col_min) & blobs.colour_known  # (N, K)
         cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
     cost = torch.where(d_pos <= config.gate_mahalanobis2, cost, torch.inf)  # only blobs within the gate compete
     least, assign = cost.min(dim=1)
     assign = torch.where(torch.isfinite(least), assign, -1)
-    if best_view is not None:
-        v = best_view.gather(1, assign.clamp(min=0)[:, None])[:, 0]
-        has = torch.isfinite(colours[..., 0]).any(dim=1)
-        view = torch.where((assign >= 0) & has, v, -1)
+    if colours is not None:
+        seen_views = torch.isfinite(colours).all(-1)  # (N, C)
+        v = seen_views.to(torch.uint8).argmax(dim=1)  # the first view that sees the voxel
+        if best_view is not None:  # blobs with a colour model: the view whose colour fits it best
+            a = assign.clamp(min=0)
+            v = torch.where(blobs.colour_known[a], best_view.gather(1, a[:, None])[:, 0], v)
+        view = torch.where((assign >= 0) & seen_views.any(dim=1), v, -1)
     return assign, view, least
 
 
@@ -205,11 +210,12 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
         c = colours[idx, view[idx]]  # (n, 3) the chosen view's colour
         ctot, cmu, ccov = _weighted_moments(c, weights[idx], assign[idx], K)
         ccov = _floor_determinant(ccov + 1e-6 * eye, config.min_colour_std)
-        rate = config.colour_rate if known else 1.0
+        rate = torch.where(known, config.colour_rate, 1.0).to(cmu.dtype)  # (K,): a blob's first colours in full
         upd = (ctot > 0) & active
-        colour_mean = torch.where(upd[:, None], (1 - rate) * colour_mean + rate * cmu, colour_mean)
-        colour_cov = torch.where(upd[:, None, None], (1 - rate) * colour_cov + rate * ccov, colour_cov)
-        known = True
+        colour_mean = torch.where(upd[:, None], (1 - rate[:, None]) * colour_mean + rate[:, None] * cmu, colour_mean)
+        colour_cov = torch.where(upd[:, None, None], (1 - rate[:, None, None]) * colour_cov
+                                 + rate[:, None, None] * ccov, colour_cov)
+        known = known | upd
     return Blobs(mean, cov, colour_mean, colour_cov, known, fill, active)
 
 
