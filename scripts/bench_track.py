@@ -2,7 +2,9 @@
 
 Cases (issue targets on the 2-core CPU):
 * hull: 4 cameras 320x240, colour hull to 1.5 cm (target >= 30 fps; Caillette & Howard ran 15 fps on one PC);
-* bayes: 8 cameras 640x480, Bayesian grid 64^3.
+* bayes: 8 cameras 640x480, Bayesian grid 64^3;
+* throughput of several sequences tracked at once (--sequences, observation batched over them), the figure
+  to take on a GPU.
 
 Renders the sequences once under --work (synthetic walk), then tracks them with the defaults of
 configs/markerless.yaml apart from the observation settings named here, and prints ms per frame by stage.
@@ -39,9 +41,11 @@ def sequence(work: Path, cameras: int, width: int, height: int, seconds: float) 
 
 
 def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int | None, frames: int,
-          device: torch.device, config: dict) -> dict[str, float]:
-    """Track the first ``frames`` frames of ``seq`` at ``scale``; ms per frame by stage (frame 0, the
-    initialisation, timed apart)."""
+          device: torch.device, config: dict, sequences: int = 1) -> dict[str, float]:
+    """Track the first ``frames`` frames of ``seq`` at ``scale``; ms per tracked frame by stage (frame 0, the
+    initialisation, timed apart). With ``sequences`` > 1, that many copies of the sequence are tracked in
+    lockstep, one tracker each, the observation batched over them (the Bayesian grid takes the batch in one
+    pass): throughput of a batch of sequences, as on a GPU serving several recordings."""
     folder = SequenceFolder(seq)
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float().to(device)
@@ -50,7 +54,8 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
         box = grid_from_rig(rig, 0.05)
         voxel = max(u - lo for lo, u in zip(box.lower_m, box.upper_m)) / grid_n
     observer = observer_from_config(rig, bg, config["observation"], model, voxel).to(device)
-    tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+    trackers = [MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+                for _ in range(sequences)]
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     t = {"read": 0.0, "observe": 0.0, "track": 0.0}
     n, t_init = 0, 0.0
@@ -61,10 +66,12 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
         if fb is None:
             break
         b = time.perf_counter()
-        obs = observer(fb.images, fb.valid)[0]
+        S = len(trackers)
+        observations = observer(fb.images.expand(S, *fb.images.shape[1:]), fb.valid.expand(S, -1))
         sync()
         c = time.perf_counter()
-        tracker.step(obs)
+        for tracker, obs in zip(trackers, observations):
+            tracker.step(obs)
         sync()
         d = time.perf_counter()
         if n:
@@ -75,7 +82,9 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
             t_init = d - c
         n += 1
     m = max(n - 1, 1)
-    return {**{f"{k}_ms": 1e3 * v / m for k, v in t.items()}, "init_s": t_init, "fps": m / sum(t.values())}
+    S = len(trackers)
+    return {**{f"{k}_ms": 1e3 * v / (m * S) for k, v in t.items()}, "init_s": t_init,
+            "fps": m * S / sum(t.values())}
 
 
 def main() -> None:
@@ -83,6 +92,8 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--work", type=Path, default=Path("out/bench_track"))
+    ap.add_argument("--sequences", type=int, default=4,
+                    help="also time this many sequences tracked in lockstep (observation batched); 1: skip")
     ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
                     help="tracking configs to time")
     args = ap.parse_args()
@@ -101,6 +112,14 @@ def main() -> None:
         verdict = "" if target is None else ("  PASS" if r["fps"] >= target else f"  MISS (target {target:.0f})")
         print(f"{name:40s} {cname:22s} {r['read_ms']:6.1f}ms {r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}"
               f"  {r['init_s']:.1f}s{verdict}", flush=True)
+    if args.sequences > 1:  # batched throughput: the tracker's default processing, several sequences at once
+        print(f"\n{args.sequences} sequences tracked in lockstep (per tracked frame; fps summed over sequences)")
+        seq = sequence(args.work, 8, 640, 480, 2.0)
+        for model in ("bayes", "hull"):
+            r = bench(seq, 0.5, model, 0.03, None, args.frames, device, load_config("markerless.yaml"),
+                      sequences=args.sequences)
+            print(f"{model + ' 8 cams at 320x240, 3 cm':40s} {'markerless.yaml':22s} {r['read_ms']:6.1f}ms "
+                  f"{r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}", flush=True)
 
 
 if __name__ == "__main__":

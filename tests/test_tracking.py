@@ -404,11 +404,12 @@ def test_pooled_observation_matches_a_plain_loop():
         cells.setdefault(tuple(int(v) for v in torch.floor(pts[n] / 0.05)), []).append(n)
     assert pooled.num_voxels == len(cells)
     assert abs(float(pooled.weights.sum()) - float(w.sum())) < 1e-9
-    assert abs(pooled.volume_m3() - obs.volume_m3()) < 1e-12
     for members in cells.values():
         ref_p = sum(w[n] * pts[n] for n in members) / sum(w[n] for n in members)
         m = int((pooled.points - ref_p).norm(dim=-1).argmin())
         assert float((pooled.points[m] - ref_p).norm()) < 1e-12
+        assert abs(float(pooled.weights[m]) - float(sum(w[n] for n in members))) < 1e-12
+        assert abs(float(pooled.sizes[m]) - 0.015 * len(members) ** (1 / 3)) < 1e-12  # same volume as its voxels
         for c in range(C):
             seen = [n for n in members if not torch.isnan(col[n, c]).any()]
             if seen:

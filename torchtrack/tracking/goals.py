@@ -116,6 +116,7 @@ class GoalModel(nn.Module):
         if any(bone.count(b) > 2 for b in bone):
             raise InputError("GoalModel: at most two blobs per bone")
         self.register_buffer("partner", torch.tensor(partner), persistent=False)
+        self.has_pairs = any(p >= 0 for p in partner)
         self.trunk_index = [JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]
 
     def joint_goals(self, bone_frames: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, weight: torch.Tensor
@@ -141,13 +142,14 @@ class GoalModel(nn.Module):
         u = main_axis(cov, a)
         Rmin = least_rotation(a, u)
         Rmin = torch.where(self.elongated[None, :, None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))
-        paired = self.partner >= 0  # (K,)
-        if bool(paired.any()):
+        if self.has_pairs:
+            paired = self.partner >= 0  # (K,)
             other = self.partner.clamp(min=0)
             c_pred = torch.einsum("bkij,kj->bki", Rb, bm.offset_local.to(dt))  # blob centre - bone origin
             v_pred = c_pred[:, other] - c_pred  # (B, K, 3) towards the partner, predicted
             v_fit = mean[:, other] - mean
-            pair_ok = paired & (weight[:, other] > 0) & (weight > 0)  # (B, K)
+            # a fitted line pointing against the predicted one is a mismatch, not a half turn of the bone
+            pair_ok = paired & (weight[:, other] > 0) & (weight > 0) & ((v_pred * v_fit).sum(-1) > 0)  # (B, K)
             Rpair = least_rotation(v_pred / v_pred.norm(dim=-1, keepdim=True).clamp(min=1e-9),
                                    v_fit / v_fit.norm(dim=-1, keepdim=True).clamp(min=1e-9))
             Rmin = torch.where(pair_ok[..., None, None], Rpair, Rmin)

@@ -139,8 +139,8 @@ class FrameResult:
 class _Subject:
     """The subject-specific models: skeleton scaled to the subject, its blobs, goals and CCD."""
 
-    def __init__(self, skeleton: Skeleton, config: TrackerConfig) -> None:
-        specs, ref = load_blob_specs(config.blobs)
+    def __init__(self, skeleton: Skeleton, config: TrackerConfig, specs: tuple[list, float]) -> None:
+        specs, ref = specs
         self.skeleton = skeleton
         self.blobs = BlobModel(skeleton, specs, ref)
         self.goals = GoalModel(skeleton, self.blobs)
@@ -150,9 +150,10 @@ class _Subject:
                                           LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
                                           for n in skeleton.output_names])
 
-    def to(self, device: torch.device, dtype: torch.dtype) -> _Subject:
+    def to(self, device: torch.device) -> _Subject:
         for m in (self.skeleton, self.blobs, self.goals, self.ccd):
             m.to(device)
+        self.output_joint = self.output_joint.to(device)
         return self
 
 
@@ -170,6 +171,7 @@ class MarkerlessTracker:
 
     def __init__(self, skeleton: Skeleton, config: TrackerConfig = TrackerConfig()) -> None:
         self.generic, self.config = skeleton, config
+        self.blob_specs = load_blob_specs(config.blobs)  # read once; every subject model reuses them
         self.subject: _Subject | None = None
         self.angles: torch.Tensor | None = None  # (D,) last good pose
         self.previous: torch.Tensor | None = None  # (D,) the one before (velocity)
@@ -182,17 +184,17 @@ class MarkerlessTracker:
     def initialized(self) -> bool:
         return self.subject is not None
 
-    def _setup(self, height_m: float, device: torch.device, dtype: torch.dtype) -> None:
+    def _setup(self, height_m: float, device: torch.device) -> None:
         self._use(self.generic.scaled_to_height(height_m).to(device))
 
     def _use(self, skeleton: Skeleton) -> None:
-        self.subject = _Subject(skeleton, self.config).to(skeleton.lower.device, skeleton.lower.dtype)
+        self.subject = _Subject(skeleton, self.config, self.blob_specs).to(skeleton.lower.device)
         self.height_m = skeleton.height()
 
     def initialize_from_pose(self, angles: torch.Tensor, height_m: float) -> None:
         """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall."""
         check_shape(angles, (self.generic.num_dofs,), "angles")
-        self._setup(height_m, angles.device, angles.dtype)
+        self._setup(height_m, angles.device)
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
@@ -226,7 +228,7 @@ class MarkerlessTracker:
         sole = float(torch.quantile(pts[:, 2], 0.002)) - half
         top = float(torch.quantile(pts[:, 2], 0.998)) + half
         height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
-        self._setup(height, pts.device, pts.dtype)
+        self._setup(height, pts.device)
         skel = self.subject.skeleton
         c = (w[:, None] * pts).sum(0) / w.sum()
         d = pts[:, :2] - c[:2]
@@ -267,7 +269,7 @@ class MarkerlessTracker:
             for _ in range(self.config.init_passes):
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
                 self.angles = self.previous = res.angles
-            cost = res.residual_m + 0.1 * (1 - res.explained)
+            cost = self._fit_cost(res)
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
                       1e3 * res.residual_m, res.explained)
             if best is None or cost < best[0]:
@@ -329,7 +331,7 @@ class MarkerlessTracker:
         sub = self.subject
         skel = sub.skeleton
         angles = res.angles[None]
-        specs, ref = load_blob_specs(self.config.blobs)
+        specs, ref = self.blob_specs
         fk = skel.forward(angles)
         base, base_cov = sub.blobs.gaussians(fk.bone_frames)
         base, base_cov = base[0], base_cov[0]  # (K, 3), (K, 3, 3)
@@ -401,7 +403,7 @@ class MarkerlessTracker:
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
         explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
         conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
-        oj = sub.output_joint.to(conf_joint.device)
+        oj = sub.output_joint
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
         return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
                            fk.bone_frames[0])
@@ -451,6 +453,12 @@ class MarkerlessTracker:
         self.colour = res.blobs  # the colour model follows accepted frames only
         return res
 
+    @staticmethod
+    def _fit_cost(res: FrameResult) -> float:
+        """How badly a hypothesis fits (initialisation and re-acquisition pick the least): metres of goal
+        residual plus 0.1 m per unit of voxel weight left unexplained."""
+        return res.residual_m + 0.1 * (1.0 - res.explained)
+
     def _diverging(self, res: FrameResult) -> bool:
         return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
 
@@ -472,7 +480,7 @@ class MarkerlessTracker:
             for _ in range(max(2, self.config.init_passes // 2)):
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
                 self.angles = self.previous = res.angles
-            if best is None or res.residual_m < best.residual_m:
+            if best is None or self._fit_cost(res) < self._fit_cost(best):
                 best = res
         if self._diverging(best):  # keep searching from the last good pose on the next frame
             self.angles = self.previous = base

@@ -51,8 +51,8 @@ class VoxelObservation:
         key3 = key3 - key3.amin(0)
         span = key3.amax(0) + 1
         key = (key3[:, 0] * span[1] + key3[:, 1]) * span[2] + key3[:, 2]
-        _, inv = torch.unique(key, return_inverse=True)
-        M = int(inv.max()) + 1
+        cells, inv = torch.unique(key, return_inverse=True)
+        M = cells.shape[0]
         w = self.weights
         W = w.new_zeros(M).index_add_(0, inv, w)
         pts = self.points.new_zeros(M, 3).index_add_(0, inv, w[:, None] * self.points) / W.clamp(min=1e-30)[:, None]
