@@ -1,12 +1,13 @@
 #!/usr/bin/env python
 """Occupancy on the real Pose2Sim demo: reference keypoints near occupied voxels, and phantom components.
 
-The background is estimated from the moving sequence (there are no empty frames). For every frame: the
+The background is estimated from the moving sequence (there are no empty frames), with the subject's static
+parts painted out (``BackgroundConfig.fill_static_subject``; ``--no-fill`` to leave them). For every frame: the
 share of Pose2Sim's 21 reference keypoints that lie within --radius of an occupied voxel (P > 0.5), and the
 connected components of occupied voxels that hold no keypoint (the operator standing in the background of
 cam01/cam02 must not become one of human size). Writes a picture of the voxels projected on the four views.
 
-Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.25] [--voxel 0.02] [--picture PNG]
+Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.25] [--voxel 0.02] [--picture PNG] [--no-fill]
 """
 
 from __future__ import annotations
@@ -68,6 +69,8 @@ def main() -> None:
     ap.add_argument("--voxel", type=float, default=0.02)
     ap.add_argument("--radius", type=float, default=0.05)
     ap.add_argument("--window", type=int, default=3)
+    ap.add_argument("--no-fill", action="store_true",
+                    help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     ap.add_argument("--picture", type=Path, default=Path("docs/images/pose2sim_occupancy.jpg"))
     args = ap.parse_args()
     torch.set_grad_enabled(False)
@@ -80,7 +83,8 @@ def main() -> None:
         folder = SequenceFolder(seq, full)
         t0 = time.perf_counter()
         frames = torch.cat([b.images for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
-        bg = BackgroundModel.from_sequence(frames, BackgroundConfig(), camera_names=rig.names)
+        bg = BackgroundModel.from_sequence(frames, BackgroundConfig(fill_static_subject=not args.no_fill),
+                                         camera_names=rig.names)
         spec = grid_from_rig(rig, args.voxel, min_views=3)
         grid = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=3))
         centres = spec.centres()

@@ -1,14 +1,15 @@
 #!/usr/bin/env python
 """Markerless tracking of the real Pose2Sim demo against Pose2Sim's reference keypoints.
 
-The demo has no empty background frames (the background is estimated from the moving clip) and starts with
+The demo has no empty background frames (the background is estimated from the moving clip, the subject's
+static parts painted out unless ``--no-fill``) and starts with
 the subject balancing arms out. Landmarks compared (``torchtrack.io.pose2sim.LANDMARK_MAP``): pelvis = mean of
 RHip/LHip, neck, head, shoulders, elbows, wrists, hips, knees, ankles (15 of our 16; the reference has no
 thorax point). Prints MPJPE per landmark and lost frames; saves a picture of one tracked frame in the four
 views.
 
-Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes]
-       [--picture docs/images/pose2sim_tracking.jpg]
+Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
+       [--init-from-reference] [--picture docs/images/pose2sim_tracking.jpg]
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchtrack.background import BackgroundModel
+from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.eval import evaluate
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_landmarks
 from torchtrack.io.poses import Poses
@@ -104,6 +105,8 @@ def main() -> None:
     ap.add_argument("--init-from-reference", action="store_true",
                     help="start from the skeleton fitted (Kabsch + CCD) to the reference keypoints of frame 0, "
                          "de Bem's saved initial pose, instead of the automatic starfish initialisation")
+    ap.add_argument("--no-fill", action="store_true",
+                    help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
@@ -114,7 +117,8 @@ def main() -> None:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])
         rig = folder.rig.resized(W, H).float()
-        bg = BackgroundModel.from_folder(folder, size_wh=(W, H))
+        bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=not args.no_fill),
+                                         size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
         tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))
         names, ref = reference_landmarks(args.demo)

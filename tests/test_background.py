@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import torch
 from conftest import shared_data
-from scipy import stats
+from scipy import ndimage, stats
 
 from torchtrack.background import (
-    FOREGROUND_MAHALANOBIS2, BackgroundConfig, BackgroundModel, estimate, sequence_statistics,
+    FOREGROUND_MAHALANOBIS2, BackgroundConfig, BackgroundModel, estimate, sequence_statistics, static,
 )
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.io.sequence import SequenceFolder
@@ -387,6 +387,80 @@ def test_from_sequence_close_to_from_frames(synth):
     assert (iou > 0.8).all(), iou  # measured 0.95, 0.90
 
 
+# ----------------------------------------------------------------------------------------------- static subject
+
+
+def test_colour_log_density_against_numpy_and_scipy():
+    rng = np.random.default_rng(3)
+    lo = np.array([r[0] for r in static.YUV_RANGE])
+    hi = np.array([r[1] for r in static.YUV_RANGE])
+    yuv = lo + (hi - lo) * rng.beta(2.0, 5.0, size=(5000, 3))  # in range, lumpy
+    got = static.colour_log_density(torch.from_numpy(yuv)).numpy()
+    B = static.COLOUR_BINS
+    counts, _ = np.histogramdd(yuv, bins=[np.linspace(lo[k], hi[k], B + 1) for k in range(3)])
+    smooth = ndimage.gaussian_filter(counts, static.COLOUR_SMOOTH_BINS, mode="constant", truncate=3.0)
+    np.testing.assert_allclose(got, np.log(smooth / smooth.sum() + 1e-7), rtol=1e-9, atol=1e-9)
+
+
+def test_inpaint_recovers_a_smooth_room():
+    H, W = 60, 80
+    v, u = np.mgrid[0:H, 0:W]
+    room = np.stack([0.2 + 0.5 * u / W, 0.05 + 0.1 * v / H, np.full((H, W), -0.08)])  # linear ramps in YUV
+    hole = (u - 40) ** 2 + (v - 30) ** 2 < 12 ** 2
+    ghost = room.copy()
+    ghost[:, hole] = [[0.6], [0.1], [0.2]]  # a subject-coloured disc left in the median
+    out = static.inpaint(torch.from_numpy(ghost).float(), torch.from_numpy(hole), radius_px=4).numpy()
+    np.testing.assert_array_equal(out[:, ~hole], ghost[:, ~hole].astype(np.float32))  # outside: untouched
+    err = np.abs(out[:, hole] - room[:, hole]).max()
+    assert err < 0.03, err  # measured 0.0057 (a ramp of 0.5 over the image: within 2/255 of the room)
+
+
+@pytest.fixture(scope="module")
+def synth_in_place(tmp_path_factory):
+    """Arms raised on the spot (trunk and legs never move) seen by three 128x96 cameras: frames and the true
+    silhouettes (re-rendered without noise from gt.npz), and the model of the empty-scene frames."""
+    from torchtrack.synth.scene import SceneConfig, SceneRenderer
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, make_ring_rig, write_sequence
+
+    scene = SceneConfig()
+    cfg = SynthConfig(motion="arm_raise", duration_s=3.0, starfish_s=0.3, fps=6, background_frames=10,
+                      video_format="png", rig=RigConfig(num_cameras=3, width=128, height=96), scene=scene)
+    root = write_sequence(cfg, tmp_path_factory.mktemp("inplace") / "seq", progress=False)
+    folder = SequenceFolder(root)
+    frames = torch.cat([b.images for b in folder.iter_batches(64)])  # (T, C, 3, H, W)
+    gt = np.load(root / "gt.npz")
+    renderer = SceneRenderer(make_ring_rig(cfg.rig).float(), dataclasses.replace(scene, noise_std=0.0))
+    silhouettes = torch.stack([
+        renderer.render(torch.from_numpy(gt["blob_centres"][t]), torch.from_numpy(gt["blob_R_world"][t]),
+                        torch.from_numpy(gt["blob_semi_axes"]), torch.full((len(gt["blob_semi_axes"]), 3), 0.5),
+                        frame=t, num_frames=len(frames))[1] for t in range(len(frames))])  # (T, C, H, W)
+    return folder, frames, silhouettes
+
+
+def test_static_subject_painted_out(synth_in_place):
+    folder, frames, silhouettes = synth_in_place
+    scores = {}
+    for fill in (False, True):
+        model = BackgroundModel.from_sequence(frames, BackgroundConfig(fill_static_subject=fill))
+        fg = model.mahalanobis2(frames) > FOREGROUND_MAHALANOBIS2
+        inter = (fg & silhouettes).sum((0, 2, 3))
+        scores[fill] = (inter / (fg | silhouettes).sum((0, 2, 3)), inter / silhouettes.sum((0, 2, 3)))
+    print("silhouette IoU / recall per camera: median only", [f"{v:.2f}" for v in scores[False][0].tolist()],
+          [f"{v:.2f}" for v in scores[False][1].tolist()], "painted out", [f"{v:.2f}" for v in scores[True][0].tolist()],
+          [f"{v:.2f}" for v in scores[True][1].tolist()])
+    assert (scores[False][1] < 0.4).all()  # the ghost: measured recall 0.29, 0.18, 0.25
+    assert (scores[True][1] > 0.75).all(), scores[True]  # measured 0.79, 0.80, 0.87
+    assert (scores[True][0] > scores[False][0] + 0.25).all(), scores  # IoU measured 0.71, 0.71, 0.76 vs 0.27, 0.17, 0.24
+
+
+def test_static_subject_needs_a_moving_subject():
+    """Frames where nothing ever moves have no subject colours to learn: the median is kept as it is."""
+    frames = _noise_frames(N=12, C=2, H=24, W=20, std_range=(0.004, 0.008))[0]
+    plain = sequence_statistics(frames, BackgroundConfig(), ["a", "b"])
+    filled = sequence_statistics(frames, BackgroundConfig(fill_static_subject=True), ["a", "b"])
+    torch.testing.assert_close(filled, plain, rtol=0, atol=0)
+
+
 # ----------------------------------------------------------------------------------------------- real video
 
 P2S_SIZE_WH = (272, 480)  # a quarter of the calibrated 1088 x 1920
@@ -445,3 +519,17 @@ def test_real_video_pelvis_is_foreground(pose2sim):
     fg = (model.mahalanobis2(frame) > FOREGROUND_MAHALANOBIS2)[0]
     pelvis = (uv[:, names.index("RHip")] + uv[:, names.index("LHip")]) / 2
     assert _on_foreground(fg, pelvis[:, None]).all()
+
+
+def test_real_video_trunk_painted_out(pose2sim):
+    """With ``fill_static_subject`` the static trunk is found by its colours and painted out of the median:
+    pelvis and shoulders are foreground in every view, and the person stays a minority of each image."""
+    folder, _, _, frame, names, uv = pose2sim
+    model = BackgroundModel.from_folder(folder, BackgroundConfig(max_frames=30, fill_static_subject=True),
+                                       size_wh=P2S_SIZE_WH)
+    fg = (model.mahalanobis2(frame) > FOREGROUND_MAHALANOBIS2)[0]  # (C, H, W)
+    pelvis = (uv[:, names.index("RHip")] + uv[:, names.index("LHip")]) / 2
+    trunk = torch.stack([pelvis, uv[:, names.index("RShoulder")], uv[:, names.index("LShoulder")]], 1)  # (C, 3, 2)
+    hit = _on_foreground(fg, trunk)
+    assert hit.all(), hit
+    assert (fg.float().mean((1, 2)) < 0.2).all(), fg.float().mean((1, 2))

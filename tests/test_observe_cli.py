@@ -46,3 +46,20 @@ def test_observe_writes_occupancy_and_logs(seq, tmp_path, model, capsys):
 def test_observe_missing_sequence(tmp_path, capsys):
     assert main(["observe", str(tmp_path / "nope"), "--out", str(tmp_path / "o")]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_observe_without_background_frames_fill_static_subject(seq, tmp_path, caplog):
+    """No background/ folder: the background is estimated from the video, and ``--fill-static-subject`` paints
+    the subject's static parts out of it (logged per camera); a body is still found in every frame."""
+    import logging
+    import shutil
+
+    bare = tmp_path / "bare"
+    shutil.copytree(seq, bare, ignore=shutil.ignore_patterns("background"))
+    out = tmp_path / "out"
+    with caplog.at_level(logging.INFO, logger="torchtrack.background"):
+        assert main(["observe", str(bare), "--out", str(out), "--voxel", "0.04", "--log-every", "0",
+                     "--fill-static-subject"]) == 0
+    assert "estimating it from" in caplog.text and "static subject painted out" in caplog.text
+    counts = np.diff(np.load(out / "occupancy.npz")["frame_offsets"])
+    assert (counts > 20).all()

@@ -25,8 +25,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--stop", type=int, default=None)
     p.add_argument("--batch", type=int, default=4, help="frames per batch (Bayesian grid, silhouettes)")
-    p.add_argument("--log-every", type=int, default=10, help="log the point cloud and images every N frames")
+    p.add_argument("--log-every", type=int, default=10, help="log the point cloud and images every N frames (0: never)")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--fill-static-subject", action="store_true",
+                   help="without background/ frames: paint the parts of the subject that never move out of the "
+                        "estimated background (a subject balancing in place)")
     p.set_defaults(func=run)
 
 
@@ -42,7 +45,7 @@ def _run(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from torchtrack.background import BackgroundModel
+    from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.io.atomic import atomic_path
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
@@ -54,7 +57,8 @@ def _run(args: argparse.Namespace) -> int:
     full = folder.rig
     W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
     rig = full.resized(W, H).float().to(device)
-    bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
+    bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=args.fill_static_subject),
+                                     size_wh=(W, H), device=device)
     spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)
     if args.model == "bayes":
         model = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views)).to(device)
@@ -85,7 +89,7 @@ def _run(args: argparse.Namespace) -> int:
                 sizes_out.append(s.cpu().float().numpy())
                 tb.scalars(t, voxels=float(c.shape[0]), volume_m3=float((s ** 3).sum()), ms_per_frame=ms,
                            cameras_unreadable=float((~batch.valid[i]).sum()))
-                if (t - args.start) % args.log_every == 0:
+                if args.log_every > 0 and (t - args.start) % args.log_every == 0:
                     tb.occupancy_cloud(t, "occupancy/voxels", c)
                     fg = torch.sigmoid(bg.log_uniform - bg.log_likelihood(batch.images[i:i + 1]))[0]  # (C, H, W)
                     tb.probability_images(t, "foreground/probability", torch.nan_to_num(fg, nan=0.0), rig.names)

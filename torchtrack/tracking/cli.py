@@ -35,6 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=4, help="frames read and observed per batch")
     p.add_argument("--log-every", type=int, default=10, help="log images and the 3D view every N frames (0: never)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--fill-static-subject", action="store_true", default=None,
+                   help="without background/ frames: paint the parts of the subject that never move out of the "
+                        "estimated background (a subject balancing in place; overrides config)")
     p.set_defaults(func=run)
 
 
@@ -80,7 +83,7 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
     from torchtrack.occupancy import HullConfig
     from torchtrack.tracking.observation import Observer
 
-    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull"}
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull", "fill_static_subject"}
     unknown = set(ocfg) - known
     if unknown:
         raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
@@ -119,7 +122,7 @@ def _initial_pose(path: Path, skeleton_dofs: tuple[str, ...]) -> tuple[Any, floa
 def _run(args: argparse.Namespace) -> int:
     import torch
 
-    from torchtrack.background import BackgroundModel
+    from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.checks import InputError
     from torchtrack.io.poses import save_poses
     from torchtrack.io.sequence import SequenceFolder
@@ -143,7 +146,8 @@ def _run(args: argparse.Namespace) -> int:
     folder = SequenceFolder(args.seq)
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float().to(device)
-    bg = BackgroundModel.from_folder(folder, size_wh=(W, H), device=device)
+    fill = bool(args.fill_static_subject or ocfg.get("fill_static_subject", False))
+    bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=fill), size_wh=(W, H), device=device)
     observer = observer_from_config(rig, bg, ocfg, model, voxel).to(device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
