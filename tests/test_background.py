@@ -58,6 +58,21 @@ def _noise_frames(N=400, C=2, H=6, W=5, seed=0, std_range=(0.004, 0.04)):
 # ----------------------------------------------------------------------------------------------- colour space
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_rgb_to_yuv_equals_kornia(dtype):
+    import kornia
+
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(2, 3, 3, 5, 7, generator=gen, dtype=dtype)  # (B, C, 3, H, W)
+    rgb[0, 1, 2, 3, 4] = float("nan")
+    ref = kornia.color.rgb_to_yuv(rgb)
+    tol = dict(rtol=0, atol=1e-6 if dtype == torch.float32 else 1e-14, equal_nan=True)
+    torch.testing.assert_close(estimate.rgb_to_yuv(rgb), ref, **tol)
+    assert torch.isnan(estimate.rgb_to_yuv(rgb)[0, 1, :, 3, 4]).all()  # a NaN channel spoils the pixel, as in kornia
+    gain = torch.rand(2, 3, generator=gen, dtype=dtype) + 0.5  # (B, C)
+    torch.testing.assert_close(estimate.rgb_to_yuv(rgb, gain), ref / gain[:, :, None, None, None], **tol)
+
+
 def test_kornia_matrix_and_log_uniform():
     M = np.array(estimate.rgb_to_yuv_matrix())
     np.testing.assert_allclose(M, M_YUV, atol=1e-12)  # kornia's matrix is the one written out here

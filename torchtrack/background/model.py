@@ -265,14 +265,15 @@ class BackgroundModel(nn.Module):
             warnings.warn(f"background model: camera(s) {cams} gave an all-NaN or all-black frame "
                           f"({int(dead.sum())} of {dead.numel()} camera frames); their output is NaN",
                           RuntimeWarning, stacklevel=3)
-        yuv = est.rgb_to_yuv(images)  # (B, C, 3, H, W)
-        if self.config.compensate_gain:
-            g = est.robust_gain(yuv[:, :, 0], self.mean_yuv[:, 0].to(yuv))  # (B, C)
+        if self.config.compensate_gain:  # the gain needs Y on robust_gain's pixel grid only
+            s = est.GAIN_STRIDE
+            y = est.rgb_to_yuv(images[..., ::s, ::s])[:, :, 0]  # (B, C, H / s, W / s)
+            g = est.robust_gain(y, self.mean_yuv[:, 0, ::s, ::s].to(y), stride=1)  # (B, C)
             g = est.clamp_gain(g.masked_fill(dead, 1.0), self.camera_names, "background model")
         else:
-            g = torch.ones(dead.shape, dtype=yuv.dtype, device=yuv.device)
+            g = torch.ones(dead.shape, dtype=images.dtype, device=images.device)
         g = g.masked_fill(dead, float("nan"))
-        return yuv / g[:, :, None, None, None], g, dead
+        return est.rgb_to_yuv(images, g), g, dead  # (B, C, 3, H, W), the gain folded into the conversion
 
     def mahalanobis2(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) squared Mahalanobis distance to each pixel's background,
