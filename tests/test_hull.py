@@ -159,7 +159,7 @@ def geometry(scene4, scene8, body):
     return out
 
 
-@pytest.mark.parametrize("name, min_iou, max_missed", [("4 views 320x240", 0.6, 0.08), ("8 views 160x120", 0.7, 0.15)])
+@pytest.mark.parametrize("name, min_iou, max_missed", [("4 views 320x240", 0.6, 0.02), ("8 views 160x120", 0.7, 0.12)])
 def test_hull_against_ground_truth_body(geometry, name, min_iou, max_missed):
     hull, occ, truth = geometry[name]
     score = iou(occ, truth)
@@ -191,10 +191,12 @@ def test_voxels_are_multi_scale_and_aligned(geometry):
     assert hull.finest_shape == (136, 136, 144) and math.isclose(hull.finest_voxel_m, 0.015)
 
 
-def test_against_brute_force_reference(scene4):
+@pytest.mark.parametrize("footprint, tolerance", [(True, 0.03), (False, 0.15)])
+def test_against_brute_force_reference(scene4, footprint, tolerance):
     """Hierarchical == the same rules on the dense finest grid, except near the surface: a coarse voxel is judged
     on 8 samples per view, and kept or discarded whole."""
-    config = dataclasses.replace(ZONE, lower_m=(-0.4, -0.9, 0.0), upper_m=(0.4, 0.9, 1.8), finest_voxel_m=0.03)
+    config = dataclasses.replace(ZONE, lower_m=(-0.4, -0.9, 0.0), upper_m=(0.4, 0.9, 1.8), finest_voxel_m=0.03,
+                                 footprint_early_out=footprint)
     hull = hierarchical_hull(scene4["rig"], scene4["mahal2"], scene4["images"], config)
     occ = hull.to_dense()
     ref = brute_force(scene4["rig"], scene4["mahal2"], hull, config)
@@ -202,10 +204,23 @@ def test_against_brute_force_reference(scene4):
     print(f"brute force: {int(ref.sum())} cells, hierarchical {int(occ.sum())}, {int(differ.sum())} differ, "
           f"IoU {iou(occ, ref):.3f}")
     assert int(ref.sum()) > 1000
-    # Tolerance: at most 15 % of the volume (measured: 10 %, mostly cells the reference keeps and a coarse voxel
-    # dropped because its 8 samples missed a thin part in some view), all within one cell of the surface.
-    assert float(differ.sum()) <= 0.15 * float(ref.sum())
+    # Tolerance, all within one cell of the surface. With the paper's 8 point samples only, 15 % of the volume
+    # (measured: 10 %, mostly cells the reference keeps and a coarse voxel dropped because its 8 samples missed a
+    # thin part in some view); with the footprint early-out, which subdivides those voxels, 3 % (measured 1.1 %).
+    assert float(differ.sum()) <= tolerance * float(ref.sum())
     assert not bool((differ & ~within(differ, surface(ref), 1)).any())
+
+
+@pytest.mark.parametrize("width", [1, 3, 5, 7, 15, 17])
+def test_max_filter_equals_max_pool(width):
+    x = torch.rand(3, 29, 41, generator=torch.Generator().manual_seed(width))
+    x[1, 5, 7] = float("nan")
+    ref = F.max_pool2d(x[:, None], width, stride=1, padding=width // 2)[:, 0]
+    got = hull_module._max_filter(hull_module._max_filter(x, width, 1), width, 2)
+    torch.testing.assert_close(got, ref, rtol=0, atol=0, equal_nan=True)
+    mask = (x > 0.95).to(torch.uint8)  # the hull filters a uint8 foreground mask
+    got = hull_module._max_filter(hull_module._max_filter(mask, width, 1), width, 2)
+    assert torch.equal(got, F.max_pool2d(mask[:, None].float(), width, stride=1, padding=width // 2)[:, 0].byte())
 
 
 # ----------------------------------------------------------------------------------------------- sampling
