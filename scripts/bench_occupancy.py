@@ -232,7 +232,7 @@ def bayes_stages(scene: Scene, n: int, runs: int, device: torch.device) -> None:
     window = f"nan_to_num + {cfg.window}x{cfg.window} window sum"
     pieces = {
         "background log-likelihood (total)": lambda: bg.log_likelihood(x),
-        "  of which RGB->YUV (kornia)": lambda: bg.to_yuv(x),
+        "  of which RGB->YUV": lambda: bg.to_yuv(x),
         "  of which global gain (median over pixels)": lambda: bg.gain(x),  # includes its own RGB->YUV
         "pixel log-ratio (2 logaddexp)": lambda: pixel_log_ratio(ll, bg.log_uniform, cfg),
         window: lambda: window_sum(torch.nan_to_num(ratio, nan=0.0), cfg.window),
@@ -241,7 +241,7 @@ def bayes_stages(scene: Scene, n: int, runs: int, device: torch.device) -> None:
         "full forward": lambda: grid(x),
     }
     medians = {k: float(np.median(v)) for k, v in interleaved_times(pieces, runs, device).items()}
-    medians["  of which global gain (median over pixels)"] -= medians["  of which RGB->YUV (kornia)"]
+    medians["  of which global gain (median over pixels)"] -= medians["  of which RGB->YUV"]
     full = medians.pop("full forward")
     stages = list(medians.items())
     top = sum(t for name, t in stages if not name.startswith("  "))
@@ -266,11 +266,14 @@ def bench_hull(scenes: dict[tuple[str, int], Scene], runs: int, device: torch.de
         print(f"\n[{device}] hierarchical hull: skipped, torchtrack.occupancy.hull is not importable ({exc})")
         return
     print(f"\n[{device}] hierarchical hull (hull_from_images on one frame, frames cycled; median of {runs} runs)")
-    print(f"{'images':>8} {'cams':>4} {'finest':>7} {'levels':>6} {'first call':>10} {'ms/frame':>9} {'(min)':>7} "
-          f"{'hull only':>9} {'voxels':>7}  target")
-    for C, (w, h), finest_m, target_ms in HULL_CASES:
+    print("  early-out 'footprint': HullConfig's default (voxels whose samples miss a thin part are subdivided);"
+          " 'points': the paper's 8 point samples only (footprint_early_out=False)")
+    print(f"{'images':>8} {'cams':>4} {'finest':>7} {'early-out':>9} {'levels':>6} {'first call':>10} {'ms/frame':>9} "
+          f"{'(min)':>7} {'hull only':>9} {'voxels':>7}  target")
+    for (C, (w, h), finest_m, target_ms), footprint in itertools.product(HULL_CASES, (True, False)):
         scene = scenes[(f"{w}x{h}", C)]
-        cfg = HullConfig(lower_m=BOX_LOWER_M, upper_m=BOX_UPPER_M, finest_voxel_m=finest_m)
+        cfg = HullConfig(lower_m=BOX_LOWER_M, upper_m=BOX_UPPER_M, finest_voxel_m=finest_m,
+                         footprint_early_out=footprint)
         B = scene.images.shape[0]
         first, first_s = timed_once(lambda: hull_from_images(scene.rig, scene.background, scene.images[0], cfg),
                                     device)  # builds the level-0 table of the rig
@@ -289,7 +292,8 @@ def bench_hull(scenes: dict[tuple[str, int], Scene], runs: int, device: torch.de
         t, t_hull = float(np.median(times["full"])), float(np.median(times["hull"]))
         levels = int(first.level.max()) + 1 if first.num_voxels else 0
         mark = f"< {target_ms:.0f} ms/frame: {verdict(1e3 * t, target_ms)}" if target_ms else ""
-        print(f"{scene.label:>8} {C:>4} {100 * finest_m:>5.1f}cm {levels:>6} {first_s:>9.2f}s {1e3 * t:>9.1f} "
+        print(f"{scene.label:>8} {C:>4} {100 * finest_m:>5.1f}cm {'footprint' if footprint else 'points':>9} "
+              f"{levels:>6} {first_s:>9.2f}s {1e3 * t:>9.1f} "
               f"{1e3 * min(times['full']):>7.1f} {1e3 * t_hull:>9.1f} {first.num_voxels:>7}  {mark}")
 
 

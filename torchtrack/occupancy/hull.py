@@ -489,6 +489,12 @@ def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor, parent
     return label
 
 
+def _take(x: Tensor, at: Tensor) -> Tensor:
+    """(C, 8, V) -> (C, 8, len(at)) voxels ``at`` (``gather`` with an expanded index: 4x faster on the CPU than
+    ``index_select`` along the last axis)."""
+    return x.gather(2, at.expand(*x.shape[:2], -1))
+
+
 def _colours(colour: Tensor, idx: Tensor, d: Tensor, sees: Tensor, t_low: float, pixel0: Tensor) -> Tensor:
     """Mean colour of the samples, (K, C, 3): over the samples with ``d >= t_low`` (all 8 when none is), NaN where
     unseen. colour: (C, 3, H, W); idx: (C, 8, K) row-offset sample indices ``c H W + pixel``; d: (C, 8, K)
@@ -558,7 +564,7 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
             label = _classify(m, s, sees, config, min_views, level == plan.L, near_fg)
             if many:  # keep only what the colours may need
                 rows = ((label == _FG) | (label == _UNKNOWN)).nonzero()[:, 0]
-                idx, d, sees = idx.index_select(2, rows), d.index_select(2, rows), sees[:, rows]
+                idx, d, sees = _take(idx, rows), _take(d, rows), sees[:, rows]
             ijks.append(ijk)
             labels.append(label)
             stash.append((idx, d, sees))
@@ -569,7 +575,7 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
         keep = (label == _FG).nonzero()[:, 0]  # (K,)
         if keep.numel():
             at = keep if rows is None else torch.searchsorted(rows, keep)
-            kept.append((level, ijk[keep], _colours(colour, idx.index_select(2, at), d.index_select(2, at),
+            kept.append((level, ijk[keep], _colours(colour, _take(idx, at), _take(d, at),
                                                     sees[:, at], config.t_low, plan.pixel0)))
         parents = ijk[label == _EDGE]
         if parents.shape[0] == 0:
