@@ -65,7 +65,7 @@ class BackgroundConfig:
             (:mod:`torchtrack.background.static`). For a subject who stays in place (a balancing trial, arms
             raised on the spot); off by default because on a subject who moves through the scene, whose
             median is clean, it paints out room that looks like the subject (synthetic silhouette IoU, mean of
-            3 cameras: arm_raise 0.23 -> 0.73, squat 0.52 -> 0.75, walk 0.98 -> 0.79;
+            3 cameras: arm_raise 0.23 -> 0.69, squat 0.52 -> 0.70, walk 0.98 -> 0.72;
             ``scripts/eval_static_fill.py``). No effect on a model from empty-scene frames.
     """
 
