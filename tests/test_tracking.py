@@ -251,6 +251,32 @@ def test_tracker_follows_voxelised_ground_truth(skel, motion):
     assert errs.max() < 0.06, errs
 
 
+def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
+    """fit_bone_lengths at the starfish frame, on the voxels of a 1.80 m body whose proportions one height scale
+    cannot represent (torso 0.85x, legs 1.1x, as the retargeted CMU bodies): the torso's and legs' lengths move
+    towards the body's, and the track is better than with one scale for the body."""
+    subj = skel.scaled_to_height(1.80)
+    length = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
+    legs = ("l_thigh", "r_thigh", "l_shank", "r_shank")
+    subj = subj.with_bone_lengths({"torso": 0.85 * length["torso"], **{b: 1.1 * length[b] for b in legs}})
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, "walk", 6 / 30, 30, starfish_s=0.1)
+    errs, bones = {}, {}
+    for fit in (False, True):
+        tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=fit))
+        e = []
+        for t in range(T.shape[0]):
+            r = tracker.step(_observation(subj, blobs, T[t]))
+            assert r.valid
+            e.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+        errs[fit] = np.mean(e)
+        bones[fit] = dict(zip(subj.bone_names, tracker.subject.skeleton.bone_lengths.tolist()))
+    true = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
+    for bone in ("torso", "l_thigh", "r_shank"):  # at least a fifth of the way from one scale to the truth
+        assert abs(bones[True][bone] - true[bone]) < 0.8 * abs(bones[False][bone] - true[bone]), (bone, bones)
+    assert errs[True] < 0.75 * errs[False], errs
+
+
 def test_frames_with_nobody_are_invalid_and_tracking_resumes(skel):
     """A gap of empty frames, and the person coming back 0.4 m away: invalid during the gap, then re-acquired."""
     def edit(t, obs):

@@ -43,8 +43,10 @@ log = logging.getLogger(__name__)
 
 #: Bones whose lengths are fitted together at initialisation (left and right tied).
 #: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
-#: apart); torso and head are fitted separately. Measured with fit_bone_lengths on (8 cameras, Bayesian grid):
-#: CMU 131_02 43.3 -> 34.9 mm, CMU 131_01 64.6 -> 59.4 mm, but the procedural walk 9.4 -> 12.9 mm.
+#: apart); torso and head are fitted separately. Measured with fit_bone_lengths on (scripts/eval_tracking.py,
+#: Bayesian grid): 8 cameras CMU 131_02 43.2 -> 32.4 mm, CMU 131_01 59.3 -> 38.2 mm, but the procedural walk
+#: (the template's own proportions) 10.3 -> 13.0 mm; 4 cameras worse (walk 23.9 -> 62.7 mm, a wrist caught in
+#: the ghost volume; arm_raise 43.8 -> 48.5 mm), hence off by default.
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
