@@ -208,6 +208,32 @@ def test_gain_compensated_likelihood_against_numpy():
     np.testing.assert_allclose(ll, ref, rtol=1e-10)
 
 
+def test_luminance_relaxation_only_within_the_shadow_band():
+    """With luminance_relax 3 and shadow_min_ratio 0.7, a pixel whose Y is 0.7-1/0.7 times its background's is
+    judged with the relaxed Y std, a darker or brighter one with the unrelaxed std (a third of it); reference:
+    scipy's normal densities with that std per pixel."""
+    config = dataclasses.replace(EXACT, luminance_relax=3.0, shadow_min_ratio=0.7)
+    model = _random_model(config=config)
+    rng = np.random.default_rng(5)
+    mu, sd = model.mean_yuv.numpy(), model.std_yuv.numpy()  # sd: the relaxed (final) std
+    ratio = rng.choice([0.3, 0.6, 0.75, 1.0, 1.3, 1.5, 2.0], size=(4, 3, 1, 5, 7))
+    yuv = mu[None] * np.concatenate([ratio, np.ones((4, 3, 2, 5, 7))], 2) + 0.01 * rng.standard_normal((4, 3, 3, 5, 7))
+    images = _rgb_from_yuv(yuv)
+    yuv = _yuv_np(images)
+    r = yuv[:, :, 0] / mu[None, :, 0]  # (B, C, H, W)
+    sd_eff = np.broadcast_to(sd, yuv.shape).copy()
+    sd_eff[:, :, 0] = np.where((r >= 0.7) & (r <= 1 / 0.7), sd[None, :, 0], sd[None, :, 0] / 3.0)
+    assert ((r < 0.7) | (r > 1 / 0.7)).mean() > 0.3 and ((r >= 0.7) & (r <= 1 / 0.7)).mean() > 0.3
+    d2 = model.mahalanobis2(torch.from_numpy(images)).numpy()
+    np.testing.assert_allclose(d2, (((yuv - mu) / sd_eff) ** 2).sum(2), rtol=1e-10)
+    ll = model.log_likelihood(torch.from_numpy(images)).numpy()
+    np.testing.assert_allclose(ll, stats.norm.logpdf(yuv, mu, sd_eff).sum(2), rtol=1e-10)
+    # ratio 0: the paper's plain relaxation everywhere
+    plain = BackgroundModel(model.mean_yuv, model.std_yuv, dataclasses.replace(config, shadow_min_ratio=0.0))
+    np.testing.assert_allclose(plain.mahalanobis2(torch.from_numpy(images)).numpy(),
+                               (((yuv - mu) / sd) ** 2).sum(2), rtol=1e-10)
+
+
 def test_gain_compensation_darker_frame():
     frames, _, _ = _noise_frames(N=30, C=2, H=20, W=20, std_range=(0.002, 0.008))
     frames = frames.float()

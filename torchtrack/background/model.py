@@ -57,6 +57,10 @@ class BackgroundConfig:
         min_std: floor on every per-channel std (YUV units); sensor noise is about 2/255.
         luminance_relax: the Y std is multiplied by this after flooring (Caillette §3.2: shadows and illumination
             changes are not foreground).
+        shadow_min_ratio: the relaxation holds only for a pixel whose gain-normalised Y lies within
+            ``[r, 1 / r]`` times its background's: a shadow or a change of illumination scales the luminance by a
+            bounded factor, and a part darker than any shadow (black hair over a light wall) is judged with the
+            unrelaxed Y std (see :meth:`BackgroundModel.mahalanobis2_yuv`). 0: the paper's plain relaxation.
         compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
             (also applied to the estimation frames, so the model is in gain-normalised units).
         max_frames: frames used for estimation, evenly sampled over the given ones.
@@ -71,6 +75,7 @@ class BackgroundConfig:
 
     min_std: float = 0.012
     luminance_relax: float = 3.0
+    shadow_min_ratio: float = 0.7
     compensate_gain: bool = True
     max_frames: int = 60
     fill_static_subject: bool = False
@@ -80,6 +85,8 @@ class BackgroundConfig:
             raise InputError(f"BackgroundConfig.min_std must be a positive number, got {self.min_std}")
         if not (self.luminance_relax >= 1 and math.isfinite(self.luminance_relax)):
             raise InputError(f"BackgroundConfig.luminance_relax must be >= 1, got {self.luminance_relax}")
+        if not 0 <= self.shadow_min_ratio < 1:
+            raise InputError(f"BackgroundConfig.shadow_min_ratio must be in [0, 1), got {self.shadow_min_ratio}")
         if self.max_frames < MIN_FRAMES:
             raise InputError(f"BackgroundConfig.max_frames must be >= {MIN_FRAMES}, got {self.max_frames}")
 
@@ -277,32 +284,50 @@ class BackgroundModel(nn.Module):
 
     def mahalanobis2(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) squared Mahalanobis distance to each pixel's background,
-        ``sum_k ((I_k / g - mean_k) / std_k)^2`` over Y, U, V. NaN where the image is NaN or the frame dead."""
+        ``sum_k ((I_k / g - mean_k) / std_k)^2`` over Y, U, V (Y's std unrelaxed outside the shadow band, see
+        :meth:`mahalanobis2_yuv`). NaN where the image is NaN or the frame dead."""
         return self.mahalanobis2_yuv(self._normalise(images)[0])
 
     def mahalanobis2_yuv(self, yuv: torch.Tensor) -> torch.Tensor:
         """(..., C, 3, H, W) YUV from :meth:`normalise` -> (..., C, H, W) squared Mahalanobis distance (lets a
-        caller that needs both the colours and the distances convert and gain-correct once)."""
+        caller that needs both the colours and the distances convert and gain-correct once).
+
+        Where Y is outside ``[r, 1 / r]`` times the background's (``r = shadow_min_ratio``) the Y term uses the
+        unrelaxed std, i.e. it is ``luminance_relax^2`` times larger."""
+        return self._mahalanobis2(yuv)[0]
+
+    def _mahalanobis2(self, yuv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """:meth:`mahalanobis2_yuv` (..., C, H, W) and where the luminance relaxation was lifted (..., C, H, W)
+        bool, or None when the bound is off."""
         mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
         inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
-        return ((yuv - mean) * inv_std).square().sum(-3)
+        z = (yuv - mean) * inv_std  # (..., C, 3, H, W)
+        d2 = z.square().sum(-3)
+        r, relax = self.config.shadow_min_ratio, self.config.luminance_relax
+        if r == 0 or relax == 1:
+            return d2, None
+        y, y_bg = yuv[..., 0, :, :], mean[:, 0]
+        unrelaxed = (y < r * y_bg) | (r * y > y_bg)  # (..., C, H, W); NaN: False
+        return d2 + (relax * relax - 1.0) * z[..., 0, :, :].square() * unrelaxed, unrelaxed
 
     def log_likelihood(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.
 
         ``log N(I / g; mean, diag std^2) - 3 log g`` (the density of ``I = g B``; ``g = 1`` without gain
-        compensation), directly comparable with :attr:`log_uniform`. NaN where the image is NaN or dead.
+        compensation), directly comparable with :attr:`log_uniform`; the Y std unrelaxed outside the shadow band
+        (``shadow_min_ratio``, as :meth:`mahalanobis2_yuv`). NaN where the image is NaN or dead.
         """
         return self.log_likelihood_and_yuv(images)[0]
 
     def log_likelihood_and_yuv(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`log_likelihood` (B, C, H, W) and :meth:`normalise` (B, C, 3, H, W) from one normalisation."""
         yuv, g, _ = self._normalise(images)
-        mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
-        inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
-        d2 = ((yuv - mean) * inv_std).square().sum(2)  # (B, C, H, W)
+        d2, unrelaxed = self._mahalanobis2(yuv)  # (B, C, H, W)
         log_norm = self.log_norm.to(device=yuv.device, dtype=yuv.dtype)  # (C, H, W)
-        return -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None], yuv
+        log_p = -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
+        if unrelaxed is not None:  # the unrelaxed Gaussian's normaliser there
+            log_p = log_p + unrelaxed.to(log_p.dtype) * math.log(self.config.luminance_relax)
+        return log_p, yuv
 
     def extra_repr(self) -> str:
         C, _, H, W = self.mean_yuv.shape
