@@ -19,11 +19,14 @@ from torchtrack.synth.sequence import RigConfig, make_ring_rig
 RGB2YUV = np.array([[0.299, 0.587, 0.114], [-0.147, -0.289, 0.436], [0.615, -0.515, -0.100]])
 
 
-def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig) -> np.ndarray:
+def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, shadow_min_ratio: float = 0.0,
+               luminance_relax: float = 1.0) -> np.ndarray:
     """Posterior P(G=1) per voxel, computed the slow way.
 
     Voxel centres are projected with cv2.projectPoints (an independent projection); each camera's pixels in
-    the k x k window around the nearest pixel multiply p(I|G) into both hypotheses (in log space).
+    the k x k window around the nearest pixel multiply p(I|G) into both hypotheses (in log space). ``bg_std``
+    is the relaxed std; a pixel whose Y lies outside ``[r, 1 / r]`` times the background's Y is judged with the
+    unrelaxed Y std ``bg_std / luminance_relax`` (the background model's shadow band).
     """
     C, _, H, W = images.shape
     s1, r1 = cfg.p_sample, cfg.p_other
@@ -52,8 +55,12 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig) -
                     if not (0 <= qu < W and 0 <= qv < H):
                         continue
                     normal = 1.0
+                    y, y_bg = yuv[c, 0, qv, qu], bg_mean[c, 0, qv, qu]
+                    in_band = shadow_min_ratio * y_bg <= y <= y_bg / shadow_min_ratio if shadow_min_ratio else True
                     for ch in range(3):
                         m, s = bg_mean[c, ch, qv, qu], bg_std[c, ch, qv, qu]
+                        if ch == 0 and not in_band:
+                            s = s / luminance_relax
                         normal *= math.exp(-0.5 * ((yuv[c, ch, qv, qu] - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
                     log1 += math.log(pf1 * uniform + (1 - pf1) * normal)
                     log0 += math.log(pf0 * uniform + (1 - pf0) * normal)
@@ -79,8 +86,10 @@ def scene():
 def test_fast_grid_equals_algorithm1(scene, cfg):
     rig, bg, images, spec = scene
     fast = BayesianGrid(rig, spec, bg, cfg)(images).probability()  # (B, V)
+    assert bg.config.shadow_min_ratio > 0 and bg.config.luminance_relax > 1  # the shadow band is exercised
     for b in range(images.shape[0]):
-        ref = algorithm1(rig, bg.mean_yuv.numpy(), bg.std_yuv.numpy(), images[b].numpy(), spec, cfg)
+        ref = algorithm1(rig, bg.mean_yuv.numpy(), bg.std_yuv.numpy(), images[b].numpy(), spec, cfg,
+                         bg.config.shadow_min_ratio, bg.config.luminance_relax)
         # tolerance: float64 throughout; differences only from summation order
         np.testing.assert_allclose(fast[b].numpy(), ref, atol=1e-9, rtol=0)
     assert 0.0 < float(fast.mean()) < 1.0  # not a degenerate case: some voxels are occupied, some are not
