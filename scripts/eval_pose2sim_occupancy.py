@@ -15,7 +15,7 @@ two other views makes a human-sized phantom (1.2 m across with ``--min-views 3``
 keypoint of every frame projects into all four images.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.25] [--voxel 0.02] [--min-views 4]
-       [--picture PNG] [--no-fill]
+       [--picture PNG] [--no-fill] [--fill-prior-log-odds 0]
 """
 
 from __future__ import annotations
@@ -50,6 +50,23 @@ def components_without_keypoints(occ: np.ndarray, keypoint_voxels: np.ndarray, v
     return out
 
 
+#: Segments between Pose2Sim's keypoints that outline the body: a voxel farther than ``--body-radius`` from all of
+#: them is outside the body (limbs and trunk sides are covered; the radius allows for the reference's error).
+BODY_SEGMENTS = [("RHip", "RKnee"), ("RKnee", "RAnkle"), ("RAnkle", "RBigToe"), ("RAnkle", "RHeel"),
+                 ("LHip", "LKnee"), ("LKnee", "LAnkle"), ("LAnkle", "LBigToe"), ("LAnkle", "LHeel"),
+                 ("LHip", "RHip"), ("LShoulder", "LHip"), ("RShoulder", "RHip"), ("Neck", "LShoulder"),
+                 ("Neck", "RShoulder"), ("LShoulder", "LElbow"), ("LElbow", "LWrist"), ("RShoulder", "RElbow"),
+                 ("RElbow", "RWrist"), ("Neck", "Head"), ("Head", "Nose"), ("Neck", "LHip"), ("Neck", "RHip")]
+
+
+def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) distance of each of ``points (N, 3)`` to the nearest of the segments ``a (S, 3) -> b (S, 3)``."""
+    ab = b - a  # (S, 3)
+    t = np.einsum("nsk,sk->ns", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
+    nearest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]  # (N, S, 3)
+    return np.linalg.norm(points[:, None] - nearest, axis=-1).min(1)
+
+
 def picture(path: Path, folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> None:
     """The four views of frame ``t`` at the processing size with the occupied voxel centres drawn on them."""
     import cv2
@@ -77,6 +94,10 @@ def main() -> None:
     ap.add_argument("--voxel", type=float, default=0.02)
     ap.add_argument("--radius", type=float, default=0.05)
     ap.add_argument("--window", type=int, default=3)
+    ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
+                    help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
+    ap.add_argument("--body-radius", type=float, default=0.15,
+                    help="voxels farther than this from every body segment between keypoints are outside the body")
     ap.add_argument("--min-views", type=int, default=4, help="voxels seen by fewer cameras are unobserved")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
@@ -92,12 +113,15 @@ def main() -> None:
         folder = SequenceFolder(seq, full)
         t0 = time.perf_counter()
         frames = torch.cat([b.images for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
-        bg = BackgroundModel.from_sequence(frames, BackgroundConfig(fill_static_subject=not args.no_fill),
+        bg = BackgroundModel.from_sequence(frames, BackgroundConfig(fill_static_subject=not args.no_fill,
+                                                                      fill_prior_log_odds=args.fill_prior_log_odds),
                                          camera_names=rig.names)
         spec = grid_from_rig(rig, args.voxel, min_views=3)
         grid = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views))
         centres = spec.centres()
         shares, phantoms, hits = [], [], []  # hits: (T, 21) keypoint within the radius
+        volumes, outside = [], []  # occupied m^3 per frame; share of the occupied voxels outside the body
+        seg = np.array([[names.index(p), names.index(q)] for p, q in BODY_SEGMENTS])
         for s in range(0, frames.shape[0], 10):
             occ = grid(frames[s:s + 10]).occupied()  # (b, V)
             for i in range(occ.shape[0]):
@@ -105,6 +129,10 @@ def main() -> None:
                 pts = centres[occ[i]].numpy()
                 near = cKDTree(pts).query(ref[t])[0] <= args.radius if len(pts) else np.zeros(len(names), bool)
                 hits.append(near)
+                volumes.append(len(pts) * args.voxel ** 3)
+                if len(pts):
+                    far = distance_to_segments(pts, ref[t][seg[:, 0]], ref[t][seg[:, 1]]) > args.body_radius
+                    outside.append(float(far.mean()))
                 shares.append(float(near.mean()))
                 kp_vox, inside = spec.index_of(torch.from_numpy(ref[t]).float())
                 phantoms.append(components_without_keypoints(occ[i].reshape(spec.shape).numpy(),
@@ -120,6 +148,8 @@ def main() -> None:
         print("  per keypoint over frames: " + ", ".join(
             f"{n} {v:.2f}" for n, v in zip(names, np.mean(hits, axis=0))))
         print(f"  largest component without a keypoint: {largest:.2f} m across")
+        print(f"  occupied volume per frame: mean {np.mean(volumes):.3f} m^3 (a body is about 0.07), of which "
+              f"{np.mean(outside):.2f} farther than {args.body_radius * 100:.0f} cm from every body segment")
         t = int(shares_a.argmin())
         occ = grid(frames[t:t + 1]).occupied()[0]
         picture(args.picture, folder, rig, centres[occ], t)

@@ -569,6 +569,28 @@ def test_static_subject_painted_out(synth_in_place):
     assert (scores[True][0] > scores[False][0] + 0.25).all(), scores  # IoU measured 0.71, 0.71, 0.76 vs 0.27, 0.17, 0.24
 
 
+def test_fill_prior_log_odds_shrinks_the_painted_region(synth_in_place):
+    """A prior against the subject lowers every unary of the graph cut by the same amount, so the minimum cut's
+    region can only shrink (graph cuts are monotone in a uniform unary shift); a prior beyond any colour log
+    ratio (the histograms' floor bounds it by log 1e7 ~ 16 nats) paints nothing: the plain two-pass model."""
+    _, frames, _ = synth_in_place
+    names = ["a", "b", "c"]
+    plain = sequence_statistics(frames, BackgroundConfig(), names)[0]
+    painted = {}
+    for odds in (0.0, 1.0, 3.0, 40.0):
+        mean = sequence_statistics(frames, BackgroundConfig(fill_static_subject=True, fill_prior_log_odds=odds),
+                                   names)[0]
+        painted[odds] = (mean != plain).any(1)  # (C, H, W) pixels the fill changed
+    counts = [int(painted[k].sum()) for k in (0.0, 1.0, 3.0, 40.0)]
+    assert counts[0] > 0 and counts[-1] == 0, counts
+    assert counts == sorted(counts, reverse=True), counts
+    for hi, lo in ((1.0, 0.0), (3.0, 1.0)):
+        # the region is grown before painting, so nested regions give nested painted sets
+        assert not (painted[hi] & ~painted[lo]).any(), (hi, lo)
+    with pytest.raises(InputError, match="fill_prior_log_odds"):
+        BackgroundConfig(fill_prior_log_odds=float("nan"))
+
+
 def test_static_subject_needs_a_moving_subject():
     """Frames where nothing ever moves have no subject colours to learn: the median is kept as it is."""
     frames = _noise_frames(N=12, C=2, H=24, W=20, std_range=(0.004, 0.008))[0]

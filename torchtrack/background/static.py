@@ -12,7 +12,8 @@ Per camera:
    subject (pixels foreground under the median model in some frame) and of the room (the median at pixels
    never foreground).
 2. Evidence: within ``near_px`` of where the subject moved, the log ratio of the two histograms at the median
-   pixel's colour (> 0: the subject explains it better, the Bayes decision); farther away, surely room.
+   pixel's colour (> 0: the subject explains it better, the Bayes decision at even prior odds; minus
+   ``BackgroundConfig.fill_prior_log_odds`` otherwise); farther away, surely room.
 3. Segmentation: a graph cut on the median image (:func:`graph_cut`: that log ratio as the unary term, a
    contrast-sensitive Potts term of weight :data:`SMOOTHNESS`; Boykov & Jolly 2001) turns the evidence into a
    coherent region, which is grown by ``grow_px`` so the fill starts from clean room pixels. GrabCut (Rother
@@ -191,13 +192,16 @@ def inpaint(mean: torch.Tensor, region: torch.Tensor, radius_px: int) -> torch.T
 
 
 def static_subject(frames: torch.Tensor, dead: torch.Tensor, gains: torch.Tensor | None, mean: torch.Tensor,
-                   std: torch.Tensor, threshold: float, names: Sequence[str]) -> torch.Tensor:
+                   std: torch.Tensor, threshold: float, names: Sequence[str], prior_log_odds: float = 0.0
+                   ) -> torch.Tensor:
     """(C, H, W) bool: where each camera's median background ``mean`` holds the subject (see the module doc).
 
     Args:
         frames: (N, C, 3, H, W) RGB the model was estimated from. dead: (N, C) frames to skip. gains: (N, C)
             divisors or None. mean, std: (C, 3, H, W) the model (YUV). threshold: squared Mahalanobis distance
             over which a pixel is the (moving) subject. names: (C,) camera names for the log.
+        prior_log_odds: prior log odds of room against subject, subtracted from the colour log ratio (the graph
+            cut's unary is the posterior log odds).
     """
     N, C, _, H, W = frames.shape
     near_px, grow_px = max(2, max(H, W) // 48), max(1, max(H, W) // 120)
@@ -220,7 +224,7 @@ def static_subject(frames: torch.Tensor, dead: torch.Tensor, gains: torch.Tensor
                         len(subject))
             continue
         near = est.dilate(moving[c], near_px)
-        log_ratio = subject_log_ratio(mean[c], subject, room).to(near.device)  # (H, W)
+        log_ratio = (subject_log_ratio(mean[c], subject, room) - prior_log_odds).to(near.device)  # (H, W)
         if int((near & (log_ratio > 0)).sum()) < MIN_SEED_PIXELS:
             continue
         rgb = kornia.color.yuv_to_rgb(mean[c].float()).clamp(0, 1).permute(1, 2, 0).cpu().numpy()  # (H, W, 3)
