@@ -75,8 +75,8 @@ class BackgroundConfig:
             moved, subtracted from the colour evidence before the graph cut. 0 (even odds) paints out every
             pixel whose colour the subject explains better, skin-toned walls and wooden furniture included: on
             the Pose2Sim demo (3 cm voxels, ``scripts/eval_pose2sim_occupancy.py --fill-prior-log-odds``) 95 %
-            of the reference keypoints lie within 5 cm of a voxel but the occupied volume is 0.31 m^3, half of
-            it away from the body; 1 gives a body-sized 0.07 m^3 with 77 % of the keypoints covered.
+            of the reference keypoints lie within 5 cm of a voxel but the occupied volume is 0.30 m^3, 57 % of
+            it away from the body; 1 gives a body-sized 0.06 m^3 with 72 % of the keypoints covered.
     """
 
     min_std: float = 0.012
