@@ -7,6 +7,7 @@ frames and runs the Bayesian grid (P > 0.5), the hierarchical hull and binary si
 connected component that touches no part of the body (its voxels and extent).
 
 Usage: .venv/bin/python scripts/eval_occupancy.py [--voxel 0.02] [--frames 6] [--work out/eval_occupancy]
+       [--hull FIELD=VALUE ...] [--background FIELD=VALUE ...]   (e.g. --background shadow_min_ratio=0)
 """
 
 from __future__ import annotations
@@ -14,15 +15,18 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchtrack.background import BackgroundModel
+from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.cameras import load_calibration
 from torchtrack.io.sequence import SequenceFolder
+from torchtrack.checks import InputError, with_overrides
 from torchtrack.occupancy import BayesConfig, BayesianGrid, GridSpec, SilhouetteCarving
+from torchtrack.occupancy.hull import HullConfig, hull_from_images
 from torchtrack.occupancy.metrics import false_components, inside_ellipsoids, iou
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
@@ -48,20 +52,17 @@ def ensure_sequence(work: Path, name: str, cams: int, scene: dict, motion: str, 
     return out
 
 
-def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: dict[str, float] | None = None
-             ) -> dict[str, tuple[list[float], list]]:
+def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: Sequence[str] = (),
+             background: BackgroundConfig = BackgroundConfig()) -> dict[str, tuple[list[float], list]]:
     rig = load_calibration(seq / "calibration.toml")
     folder = SequenceFolder(seq, rig)
-    bg = BackgroundModel.from_folder(folder)
+    bg = BackgroundModel.from_folder(folder, background)
     spec = GridSpec(VOLUME[0], VOLUME[1], voxel)
     gt = np.load(seq / "gt.npz")
     centres_v = spec.centres()
     models = {"bayes": BayesianGrid(rig, spec, bg, BayesConfig()), "silhouette": SilhouetteCarving(rig, spec, bg)}
-    try:
-        from torchtrack.occupancy.hull import HullConfig, hull_from_images
-        hull_cfg = HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel, **(hull_overrides or {}))
-    except ImportError:
-        hull_from_images = None
+    hull_cfg = with_overrides(HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel),
+                              hull_overrides, "--hull")
     res: dict[str, tuple[list[float], list]] = {k: ([], []) for k in (*models, "hull")}
     idx = np.linspace(0, folder.num_frames - 1, frames).round().astype(int)
     for t in idx:
@@ -69,9 +70,8 @@ def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: dict[str, flo
         truth = inside_ellipsoids(centres_v, torch.from_numpy(gt["blob_centres"][t]),
                                   torch.from_numpy(gt["blob_R_world"][t]), torch.from_numpy(gt["blob_semi_axes"]))
         preds = {k: m(images).occupied()[0] for k, m in models.items()}
-        if hull_from_images is not None:
-            vox = hull_from_images(rig, bg, images[0], hull_cfg)
-            preds["hull"] = vox.to_dense(spec.lower_m, spec.voxel_size_m, spec.shape).reshape(-1)
+        vox = hull_from_images(rig, bg, images[0], hull_cfg)
+        preds["hull"] = vox.to_dense(spec.lower_m, spec.voxel_size_m, spec.shape).reshape(-1)
         for k, pred in preds.items():
             res[k][0].append(iou(pred, truth))
             res[k][1].append(false_components(pred, truth, spec))
@@ -88,16 +88,19 @@ def main() -> None:
                     help="png: lossless frames; mp4: OpenCV's mp4v codec, whose blur at edges costs IoU")
     ap.add_argument("--hull", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="HullConfig overrides, e.g. t_low=3 t_high=8 t_finest_edge=8 (the tracking settings)")
+    ap.add_argument("--background", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="BackgroundConfig overrides, e.g. shadow_min_ratio=0 (the paper's plain relaxation)")
     args = ap.parse_args()
     try:
-        hull_overrides = {k: float(v) for k, v in (item.split("=", 1) for item in args.hull)}
-    except ValueError:
-        raise SystemExit(f"--hull: expected FIELD=VALUE items, got {args.hull}") from None
+        with_overrides(HullConfig(), args.hull, "--hull")
+        background = with_overrides(BackgroundConfig(), args.background, "--background")
+    except InputError as exc:
+        raise SystemExit(str(exc)) from None
     torch.set_grad_enabled(False)
     for name, case in CASES.items():
         seq = ensure_sequence(args.work, name, case["cams"], case["scene"], args.motion, args.format)
         t0 = time.perf_counter()
-        results = evaluate(seq, args.voxel, args.frames, hull_overrides)
+        results = evaluate(seq, args.voxel, args.frames, args.hull, background)
         for model, (ious, comps) in results.items():
             worst = max(comps, key=lambda c: c.largest_voxels)
             print(f"{name:32s} {model:10s} IoU mean {np.mean(ious):.3f} min {np.min(ious):.3f}   "

@@ -9,7 +9,7 @@ thorax point). Prints MPJPE per landmark and lost frames; saves a picture of one
 views.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
-       [--init-from-reference] [--picture docs/images/pose2sim_tracking.jpg]
+       [--init-from-reference] [--fill-prior-log-odds 0] [--picture docs/images/pose2sim_tracking.jpg]
 """
 
 from __future__ import annotations
@@ -105,6 +105,8 @@ def main() -> None:
     ap.add_argument("--init-from-reference", action="store_true",
                     help="start from the skeleton fitted (Kabsch + CCD) to the reference keypoints of frame 0, "
                          "de Bem's saved initial pose, instead of the automatic starfish initialisation")
+    ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
+                    help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
@@ -117,7 +119,8 @@ def main() -> None:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])
         rig = folder.rig.resized(W, H).float()
-        bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=not args.no_fill),
+        bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=not args.no_fill,
+                                                                    fill_prior_log_odds=args.fill_prior_log_odds),
                                          size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
         tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))

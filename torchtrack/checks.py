@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -54,3 +56,31 @@ def check_file(path: str | Path, what: str) -> Path:
     if not p.is_file():
         raise InputError(f"{what} not found: {p}" if not p.exists() else f"{what} is not a file: {p}")
     return p
+
+
+def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
+    """A copy of the dataclass ``config`` with ``FIELD=VALUE`` items applied (command-line overrides).
+
+    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float); the dataclass's own
+    checks then run. An unknown field, a malformed item or a bad value raises ``InputError`` naming ``option``.
+    """
+    fields = {f.name: f for f in dataclasses.fields(config)}
+    changes: dict[str, Any] = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or name not in fields:
+            raise InputError(f"{option}: expected FIELD=VALUE with FIELD one of {sorted(fields)}, got {item!r}")
+        declared = fields[name].type  # a string under postponed annotations
+        kind = {"bool": bool, "int": int, "float": float}.get(getattr(declared, "__name__", declared))
+        if kind is None:
+            raise InputError(f"{option}: field {name!r} ({declared}) cannot be set from the command line")
+        try:
+            if kind is bool:
+                if text.lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(text)
+                changes[name] = text.lower() in ("true", "1")
+            else:
+                changes[name] = kind(text)
+        except ValueError:
+            raise InputError(f"{option}: {name}={text!r} is not a {kind.__name__}") from None
+    return dataclasses.replace(config, **changes)

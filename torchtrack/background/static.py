@@ -142,8 +142,8 @@ def graph_cut(log_ratio: np.ndarray, image: np.ndarray, free: np.ndarray, smooth
     if log_ratio.shape != free.shape or image.shape[:2] != free.shape or image.ndim != 3:
         raise ShapeError(f"graph_cut: expected log_ratio (H, W), image (H, W, K), free (H, W); got "
                          f"{log_ratio.shape}, {image.shape}, {free.shape}")
-    if not smoothness >= 0:
-        raise InputError(f"graph_cut: smoothness must be >= 0, got {smoothness}")
+    if not 0 <= smoothness <= 1e6:  # capacities are int32 in 1/100 nat
+        raise InputError(f"graph_cut: smoothness must be in [0, 1e6], got {smoothness}")
     out = np.zeros(free.shape, bool)
     if not free.any():
         return out
@@ -156,7 +156,8 @@ def graph_cut(log_ratio: np.ndarray, image: np.ndarray, free: np.ndarray, smooth
     source, sink = n, n + 1
     pairs, weights = contrast_weights(image[y0:y1, x0:x1])
     nodes = np.arange(n)
-    hard = np.int64(1 << 30)  # "never cut": more than all source capacity (< 100 * 17 nats * n pixels)
+    # "never cut": a fixed-out node's only inflow is its <= 8 pair edges of <= scale * smoothness each
+    hard = np.int64(8 * int(np.ceil(scale * smoothness)) + 1)
     src_cap = np.where(fixed_out, 0, np.round(scale * np.clip(unary, 0, None))).astype(np.int64)
     snk_cap = np.where(fixed_out, hard, np.round(scale * np.clip(-unary, 0, None))).astype(np.int64)
     heads = [np.full(n, source), nodes] + [a for p, q in pairs for a in (p, q)]
