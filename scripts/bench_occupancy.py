@@ -66,6 +66,7 @@ FOUR_OF_EIGHT = [0, 2, 4, 6]  # the 4-camera ring inside the 8-camera ring
 TARGET_BAYES_MS = 150.0  # 128^3 x 8 cameras x 640x480, per frame
 TARGET_HULL_MS = 15.0  # 4 cameras 320x240 down to 1.5 cm, per frame
 TARGET_SPEEDUP = 10.0  # vs Open3D carving at equal resolution
+PARTS = ("bayes", "hull", "open3d")
 HULL_CASES = ((4, (320, 240), 0.015, TARGET_HULL_MS), (8, (640, 480), 0.02, None))
 
 OPEN3D_INSTALL = ("install it with `.venv/bin/pip install open3d`; on Debian/Ubuntu its wheel also needs "
@@ -467,6 +468,8 @@ def main() -> None:
     parser.add_argument("--runs", type=int, default=5, help="timed runs per figure (median), after 1 warm-up")
     parser.add_argument("--device", nargs="*", default=["cpu"] + (["cuda"] if torch.cuda.is_available() else []))
     parser.add_argument("--skip-open3d", action="store_true", help="leave out the Open3D comparison")
+    parser.add_argument("--parts", nargs="*", choices=PARTS, default=list(PARTS),
+                        help="what to measure (default: all; --skip-open3d drops 'open3d')")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch CPU threads (default: torch's). With other processes on the CPU, 1 thread gives "
                              "stabler figures: each multi-threaded op waits for its slowest, possibly descheduled, "
@@ -495,11 +498,13 @@ def main() -> None:
     for dev in args.device:
         device = torch.device(dev)
         on_device = {k: s.to(device) for k, s in scenes.items()}
-        bench_bayes(on_device, args.runs, device)
-        bayes_stages(on_device[("640x480", 8)], 128, args.runs, device)
-        bench_hull(on_device, args.runs, device)
+        if "bayes" in args.parts:
+            bench_bayes(on_device, args.runs, device)
+            bayes_stages(on_device[("640x480", 8)], 128, args.runs, device)
+        if "hull" in args.parts:
+            bench_hull(on_device, args.runs, device)
 
-    if not args.skip_open3d:
+    if "open3d" in args.parts and not args.skip_open3d:
         o3d = import_open3d()
         if o3d is not None:
             w, h = IMAGE_SIZES_WH[-1]

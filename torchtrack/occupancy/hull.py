@@ -24,10 +24,12 @@ Conventions (world Z up, metres; OpenCV cameras, pixel centres at integer coordi
   unknown. Above the finest level, a voxel called background by ``m < t_low`` is an edge instead when in every
   seeing view a foreground pixel lies within a child's projected width of one of its samples
   (``footprint_early_out``: the samples read a max-filtered foreground mask): its samples missed a thin part that
-  its children hold. Edges are split into their 8 children; at the finest level an edge is kept iff every seeing view has
-  ``m >= t_finest_edge``. Unknowns take the majority of their 26 same-level neighbours that are decided
-  (foreground: kept at this or a coarser level; background: discarded); a tie goes to foreground (carving needs
-  evidence). Kept voxels stay at their level: big inside, small at the surface (EM weighs them by size^3).
+  its children hold. Edges are split into their 8 children; at the finest level an edge is kept iff every seeing
+  view has ``m >= t_finest_edge``, ``m`` there taken over 9 samples, the 8 and the voxel centre (``centre_sample``:
+  a voxel on the silhouette's border whose samples split 4 : 4 is kept iff its centre is on the silhouette).
+  Unknowns take the majority of their 26 same-level neighbours that are decided (foreground: kept at this or a
+  coarser level; background: discarded); a tie goes to foreground (carving needs evidence). Kept voxels stay at
+  their level: big inside, small at the surface (EM weighs them by size^3).
 * Colours: per kept voxel and view, the mean colour of its samples with ``d2 >= t_low`` (all 8 when none is),
   NaN where the view does not see it, in the colour space of the ``colour`` input (:func:`hull_from_images`: the
   background model's gain-normalised YUV).
@@ -79,6 +81,11 @@ class HullConfig:
         t_finest_edge: an edge voxel at the finest level is kept when its mean reaches this in every seeing view
             (32 = half of the clip: about half of its samples are foreground, the voxel centre is about on the
             silhouette).
+        centre_sample: the finest edge rule averages a 9th sample, at the voxel centre, with the 8. The 8 samples
+            of a voxel on the silhouette's border split 4 : 4 (mean ~32 = t_finest_edge) whether its centre lies
+            just inside or just outside; the centre's pixel breaks the tie. False: ties are kept, a half-voxel
+            shell around the body (synthetic walk, 2 cm, 8 cameras: IoU with the body 0.843 -> 0.860; 4 cameras
+            0.693 -> 0.722; ``scripts/eval_occupancy.py --hull centre_sample=false``).
         min_views: fewer views seeing a voxel -> discarded. None: min(2, number of cameras).
         footprint_early_out: above the finest level, a voxel that ``t_low`` calls background is subdivided
             (an edge) instead when, in every seeing view, the window of a child's projected width around one of
@@ -100,6 +107,7 @@ class HullConfig:
     t_finest_edge: float = 32.0
     min_views: int | None = None
     footprint_early_out: bool = True
+    centre_sample: bool = True
     footprint_mahalanobis2: float = 16.0
 
     def __post_init__(self) -> None:
@@ -346,7 +354,8 @@ _NEIGHBOURS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) fo
 _BG, _UNKNOWN, _FG, _EDGE = -1, 0, 1, 2
 
 
-def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dtype,
+                      centres: bool = False) -> tuple[Tensor, ...]:
     """Sample pixels of the 8 children of every parent, from the quadratic of the parent's level-0 ancestor
     re-centred on the parent (exact for a quadratic) without its cross terms.
 
@@ -355,7 +364,8 @@ def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dty
 
     Returns:
         ijk (8P, 3) int64 children (voxel ``g P + p`` is child g of parent p), idx (C, 8, 8P) int32 flat sample
-        indices (row-offset layout, clamped into the maps; meaningful where seen), sees (C, 8P) bool.
+        indices (row-offset layout, clamped into the maps; meaningful where seen), sees (C, 8P) bool; with
+        ``centres``, also idx_centre (C, 8P) int32: each child centre's pixel (the mean of its samples' offsets).
     """
     C, P, n0 = plan.C, parents.shape[0], plan.n0
     e_p, b = plan.edge(level - 1), 2 ** (level - 1)
@@ -375,15 +385,23 @@ def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dty
     hi = uv0[:, :, None] + _axis_sum(f.amax(3))
     sees = ((lo >= -0.5) & (hi < plan.size_wh - 0.5)).all(1) & plan.model_ok[:, a][:, None]  # (C, 8, P)
     base = uv0 + plan.as_("shift", dtype)  # (C, 2, P): +0.5 so that truncation rounds; camera c's rows offset by c H
-    pix = []
+    pix, mid = [], []
     for k in range(2):  # u, v: (C, sx, sy, sz, cx, cy, cz, P)
         fk = f[:, k]  # (C, axis, sample, child, P)
         p = (base[:, k].reshape(C, 1, 1, 1, 1, 1, 1, P) + fk[:, 0].reshape(C, 2, 1, 1, 2, 1, 1, P)
              + fk[:, 1].reshape(C, 1, 2, 1, 1, 2, 1, P)) + fk[:, 2].reshape(C, 1, 1, 2, 1, 1, 2, P)
         pix.append(p.to(torch.int32))
-    idx = pix[1].mul_(plan.W).add_(pix[0]).clamp_(0, C * plan.H * plan.W - 1)
+        if centres:  # (C, cx, cy, cz, P)
+            fm = fk.mean(2)  # (C, axis, child, P)
+            mid.append((base[:, k].reshape(C, 1, 1, 1, P) + fm[:, 0].reshape(C, 2, 1, 1, P)
+                        + fm[:, 1].reshape(C, 1, 2, 1, P) + fm[:, 2].reshape(C, 1, 1, 2, P)).to(torch.int32))
+    last = C * plan.H * plan.W - 1
+    idx = pix[1].mul_(plan.W).add_(pix[0]).clamp_(0, last)
     ijk = (plan.child + parents * 2).reshape(-1, 3)
-    return ijk, idx.reshape(C, 8, 8 * P), sees.reshape(C, 8 * P)
+    out = (ijk, idx.reshape(C, 8, 8 * P), sees.reshape(C, 8 * P))
+    if centres:
+        out += (mid[1].mul_(plan.W).add_(mid[0]).clamp_(0, last).reshape(C, 8 * P),)
+    return out
 
 
 def _axis_sum(g: Tensor) -> Tensor:
@@ -398,19 +416,21 @@ def _axis_sum(g: Tensor) -> Tensor:
 
 
 def _classify(m: Tensor, s: Tensor, sees: Tensor, config: HullConfig, min_views: int, finest: bool,
-              near_fg: Tensor | None = None) -> Tensor:
+              near_fg: Tensor | None = None, m_edge: Tensor | None = None) -> Tensor:
     """Per voxel label (V,) int8 (-1 background, 0 unknown, 1 foreground, 2 edge) from the per-view mean ``m``,
     variance ``s`` and ``sees``, all (C, V); at the finest level edges become foreground or background. The
     rules read the seeing views only: the smallest mean decides background / foreground, the largest variance
     edges. ``near_fg`` (C, V) bool, above the finest level: a foreground pixel lies in the footprint of one of
-    the voxel's samples; a voxel that ``m`` calls background but that has one in every seeing view is an edge."""
+    the voxel's samples; a voxel that ``m`` calls background but that has one in every seeing view is an edge.
+    ``m_edge`` (C, V), at the finest level: the mean that decides edges there (default ``m``)."""
     unseen = ~sees
     m_min = m.masked_fill(unseen, float("inf")).amin(0)  # (V,) the most background-like seeing view
     edge = s.masked_fill(unseen, 0.0).amax(0) > config.t_var  # (V,)
     label = (m_min > config.t_high).to(torch.int8)  # foreground or unknown
     background = m_min < config.t_low
     if finest:
-        label.masked_fill_(edge, _FG).masked_fill_(edge & (m_min < config.t_finest_edge), _BG)
+        m_keep = m_min if m_edge is None else m_edge.masked_fill(unseen, float("inf")).amin(0)
+        label.masked_fill_(edge, _FG).masked_fill_(edge & (m_keep < config.t_finest_edge), _BG)
     else:
         label.masked_fill_(edge, _EDGE)
         if near_fg is not None:  # the samples missed what the children hold: look closer
@@ -549,19 +569,26 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
     parents, step = None, max(1, _CHUNK_SAMPLES // (64 * C))  # parents per chunk
     for level in range(plan.L + 1):
         many = level > 0 and parents.shape[0] > step
+        centre_test = config.centre_sample and 0 < level == plan.L
         chunks = [(plan.ijk0, plan.idx0, plan.sees0)] if level == 0 else (
-            _children_samples(plan, level, parents[i:i + step], dtype) for i in range(0, parents.shape[0], step))
+            _children_samples(plan, level, parents[i:i + step], dtype, centre_test)
+            for i in range(0, parents.shape[0], step))
         ijks, labels, stash = [], [], []
-        for ijk, idx, sees in chunks:  # (V, 3), (C, 8, V), (C, V)
+        for ijk, idx, sees, *centre in chunks:  # (V, 3), (C, 8, V), (C, V)[, (C, V)]
             d = flat.index_select(0, idx.reshape(-1)).reshape(idx.shape).clamp_(max=config.clip_mahalanobis2)
             m = d.sum(1) / 8  # (C, V)
             s = (d * d).sum(1) / 8 - m * m  # population variance of the 8 samples
             sees = sees & torch.isfinite(m)
+            m_edge = None
+            if centre:  # the finest edge rule on 9 samples: the centre breaks a 4 : 4 tie (a NaN centre does not)
+                m_edge = (m * 8 + flat.index_select(0, centre[0].reshape(-1)).reshape(m.shape)
+                          .clamp(max=config.clip_mahalanobis2)) / 9
+                m_edge = torch.where(torch.isfinite(m_edge), m_edge, m)
             near_fg = None
             if plan.footprint[level] in footprint:
                 window = footprint[plan.footprint[level]]
                 near_fg = window.index_select(0, idx.reshape(-1)).reshape(idx.shape).amax(1).bool()  # (C, V)
-            label = _classify(m, s, sees, config, min_views, level == plan.L, near_fg)
+            label = _classify(m, s, sees, config, min_views, level == plan.L, near_fg, m_edge)
             if many:  # keep only what the colours may need
                 rows = ((label == _FG) | (label == _UNKNOWN)).nonzero()[:, 0]
                 idx, d, sees = _take(idx, rows), _take(d, rows), sees[:, rows]
