@@ -7,6 +7,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py                       # everything (about 30 minutes on 2 cores)
     .venv/bin/python scripts/eval_tracking.py --motions walk --cameras 8 --models bayes
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --background shadow_min_ratio=0
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --tracker fit_bone_lengths=true
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -45,8 +47,8 @@ def sequence(work: Path, motion: str, cameras: int, duration: float, fmt: str) -
     return out
 
 
-def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig()
-          ) -> tuple[object, float]:
+def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
+          tracker_overrides: Sequence[str] = ()) -> tuple[object, float]:
     folder = SequenceFolder(seq)
     ocfg = config["observation"]
     scale = float(ocfg.get("scale", 1.0))
@@ -54,7 +56,9 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     rig = folder.rig.resized(W, H).float()
     bg = BackgroundModel.from_folder(folder, background, size_wh=(W, H))
     observer = observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
-    tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"], config["source"]))
+    tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), tracker_overrides,
+                                    "--tracker")
+    tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
     poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
     return poses, poses.num_frames / elapsed
 
@@ -70,14 +74,17 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("out/eval_tracking"))
     ap.add_argument("--background", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="BackgroundConfig overrides, e.g. shadow_min_ratio=0 (the paper's plain relaxation)")
+    ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="TrackerConfig overrides of the config's tracker section, e.g. fit_bone_lengths=true")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    config = load_config(args.config)
     try:
         background = with_overrides(BackgroundConfig(), args.background, "--background")
+        with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker, "--tracker")
     except InputError as exc:
         raise SystemExit(str(exc)) from None
     torch.set_grad_enabled(False)
-    config = load_config(args.config)
     rows = []
     print(f"{'motion':12s} {'cams':>4s} {'model':6s} {'MPJPE':>7s} {'worst':>7s} {'PCK50':>6s} {'lost':>5s} "
           f"{'fps':>5s}  worst landmarks", flush=True)
@@ -87,7 +94,7 @@ def main() -> None:
             truth = load_poses(seq / "gt.npz")
             for model in args.models:
                 t0 = time.perf_counter()
-                poses, fps = track(seq, model, config, background)
+                poses, fps = track(seq, model, config, background, args.tracker)
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")

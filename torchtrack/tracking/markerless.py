@@ -43,13 +43,19 @@ log = logging.getLogger(__name__)
 
 #: Bones whose lengths are fitted together at initialisation (left and right tied).
 #: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
-#: apart); torso and head are fitted separately. Measured with fit_bone_lengths on (scripts/eval_tracking.py,
-#: Bayesian grid): 8 cameras CMU 131_02 43.2 -> 32.4 mm, CMU 131_01 59.3 -> 38.2 mm, but the procedural walk
-#: (the template's own proportions) 10.3 -> 13.0 mm; 4 cameras worse (walk 23.9 -> 62.7 mm, a wrist caught in
-#: the ghost volume; arm_raise 43.8 -> 48.5 mm), hence off by default.
+#: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). Measured with
+#: fit_bone_lengths on (scripts/eval_tracking.py --tracker fit_bone_lengths=true; Bayesian grid / hull):
+#: 8 cameras CMU 131_01 63.4 -> 33.5 / 70.4 -> 60.6 mm, CMU 131_02 49.6 -> 27.9 / 70.8 -> 62.8 mm (the neck alone: 37.8 -> 33.5 and
+#: 32.7 -> 27.9 with the Bayesian grid), but the procedural walk (the template's own proportions) 9.8 -> 12.6 /
+#: 11.7 -> 15.5 mm, and 4 cameras worse (arm_raise 42.5 -> 48.3 / 43.2 -> 49.3 mm, walk 23.7 -> 26.7 /
+#: 25.3 -> 30.6 mm: the ghost volume of a 4-camera hull lengthens the limbs), hence off by default.
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
+
+#: The neck's height on the torso is fitted apart from the torso's length (which moves the shoulders too):
+#: subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
+NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
 CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
@@ -69,8 +75,9 @@ class TrackerConfig:
         min_explained: fraction of the voxel weight the blobs must take (else diverging).
         lost_frames: diverging frames in a row before re-initialising.
         init_passes: EM/IK passes on the first frame during initialisation.
-        fit_bone_lengths: at initialisation fit the limbs' lengths to the blobs (else one scale for the whole
-            body). Off by default: it helps the CMU walks but makes the procedural walk worse (see BONE_GROUPS).
+        fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
+            scale for the whole body). Off by default: it helps the CMU walks but makes the procedural walk and
+            the 4-camera tracks worse (see BONE_GROUPS).
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
@@ -340,12 +347,14 @@ class MarkerlessTracker:
         raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
         fitted, _ = fit_blobs(obs.points, obs.weights, obs.sizes, None, prior_blobs(base, base_cov), raw)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
-        K, G = base.shape[0], len(BONE_GROUPS)
+        K, G = base.shape[0], len(BONE_GROUPS) + 1
+        neck = skel.joint_origin(NECK_JOINT)
         cols = []
-        for group in BONE_GROUPS:
-            doubled = skel.with_bone_lengths({b: 2.0 * lengths[b] for b in group}).to(angles.device)
-            blobs2 = BlobModel(doubled, specs, ref).to(angles.device)
-            cols.append(blobs2.gaussians(doubled.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per +100%
+        for edited in [skel.with_bone_lengths({b: 2.0 * lengths[b] for b in group}) for group in BONE_GROUPS] + [
+                skel.with_joint_origins({NECK_JOINT: (neck[0], neck[1], neck[2] + NECK_STEP_M)})]:
+            edited = edited.to(angles.device)
+            blobs2 = BlobModel(edited, specs, ref).to(angles.device)
+            cols.append(blobs2.gaussians(edited.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per step
         eye = torch.eye(3, dtype=base.dtype, device=base.device).expand(K, 3, 3)
         A_pos = torch.cat([torch.stack(cols, -1), eye], -1).reshape(3 * K, G + 3)
         r_pos = (fitted.mean - base).reshape(3 * K)
@@ -366,9 +375,15 @@ class MarkerlessTracker:
         reg = torch.diag(torch.cat([torch.full((G,), ridge), torch.zeros(3)])).to(A)
         x = torch.linalg.solve(A.T @ (w[:, None] * A) + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device),
                                A.T @ (w * r))
-        scale = (1.0 + x[:G]).clamp(0.6, 1.6)
+        scale = (1.0 + x[:G - 1]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
-        return skel.with_bone_lengths(new).to(angles.device), float((scale - 1).abs().max())
+        fitted_skel = skel.with_bone_lengths(new)
+        torso = float(scale[BONE_GROUPS.index(("torso",))])
+        shift = float(x[G - 1].clamp(-1.0, 1.0)) * NECK_STEP_M
+        neck_z = neck[2] * torso + shift  # the torso's scale moves the neck too
+        fitted_skel = fitted_skel.with_joint_origins({NECK_JOINT: (neck[0] * torso, neck[1] * torso, neck_z)})
+        change = max(float((scale - 1).abs().max()), abs(shift) / max(neck[2], 1e-6))
+        return fitted_skel.to(angles.device), change
 
     # ------------------------------------------------------------------------------------------ tracking
     def _regenerate(self, angles: torch.Tensor) -> tuple[torch.Tensor, Blobs]:
