@@ -143,7 +143,8 @@ def brute_force(rig: CameraRig, mahal2: torch.Tensor, hull: SparseVoxels, config
         m, s = d[:, :8].mean(-1), d[:, :8].var(-1, unbiased=False)
         seen_by += seen
         m_min = torch.where(seen, torch.minimum(m_min, m), m_min)
-        m_edge = torch.where(seen, torch.minimum(m_edge, d.mean(-1) if config.centre_sample else m), m_edge)
+        m9 = torch.where(torch.isfinite(d[:, 8]), d.mean(-1), m) if config.centre_sample else m  # NaN centre: 8
+        m_edge = torch.where(seen, torch.minimum(m_edge, m9), m_edge)
         edge |= seen & (s > config.t_var)
     min_views = config.min_views or min(2, C)
     keep = torch.where(edge, m_edge >= config.t_finest_edge, m_min > config.t_high)

@@ -277,11 +277,14 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
         fitted = tracker.subject.skeleton
         bones[fit]["neck above shoulders"] = (fitted.joint_origin("neck_flex")[2]
                                               - fitted.joint_origin("l_shoulder_flex")[2])
+        bones[fit]["shoulder height"] = fitted.joint_origin("l_shoulder_flex")[2]
     true = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
     true["neck above shoulders"] = subj.joint_origin("neck_flex")[2] - subj.joint_origin("l_shoulder_flex")[2]
+    true["shoulder height"] = subj.joint_origin("l_shoulder_flex")[2]
     print({k: (round(true[k], 3), round(bones[False][k], 3), round(bones[True][k], 3)) for k in
-           ("torso", "l_thigh", "r_shank", "neck above shoulders")}, errs)
-    for bone in ("torso", "l_thigh", "r_shank", "neck above shoulders"):  # at least a fifth of the way from one scale to the truth
+           ("torso", "l_thigh", "r_shank", "neck above shoulders", "shoulder height")}, errs)
+    # each at least a fifth of the way from one scale to the truth
+    for bone in ("torso", "l_thigh", "r_shank", "neck above shoulders", "shoulder height"):
         assert abs(bones[True][bone] - true[bone]) < 0.8 * abs(bones[False][bone] - true[bone]), (bone, bones)
     assert errs[True] < 0.75 * errs[False], errs
 

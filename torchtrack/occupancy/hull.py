@@ -25,8 +25,9 @@ Conventions (world Z up, metres; OpenCV cameras, pixel centres at integer coordi
   seeing view a foreground pixel lies within a child's projected width of one of its samples
   (``footprint_early_out``: the samples read a max-filtered foreground mask): its samples missed a thin part that
   its children hold. Edges are split into their 8 children; at the finest level an edge is kept iff every seeing
-  view has ``m >= t_finest_edge``, ``m`` there taken over 9 samples, the 8 and the voxel centre (``centre_sample``:
-  a voxel on the silhouette's border whose samples split 4 : 4 is kept iff its centre is on the silhouette).
+  view has ``m >= t_finest_edge``, ``m`` there taken over 9 samples, the 8 and the voxel centre (``centre_sample``;
+  with the default threshold, half the clip, a voxel on the silhouette's border whose samples split 4 : 4 is kept
+  iff its centre is on the silhouette; not when the zone has a single level).
   Unknowns take the majority of their 26 same-level neighbours that are decided (foreground: kept at this or a
   coarser level; background: discarded); a tie goes to foreground (carving needs evidence). Kept voxels stay at
   their level: big inside, small at the surface (EM weighs them by size^3).

@@ -45,16 +45,17 @@ log = logging.getLogger(__name__)
 #: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
 #: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). Measured with
 #: fit_bone_lengths on (scripts/eval_tracking.py --tracker fit_bone_lengths=true; Bayesian grid / hull):
-#: 8 cameras CMU 131_01 63.4 -> 33.5 / 70.4 -> 60.6 mm, CMU 131_02 49.6 -> 27.9 / 70.8 -> 62.8 mm (the neck alone: 37.8 -> 33.5 and
-#: 32.7 -> 27.9 with the Bayesian grid), but the procedural walk (the template's own proportions) 9.8 -> 12.6 /
-#: 11.7 -> 15.5 mm, and 4 cameras worse (arm_raise 42.5 -> 48.3 / 43.2 -> 49.3 mm, walk 23.7 -> 26.7 /
-#: 25.3 -> 30.6 mm: the ghost volume of a 4-camera hull lengthens the limbs), hence off by default.
+#: 8 cameras CMU 131_01 63.4 -> 32.4 / 70.4 -> 61.0 mm, CMU 131_02 49.6 -> 26.6 / 70.8 -> 64.1 mm (without the
+#: neck: 37.8 and 32.7 with the Bayesian grid), but the procedural walk (the template's own proportions)
+#: 9.8 -> 12.6 / 11.7 -> 15.5 mm, and 4 cameras worse (arm_raise 42.5 -> 47.4 / 43.2 -> 49.3 mm, walk
+#: 23.7 -> 26.2 / 25.3 -> 30.6 mm: the ghost volume of a 4-camera hull lengthens the limbs), hence off by
+#: default. (The 8-camera walk and the 4-camera hull figures predate the neck's term in the size rows.)
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
 
-#: The neck's height on the torso is fitted apart from the torso's length (which moves the shoulders too):
-#: subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
+#: The neck's height on the torso is fitted on top of the torso's scale (which moves the neck and the shoulders
+#: together): subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
@@ -332,10 +333,11 @@ class MarkerlessTracker:
 
         At fixed joint angles every blob mean is affine in the bones' scale factors (a bone's length scales its
         blobs' offsets and every joint origin it carries), so the effect of each bone group (left and right
-        tied) is one finite difference; and each elongated blob's semi-axis along its bone (sqrt(5) times the
-        standard deviation of its voxels along it) is its bone's length times a fixed fraction. Solves for the
-        group scales and a root shift, with a ridge towards the current lengths; returns the new skeleton and
-        the largest relative change.
+        tied) is one finite difference, as is the neck's height on the torso (NECK_JOINT; the torso's scale
+        moves it and the shoulders, the shift the neck alone); and each elongated blob's semi-axis along its
+        bone (sqrt(5) times the standard deviation of its voxels along it) is affine in them too (read off the
+        same edited blob models). Solves for the group scales, the neck shift and a root shift, with a ridge
+        towards the current skeleton; returns the new skeleton and the largest relative change.
         """
         sub = self.subject
         skel = sub.skeleton
@@ -349,12 +351,13 @@ class MarkerlessTracker:
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
         K, G = base.shape[0], len(BONE_GROUPS) + 1
         neck = skel.joint_origin(NECK_JOINT)
-        cols = []
+        cols, size_cols = [], []
         for edited in [skel.with_bone_lengths({b: 2.0 * lengths[b] for b in group}) for group in BONE_GROUPS] + [
                 skel.with_joint_origins({NECK_JOINT: (neck[0], neck[1], neck[2] + NECK_STEP_M)})]:
             edited = edited.to(angles.device)
             blobs2 = BlobModel(edited, specs, ref).to(angles.device)
             cols.append(blobs2.gaussians(edited.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per step
+            size_cols.append(blobs2.semi_axes[:, 0].to(base) - sub.blobs.semi_axes[:, 0].to(base))  # (K,)
         eye = torch.eye(3, dtype=base.dtype, device=base.device).expand(K, 3, 3)
         A_pos = torch.cat([torch.stack(cols, -1), eye], -1).reshape(3 * K, G + 3)
         r_pos = (fitted.mean - base).reshape(3 * K)
@@ -364,10 +367,7 @@ class MarkerlessTracker:
         along = R_wb[0, :, :, 0]  # (K, 3)
         semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
         semi_now = sub.blobs.semi_axes[:, 0].to(base)
-        group_of_bone = {b: g for g, group in enumerate(BONE_GROUPS) for b in group}
-        A_size = torch.zeros(K, G + 3, dtype=base.dtype, device=base.device)
-        for k, b in enumerate(sub.blobs.bone_of_blob.tolist()):
-            A_size[k, group_of_bone[skel.bone_names[b]]] = semi_now[k]
+        A_size = torch.cat([torch.stack(size_cols, -1), base.new_zeros(K, 3)], -1)  # (K, G + 3); the root: none
         w_size = w_blob  # the variance along the bone axis is defined for round blobs too
         A = torch.cat([A_pos, A_size]).double()
         r = torch.cat([r_pos, semi_fit - semi_now]).double()
