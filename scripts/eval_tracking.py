@@ -7,7 +7,8 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py                       # everything (about 30 minutes on 2 cores)
     .venv/bin/python scripts/eval_tracking.py --motions walk --cameras 8 --models bayes
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --background shadow_min_ratio=0
-    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --tracker fit_bone_lengths=true
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --tracker fit_bone_lengths=true \
+        --proportions
 """
 
 from __future__ import annotations
@@ -36,6 +37,10 @@ CMU = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" /
 MOTIONS = ("walk", "turn", "arm_raise", "squat", "kick", "cmu:131_01", "cmu:131_02")
 
 
+#: Printed by --proportions (Skeleton.proportions keys).
+PROPORTIONS = ("height", "torso", "neck_above_shoulders", "head", "l_upperarm", "l_forearm", "l_thigh", "l_shank")
+
+
 def sequence(work: Path, motion: str, cameras: int, duration: float, fmt: str) -> Path:
     out = work / f"{motion.replace(':', '_')}_{cameras}cam"
     if (out / "gt.npz").is_file():
@@ -48,7 +53,7 @@ def sequence(work: Path, motion: str, cameras: int, duration: float, fmt: str) -
 
 
 def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
-          tracker_overrides: Sequence[str] = ()) -> tuple[object, float]:
+          tracker_overrides: Sequence[str] = ()) -> tuple[object, float, MarkerlessTracker]:
     folder = SequenceFolder(seq)
     ocfg = config["observation"]
     scale = float(ocfg.get("scale", 1.0))
@@ -60,7 +65,7 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
                                     "--tracker")
     tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
     poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
-    return poses, poses.num_frames / elapsed
+    return poses, poses.num_frames / elapsed, tracker
 
 
 def main() -> None:
@@ -74,6 +79,8 @@ def main() -> None:
     ap.add_argument("--work", type=Path, default=Path("out/eval_tracking"))
     ap.add_argument("--background", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="BackgroundConfig overrides, e.g. shadow_min_ratio=0 (the paper's plain relaxation)")
+    ap.add_argument("--proportions", action="store_true",
+                    help="also print the tracked subject's proportions against the rendered body's")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="TrackerConfig overrides of the config's tracker section, e.g. fit_bone_lengths=true")
     args = ap.parse_args()
@@ -94,7 +101,7 @@ def main() -> None:
             truth = load_poses(seq / "gt.npz")
             for model in args.models:
                 t0 = time.perf_counter()
-                poses, fps = track(seq, model, config, background, args.tracker)
+                poses, fps, tracker = track(seq, model, config, background, args.tracker)
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")
@@ -104,6 +111,11 @@ def main() -> None:
                 print(f"{motion:12s} {cams:4d} {model:6s} {rep.mpjpe_mm:7.1f} {rep.max_frame_mm:7.1f} "
                       f"{100 * pck50:5.1f}% {rep.frames_lost:5d} {fps:5.1f}  "
                       + ", ".join(f"{n} {e:.0f}" for e, n in worst) + ("" if ok else "  MISS"), flush=True)
+                if args.proportions and tracker.subject is not None:
+                    fit = tracker.subject.skeleton.proportions()
+                    true = Skeleton.from_urdf(seq / "body.urdf").proportions()
+                    print("    fitted (true) m: " + ", ".join(f"{k} {fit[k]:.3f} ({true[k]:.3f})"
+                                                          for k in PROPORTIONS), flush=True)
     for cams in sorted({r[1] for r in rows}, reverse=True):
         for model in args.models:
             sel = [r for r in rows if r[1] == cams and r[2] == model]

@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Print how closely the retargeted skeleton follows each CMU BVH file (landmark distance after retargeting).
+"""Print how closely the retargeted skeleton follows each CMU BVH file (landmark distance after retargeting)
+and its proportions against the template scaled to the same height (what one height scale cannot represent).
 
 Usage: .venv/bin/python scripts/retarget_report.py [BVH ...] [--fps 30]
 """
@@ -12,6 +13,7 @@ from pathlib import Path
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.bvh_motion import retarget_bvh
 
+PROPORTION_BONES = ("torso", "head", "l_upperarm", "l_forearm", "l_thigh", "l_shank")
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "cmu"
 
 
@@ -27,6 +29,12 @@ def main() -> None:
               f"joint distance mean {r.mean():.1f} mm, median {r.median():.1f} mm, max {r.max():.1f} mm")
         for i, name in enumerate(res.joint_names):
             print(f"    {name:12s} mean {r[:, i].mean():6.1f} mm   max {r[:, i].max():6.1f} mm")
+        ours = res.skeleton.proportions()
+        template = Skeleton.from_urdf().scaled_to_height(ours["height"]).proportions()
+        print("  proportions vs the template at the same height: " + ", ".join(
+            f"{b} {ours[b]:.3f} m ({ours[b] / template[b]:.2f}x)" for b in PROPORTION_BONES)
+            + f"; neck above the shoulders {100 * ours['neck_above_shoulders']:+.1f} cm "
+              f"(template {100 * template['neck_above_shoulders']:+.1f} cm)")
 
 
 if __name__ == "__main__":

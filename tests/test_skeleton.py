@@ -126,6 +126,19 @@ def test_rest_pose_geometry(skel):
             assert moved[lmk][1] < lm[lmk][1] - 0.05
 
 
+def test_proportions(skel):
+    """Against the template's URDF numbers (scripts/make_body_urdf.py: the neck 0.45 m and the shoulders
+    0.38 m up the torso, upright at rest) and an edit that lowers the neck 6 cm."""
+    p = skel.proportions()
+    assert p["height"] == pytest.approx(1.75, abs=1e-6)
+    assert p["torso"] == pytest.approx(0.45, abs=1e-6) and p["l_thigh"] == pytest.approx(0.42, abs=1e-6)
+    assert p["neck_above_shoulders"] == pytest.approx(0.07, abs=1e-6)
+    x, y, z = skel.joint_origin("neck_flex")
+    low = skel.with_joint_origins({"neck_flex": (x, y, z - 0.06)}).proportions()
+    assert low["neck_above_shoulders"] == pytest.approx(0.01, abs=1e-6)
+    assert low["torso"] == pytest.approx(0.39, abs=1e-6) and low["l_thigh"] == pytest.approx(0.42, abs=1e-6)
+
+
 def test_limits_clamp(skel):
     angles = _random_angles(skel, 10) * 3.0
     clamped = skel.clamp(angles)

@@ -275,11 +275,10 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
         errs[fit] = np.mean(e)
         bones[fit] = dict(zip(subj.bone_names, tracker.subject.skeleton.bone_lengths.tolist()))
         fitted = tracker.subject.skeleton
-        bones[fit]["neck above shoulders"] = (fitted.joint_origin("neck_flex")[2]
-                                              - fitted.joint_origin("l_shoulder_flex")[2])
+        bones[fit]["neck above shoulders"] = fitted.proportions()["neck_above_shoulders"]
         bones[fit]["shoulder height"] = fitted.joint_origin("l_shoulder_flex")[2]
     true = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
-    true["neck above shoulders"] = subj.joint_origin("neck_flex")[2] - subj.joint_origin("l_shoulder_flex")[2]
+    true["neck above shoulders"] = subj.proportions()["neck_above_shoulders"]
     true["shoulder height"] = subj.joint_origin("l_shoulder_flex")[2]
     print({k: (round(true[k], 3), round(bones[False][k], 3), round(bones[True][k], 3)) for k in
            ("torso", "l_thigh", "r_shank", "neck above shoulders", "shoulder height")}, errs)

@@ -233,6 +233,15 @@ class Skeleton(nn.Module):
         z = self.rest_frames[self.frame_index(["pelvis", "l_toe", "r_toe"])][:, 2, 3]
         return float(z[0] - z[1:].min())
 
+    def proportions(self) -> dict[str, float]:
+        """The subject's proportions in metres: every bone's length by name, ``height``, and
+        ``neck_above_shoulders`` (the neck landmark's height above the shoulders' in the rest pose; negative where
+        the neck base sits below the shoulder joints, as in the retargeted CMU bodies)."""
+        z = self.rest_frames[self.frame_index(["head", "l_upperarm", "r_upperarm"])][:, 2, 3]
+        out = dict(zip(self.bone_names, (float(v) for v in self.bone_lengths)))
+        out.update(height=self.height(), neck_above_shoulders=float(z[0] - z[1:].mean()))
+        return out
+
     def scaled_to_height(self, height_m: float) -> Skeleton:
         """Every length scaled uniformly so that :meth:`height` becomes ``height_m``."""
         if not (0.3 < float(height_m) < 3.0):

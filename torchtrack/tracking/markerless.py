@@ -351,13 +351,14 @@ class MarkerlessTracker:
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
         K, G = base.shape[0], len(BONE_GROUPS) + 1
         neck = skel.joint_origin(NECK_JOINT)
+        semi_now = sub.blobs.semi_axes[:, 0].to(base)  # (K,) each blob's semi-axis along its bone
         cols, size_cols = [], []
         for edited in [skel.with_bone_lengths({b: 2.0 * lengths[b] for b in group}) for group in BONE_GROUPS] + [
                 skel.with_joint_origins({NECK_JOINT: (neck[0], neck[1], neck[2] + NECK_STEP_M)})]:
             edited = edited.to(angles.device)
             blobs2 = BlobModel(edited, specs, ref).to(angles.device)
             cols.append(blobs2.gaussians(edited.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per step
-            size_cols.append(blobs2.semi_axes[:, 0].to(base) - sub.blobs.semi_axes[:, 0].to(base))  # (K,)
+            size_cols.append(blobs2.semi_axes[:, 0].to(base) - semi_now)  # (K,)
         eye = torch.eye(3, dtype=base.dtype, device=base.device).expand(K, 3, 3)
         A_pos = torch.cat([torch.stack(cols, -1), eye], -1).reshape(3 * K, G + 3)
         r_pos = (fitted.mean - base).reshape(3 * K)
@@ -366,7 +367,6 @@ class MarkerlessTracker:
         _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
         along = R_wb[0, :, :, 0]  # (K, 3)
         semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
-        semi_now = sub.blobs.semi_axes[:, 0].to(base)
         A_size = torch.cat([torch.stack(size_cols, -1), base.new_zeros(K, 3)], -1)  # (K, G + 3); the root: none
         w_size = w_blob  # the variance along the bone axis is defined for round blobs too
         A = torch.cat([A_pos, A_size]).double()
