@@ -357,7 +357,7 @@ def test_unknown_takes_neighbour_majority_hand_built():
     inside = [(0, 0, 6), (1, 0, 6), (0, 1, 6), (1, 1, 6), (1, 0, 7), (0, 1, 7), (1, 1, 7)]
     for p, v in zip(inside, [1, 1, 1, 1, -1, -1, -1]):
         label[at(*p)] = v
-    out = hull_module._resolve_unknown(plan, 0, ijk, label, None, 0, [])
+    out = hull_module._resolve_unknown(plan, 0, ijk, label, [])
     assert out[at(4, 4, 4)] == 1 and out[at(1, 1, 1)] == 1 and out[at(6, 6, 2)] == -1 and out[at(0, 0, 7)] == 1
     assert not bool((out == 0).any())
     changed = (out != label).nonzero()[:, 0].tolist()
@@ -376,14 +376,61 @@ def test_unknown_counts_kept_coarse_voxels():
     label[7] = 0  # (7, 7, 7)
     block = torch.tensor([[3 + a, 3 + b, 3 + c] for a in (0, 1) for b in (0, 1) for c in (0, 1)][1:])
     kept = [(0, block, torch.zeros(7, 2, 3))]
-    assert hull_module._resolve_unknown(plan, 1, ijk, label, parents, 8, kept)[7] == 1
-    assert hull_module._resolve_unknown(plan, 1, ijk, label, parents, 8, [])[7] == -1
-    # Several parents in chunks of one parent: the same answer through the chunk index mapping.
+    assert hull_module._resolve_unknown(plan, 1, ijk, label, kept)[7] == 1
+    assert hull_module._resolve_unknown(plan, 1, ijk, label, [])[7] == -1
+    # Several parents, candidates in any order: the same answer, and the other parents' children do not vote.
     more = torch.tensor([[0, 0, 0], [3, 3, 3], [6, 6, 6]])
-    ijk3 = torch.cat([p * 2 + child for p in more])  # chunks of one parent: child-major within each chunk
+    ijk3 = torch.cat([p * 2 + child for p in more]).flip(0)
     label3 = torch.full((24,), -1, dtype=torch.int8)
-    label3[8 + 7] = 0
-    assert hull_module._resolve_unknown(plan, 1, ijk3, label3, more, 1, kept)[15] == 1
+    label3[8] = 0  # (7, 7, 7), after the flip
+    assert (ijk3[8] == 7).all()
+    assert hull_module._resolve_unknown(plan, 1, ijk3, label3, kept)[8] == 1
+    # A kept level-0 voxel two levels up (L = 2): its 4^3 cells vote foreground; (7, 7, 7) at level 2 has the
+    # cells (8, *, *) of kept voxel (2, 1, 1) in front of it (9 of them) against 17 background neighbours.
+    plan2 = small_plan(0.025)
+    assert plan2.L == 2
+    label1 = torch.tensor([0], dtype=torch.int8)
+    pos = torch.tensor([[7, 5, 5]])
+    assert hull_module._resolve_unknown(plan2, 2, pos, label1, [(0, torch.tensor([[2, 1, 1]]), None)])[0] == -1
+    # With 3 kept level-1 voxels beside it (10 more cells): 19 fg against 7 bg.
+    kept2 = [(0, torch.tensor([[2, 1, 1]]), None), (1, torch.tensor([[3, 3, 2], [3, 2, 3], [3, 3, 3]]), None)]
+    assert hull_module._resolve_unknown(plan2, 2, pos, label1, kept2)[0] == 1
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_unknown_votes_match_a_plain_loop(seed):
+    """Random hierarchies over 3 levels (8^3 level-0 voxels of the 0.8 m cube, finest 2.5 cm): every unknown's
+    label against a per-neighbour Python loop over the candidates and the kept coarser voxels."""
+    g = torch.Generator().manual_seed(seed)
+    plan = small_plan(0.025)
+    child = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)])
+    ijk, kept = plan.ijk0, []
+    probs = torch.tensor([0.55, 0.1, 0.1, 0.25])  # background, unknown, foreground, edge
+    for level in range(3):
+        label = (torch.multinomial(probs, ijk.shape[0], replacement=True, generator=g) - 1).to(torch.int8)
+        if level == 0:  # a solid core, so that kept coarse voxels border unknowns below
+            label[((ijk >= 3) & (ijk <= 4)).all(-1)] = 1
+        out = hull_module._resolve_unknown(plan, level, ijk, label, kept)
+        cand = {tuple(p): int(v) for p, v in zip(ijk.tolist(), label.tolist())}
+        kept_sets = [(k, {tuple(p) for p in x.tolist()}) for k, x, _ in kept]
+        n = 8 * 2 ** level
+        for i in (label == 0).nonzero()[:, 0].tolist():
+            total = 0
+            for off in hull_module._NEIGHBOURS.tolist():
+                q = tuple(a + b for a, b in zip(ijk[i].tolist(), off))
+                if not all(0 <= x < n for x in q):
+                    continue
+                if q in cand:
+                    total += {-1: -1, 0: 0, 1: 1, 2: 0}[cand[q]]
+                elif any(tuple(x >> (level - k) for x in q) in cells for k, cells in kept_sets):
+                    total += 1
+                else:
+                    total -= 1
+            assert int(out[i]) == (1 if total >= 0 else -1), (level, ijk[i].tolist(), total)
+        assert bool(((out == label) | (label == 0)).all()) and not bool((out == 0).any())
+        kept.append((level, ijk[out == 1], None))
+        parents = ijk[out == 2]
+        ijk = (parents[None] * 2 + child[:, None]).reshape(-1, 3)  # child-major, as _children_samples
 
 
 def test_unknown_voxels_end_to_end(scene4):

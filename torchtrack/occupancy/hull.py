@@ -230,11 +230,8 @@ class _Plan:
                                   torch.arange(self.C, device=dev) * self.H + 0.5], -1)[:, :, None]  # (C, 2, 1)
         self.child = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], device=dev)[:, None]
         self.neighbours = _NEIGHBOURS.to(dev)
-        self.corner = torch.tensor([4, 2, 1], device=dev)  # (3,) index of a child / corner of a 2 x 2 x 2 block
         axes = [torch.arange(n, device=dev) for n in self.n0]
         self.ijk0 = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (V0, 3)
-        self.strides = [torch.tensor([n[1] * n[2], n[2], 1], device=dev)
-                        for n in ([k * 2 ** level for k in self.n0] for level in range(self.L + 1))]
         self.pixel0 = torch.arange(self.C, device=dev)[:, None, None] * (self.H * self.W)  # (C, 1, 1)
         self._cast: dict[tuple[str, torch.dtype], Tensor] = {}
         with torch.no_grad():
@@ -441,41 +438,20 @@ def _classify(m: Tensor, s: Tensor, sees: Tensor, config: HullConfig, min_views:
     return label.masked_fill_(background | (sees.sum(0) < min_views), _BG)
 
 
-def _keys(ijk: Tensor, level: int, plan: _Plan) -> Tensor:
-    """(..., 3) integer coordinates at ``level`` -> (...,) linear keys ``(i * ny + j) * nz + k`` of its grid."""
-    return (ijk * plan.strides[level]).sum(-1)
-
-
-def _find(keys: Tensor, query: Tensor) -> tuple[Tensor, Tensor]:
-    """Look ``query`` (any shape) up in ``keys`` (N,): found (bool) and the index into ``keys`` where found."""
-    if keys.numel() == 0:
-        return torch.zeros_like(query, dtype=torch.bool), torch.zeros_like(query)
-    sorted_keys, order = torch.sort(keys)
-    pos = torch.searchsorted(sorted_keys, query).clamp_(max=keys.numel() - 1)
-    return sorted_keys[pos] == query, order[pos]
-
-
-def _ancestors(plan: _Plan, pos: Tensor, up: int) -> tuple[Tensor, Tensor]:
-    """The cells ``up`` levels coarser that contain the 26 neighbours of each cell ``pos`` (U, 3): at most 2 per
-    axis, returned as (U, 8, 3) candidates and, per neighbour, the index (U, 26) of its own among them."""
-    base = (pos - 1) >> up  # (U, 3) the ancestor of pos - (1, 1, 1)
-    own = ((pos[:, None, :] + plan.neighbours) >> up) - base[:, None, :]  # (U, 26, 3) in {0, 1}
-    return base[:, None, :] + plan.child[:, 0], (own * plan.corner).sum(-1)
-
-
-def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor, parents: Tensor | None, step: int,
-                     kept: list[tuple[int, Tensor, Tensor]]) -> Tensor:
+def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor,
+                     kept: list[tuple[int, Tensor, object]]) -> Tensor:
     """Unknown voxels (label 0) take the majority of their 26 decided same-level neighbours; tie -> foreground.
 
     A neighbour votes foreground when it is a foreground candidate or lies in a kept coarser voxel, background
     when it is a background candidate or neither (discarded earlier), nothing when it is an edge or unknown
-    candidate or outside the zone.
+    candidate or outside the zone. The votes are read from a dense int8 map of this level over the box of the
+    candidates and the kept voxels, one cell wider: 0 outside the zone, background inside, then the kept coarser
+    voxels painted foreground and the candidates' labels written (edges as 0; candidates and kept voxels never
+    overlap). Cells are linear keys in the box, so a neighbour is a key offset.
 
     Args:
-        ijk: (V, 3) candidates of ``level``; label: (V,) int8 as :func:`_classify`. parents: (P, 3) edges of
-            ``level - 1`` whose children the candidates are, in chunks of ``step`` parents (child g of parent p
-            in the chunk from p0 is candidate ``8 p0 + g P_chunk + p - p0``); None at level 0 (the whole grid).
-        kept: (level, ijk, colours) of the kept voxels of coarser levels.
+        ijk: (V, 3) candidates of ``level``; label: (V,) int8 as :func:`_classify`.
+        kept: (level, ijk, ...) of the kept voxels of coarser levels.
 
     Returns:
         (V,) int8 labels without unknowns.
@@ -483,30 +459,23 @@ def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor, parent
     unknown = (label == _UNKNOWN).nonzero()[:, 0]
     if unknown.numel() == 0:
         return label
-    pos = ijk[unknown]  # (U, 3)
-    q = pos[:, None, :] + plan.neighbours  # (U, 26, 3)
-    inside = ((q >= 0) & (q < plan.n0_t * 2 ** level)).all(-1)
-    if parents is None:
-        found, at = inside, _keys(q, 0, plan).clamp(0, label.numel() - 1)
-    else:
-        p, corner = _ancestors(plan, pos, 1)
-        found, p = (x.gather(1, corner) for x in _find(_keys(parents, level - 1, plan), _keys(p, level - 1, plan)))
-        p0 = torch.div(p, step, rounding_mode="floor") * step  # first parent of the chunk
-        at = 8 * p0 + ((q & 1) * plan.corner).sum(-1) * (parents.shape[0] - p0).clamp(max=step) + p - p0
-    vote = label[at].to(torch.int32).masked_fill_(~found, _BG)  # (U, 26): candidates' labels, else background
-    vote.masked_fill_(vote == _EDGE, 0)
-    if kept:  # cells inside a kept coarser voxel: their ancestors, in one key set over the levels
-        offset = [0] + [math.prod(plan.n0) * 8 ** k for k, _, _ in kept[:-1]]
-        offset = [sum(offset[:i + 1]) for i in range(len(kept))]  # key ranges of the levels, one after the other
-        keys = torch.cat([_keys(ijk_k, k, plan) + o for (k, ijk_k, _), o in zip(kept, offset)])
-        anc, corners = zip(*(_ancestors(plan, pos, level - k) for k, _, _ in kept))  # (U, 8, 3), (U, 26)
-        anc = torch.stack([_keys(x, k, plan) + o for x, (k, _, _), o in zip(anc, kept, offset)], -1)
-        in_kept = _find(keys, anc)[0]  # (U, 8, levels)
-        in_kept = torch.stack([in_kept[..., i].gather(1, c) for i, c in enumerate(corners)], -1).any(-1)
-        vote.masked_fill_(in_kept & ~found, _FG)
-    total = (vote * inside).sum(-1)  # (U,) foreground minus background neighbours
+    kept = [(2 ** (level - k), x) for k, x, _ in kept if x.numel()]  # (cells per axis, ijk)
+    lo = torch.stack([ijk.amin(0)] + [x.amin(0) * s for s, x in kept]).amin(0) - 1
+    hi = torch.stack([ijk.amax(0) + 1] + [(x.amax(0) + 1) * s for s, x in kept]).amax(0) + 1  # exclusive
+    (l0, l1, l2), (d0, d1, d2) = lo.tolist(), (hi - lo).tolist()
+    stride = torch.tensor([d1 * d2, d2, 1], device=ijk.device)
+    votes = torch.zeros(d0 * d1 * d2, dtype=torch.int8, device=label.device)  # outside the zone: no vote
+    n = [k * 2 ** level for k in plan.n0]
+    votes.view(d0, d1, d2)[max(0, -l0):n[0] - l0, max(0, -l1):n[1] - l1, max(0, -l2):n[2] - l2] = _BG
+    for s, x in kept:  # a kept voxel of level k covers s^3 cells here, s = 2^(level - k)
+        r = torch.arange(s, device=ijk.device)
+        block = (torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1) * stride).sum(-1).reshape(-1)  # (s^3,)
+        votes[(((x * s - lo) * stride).sum(-1)[:, None] + block).reshape(-1)] = _FG
+    key = ((ijk - lo) * stride).sum(-1)  # (V,)
+    votes[key] = label.masked_fill(label == _EDGE, _UNKNOWN)
+    vote = votes[key[unknown][:, None] + (plan.neighbours * stride).sum(-1)]  # (U, 26)
     label = label.clone()
-    label[unknown] = (total >= 0).to(torch.int8) * 2 - 1  # tie -> foreground
+    label[unknown] = (vote.sum(-1, dtype=torch.int32) >= 0).to(torch.int8) * 2 - 1  # tie -> foreground
     return label
 
 
@@ -566,7 +535,7 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
         fg = (mahal2 > config.footprint_mahalanobis2).to(torch.uint8)  # (C, H, W); NaN: not foreground
         for k in sorted(set(plan.footprint[:-1]) - {1}):
             footprint[k] = _max_filter(_max_filter(fg, k, 1), k, 2).reshape(-1)
-    kept: list[tuple[int, Tensor, Tensor]] = []  # (level, ijk (K, 3), colours (K, C, 3))
+    kept: list[tuple[int, Tensor, tuple[Tensor, ...]]] = []  # (level, ijk (K, 3), their samples: idx, d, sees)
     parents, step = None, max(1, _CHUNK_SAMPLES // (64 * C))  # parents per chunk
     for level in range(plan.L + 1):
         many = level > 0 and parents.shape[0] > step
@@ -599,28 +568,32 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
         ijk, label = (ijks[0], labels[0]) if len(ijks) == 1 else (torch.cat(ijks), torch.cat(labels))
         idx, d, sees = stash[0] if len(stash) == 1 else (torch.cat(x, -1) for x in zip(*stash))
         rows = ((label == _FG) | (label == _UNKNOWN)).nonzero()[:, 0] if many else None  # the stashed voxels
-        label = _resolve_unknown(plan, level, ijk, label, parents if level else None, step, kept)
+        label = _resolve_unknown(plan, level, ijk, label, kept)
         keep = (label == _FG).nonzero()[:, 0]  # (K,)
         if keep.numel():
             at = keep if rows is None else torch.searchsorted(rows, keep)
-            kept.append((level, ijk[keep], _colours(colour, _take(idx, at), _take(d, at),
-                                                    sees[:, at], config.t_low, plan.pixel0)))
+            kept.append((level, ijk[keep], (_take(idx, at), _take(d, at), sees[:, at])))
         parents = ijk[label == _EDGE]
         if parents.shape[0] == 0:
             break
-    return _assemble(plan, kept, dtype, colour.dtype)
+    return _assemble(plan, kept, dtype, colour, config.t_low)
 
 
-def _assemble(plan: _Plan, kept: list[tuple[int, Tensor, Tensor]], dtype: torch.dtype,
-              colour_dtype: torch.dtype) -> SparseVoxels:
-    dev = plan.device
-    kept = kept or [(0, torch.zeros(0, 3, dtype=torch.long, device=dev), torch.zeros(0, plan.C, 3, device=dev))]
+def _assemble(plan: _Plan, kept: list[tuple[int, Tensor, tuple[Tensor, ...]]], dtype: torch.dtype, colour: Tensor,
+              t_low: float) -> SparseVoxels:
+    """The kept voxels of all levels as :class:`SparseVoxels`, their colours from their samples in one pass."""
+    dev, C = plan.device, plan.C
+    if not kept:
+        empty = (torch.zeros(C, 8, 0, dtype=torch.int32, device=dev), torch.zeros(C, 8, 0, dtype=dtype, device=dev),
+                 torch.zeros(C, 0, dtype=torch.bool, device=dev))
+        kept = [(0, torch.zeros(0, 3, dtype=torch.long, device=dev), empty)]
     centres = torch.cat([plan.lower_t + (ijk + 0.5) * plan.edge(k) for k, ijk, _ in kept])
     sizes = torch.cat([torch.full((ijk.shape[0],), plan.edge(k), device=dev) for k, ijk, _ in kept])
     levels = torch.cat([torch.full((ijk.shape[0],), k, dtype=torch.long, device=dev) for k, ijk, _ in kept])
-    colours = torch.cat([c for _, _, c in kept])
+    idx, d, sees = (x[0] if len(kept) == 1 else torch.cat(x, -1) for x in zip(*(smp for _, _, smp in kept)))
+    colours = _colours(colour, idx, d, sees, t_low, plan.pixel0)
     n_fine = tuple(n * 2 ** plan.L for n in plan.n0)
-    return SparseVoxels(centres.to(dtype), sizes.to(dtype), colours.to(colour_dtype), levels, tuple(plan.lower),
+    return SparseVoxels(centres.to(dtype), sizes.to(dtype), colours, levels, tuple(plan.lower),
                         plan.edge(plan.L), n_fine)
 
 
