@@ -43,15 +43,11 @@ log = logging.getLogger(__name__)
 
 #: Bones whose lengths are fitted together at initialisation (left and right tied).
 #: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
-#: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). Measured with
-#: fit_bone_lengths on (scripts/eval_tracking.py --tracker fit_bone_lengths=true; Bayesian grid / hull):
-#: 8 cameras CMU 131_01 63.4 -> 32.4 / 70.4 -> 61.0 mm, CMU 131_02 49.6 -> 26.6 / 70.8 -> 64.1 mm (without the
-#: neck: 37.8 and 32.7 with the Bayesian grid), but the procedural walk (the template's own proportions)
-#: 9.8 -> 12.6 / 11.7 -> 15.5 mm, and 4 cameras worse (arm_raise 42.5 -> 47.4 / 43.2 -> 49.3 mm, walk
-#: 23.7 -> 26.2 / 25.3 -> 30.6 mm: the ghost volume of a 4-camera hull lengthens the limbs), hence off by
-#: default. (The 8-camera walk and the 4-camera hull figures predate the neck's term in the size rows, and all
-#: of these FIT_ROUNDS; with 8 rounds the Bayesian grid meets all 7 8-camera targets, CMU 25.6 / 20.6 mm, but the
-#: 4-camera arm_raise stays out (49.0) and the hull gets worse (8-camera arm_raise 30.5): still off by default.)
+#: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). With
+#: fit_bone_lengths on (scripts/eval_tracking.py --tracker fit_bone_lengths=true), 8 cameras, Bayesian grid: CMU
+#: 131_01 63.4 -> 25.6 mm, 131_02 49.6 -> 20.6, but the procedural walk (the template's own proportions) 9.8 ->
+#: 14.9 and the 4-camera arm_raise 42.5 -> 49.0 (out of target); the hull gains nothing (8 cameras: CMU 70.4 ->
+#: 64.9, 70.8 -> 68.9, arm_raise 19.7 -> 30.5). Hence off by default.
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
@@ -61,8 +57,7 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
-#: change). Three left the CMU bodies' torsos halfway (8 cameras, Bayesian grid: CMU 131_02 26.6 mm with 3,
-#: 20.6 with 8).
+#: change). Three left the CMU bodies' torsos halfway (8 cameras, Bayesian grid: CMU 131_02 26.6 mm, 20.6 with 8).
 FIT_ROUNDS = 8
 
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
