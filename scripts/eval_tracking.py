@@ -7,8 +7,8 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py                       # everything (about 30 minutes on 2 cores)
     .venv/bin/python scripts/eval_tracking.py --motions walk --cameras 8 --models bayes
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --background shadow_min_ratio=0
-    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --tracker fit_bone_lengths=true \
-        --proportions
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --proportions
+    .venv/bin/python scripts/eval_tracking.py --motions walk --tracker fit_bone_lengths=false   # one scale
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def main() -> None:
     ap.add_argument("--proportions", action="store_true",
                     help="also print the tracked subject's proportions against the rendered body's")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
-                    help="TrackerConfig overrides of the config's tracker section, e.g. fit_bone_lengths=true")
+                    help="TrackerConfig overrides of the config's tracker section, e.g. fit_bone_lengths=false")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     config = load_config(args.config)

@@ -251,19 +251,23 @@ def test_tracker_follows_voxelised_ground_truth(skel, motion):
     assert errs.max() < 0.06, errs
 
 
-def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
-    """fit_bone_lengths at the starfish frame, on the voxels of a 1.80 m body whose proportions one height scale
-    cannot represent (torso 0.85x, legs 1.1x, the neck 6 cm lower on the torso, as the retargeted CMU bodies):
-    the torso's and legs' lengths and the neck's height move towards the body's, and the track is better than
-    with one scale for the body."""
+def _proportioned_body(skel):
+    """A 1.80 m body whose proportions one height scale cannot represent (torso 0.85x, legs 1.1x, the neck 6 cm
+    lower on the torso, as the retargeted CMU bodies), its blobs and 6 frames of a walk from the starfish."""
     subj = skel.scaled_to_height(1.80)
     length = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
     legs = ("l_thigh", "r_thigh", "l_shank", "r_shank")
     subj = subj.with_bone_lengths({"torso": 0.85 * length["torso"], **{b: 1.1 * length[b] for b in legs}})
     x, y, z = subj.joint_origin("neck_flex")
     subj = subj.with_joint_origins({"neck_flex": (x, y, z - 0.06)})  # the shoulders stay
-    blobs = BlobModel.from_config(subj)
-    T = procedural_motion(subj, "walk", 6 / 30, 30, starfish_s=0.1)
+    return subj, BlobModel.from_config(subj), procedural_motion(subj, "walk", 6 / 30, 30, starfish_s=0.1)
+
+
+def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
+    """fit_bone_lengths at the starfish frame, on the voxels of a body of other proportions than the template's:
+    the torso's and legs' lengths and the neck's height move towards the body's, and the track is better than
+    with one scale for the body."""
+    subj, blobs, T = _proportioned_body(skel)
     errs, bones = {}, {}
     for fit in (False, True):
         tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=fit))
@@ -282,10 +286,78 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
     true["shoulder height"] = subj.joint_origin("l_shoulder_flex")[2]
     print({k: (round(true[k], 3), round(bones[False][k], 3), round(bones[True][k], 3)) for k in
            ("torso", "l_thigh", "r_shank", "neck above shoulders", "shoulder height")}, errs)
-    # each at least a fifth of the way from one scale to the truth
-    for bone in ("torso", "l_thigh", "r_shank", "neck above shoulders", "shoulder height"):
-        assert abs(bones[True][bone] - true[bone]) < 0.8 * abs(bones[False][bone] - true[bone]), (bone, bones)
-    assert errs[True] < 0.75 * errs[False], errs
+    # each at least a fifth of the way from one scale to the truth; the shoulders' height (the torso's blobs'
+    # span less the neck's drop, the least determined) a tenth: the fit stops at its first round that fits the
+    # voxels worse, here the fifth (torso 0.45 -> 0.41 of a true 0.33, shoulders 0.380 -> 0.372 of 0.332)
+    for bone, part in (("torso", 0.2), ("l_thigh", 0.2), ("r_shank", 0.2), ("neck above shoulders", 0.2),
+                       ("shoulder height", 0.1)):
+        assert abs(bones[True][bone] - true[bone]) < (1 - part) * abs(bones[False][bone] - true[bone]), (bone, bones)
+    assert errs[True] < 0.6 * errs[False], errs
+
+
+def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
+    """Feedback between the bone fit and the pose can run away (the hull's torso grew round after round on
+    CMU 131_01): the first round whose body fits the voxels worse than the one before is undone and ends the fit.
+    Here every round after the first returns a body with a longer torso and shorter legs, as in that run-away."""
+    real = MarkerlessTracker._fit_bone_lengths
+    calls = []
+
+    def running_away(self, obs, res):
+        skel_fit, change = real(self, obs, res)
+        calls.append(skel_fit)
+        if len(calls) == 1:
+            return skel_fit, change
+        length = dict(zip(skel_fit.bone_names, calls[0].bone_lengths.tolist()))
+        k = 1 + 0.15 * (len(calls) - 1)
+        legs = ("l_thigh", "r_thigh", "l_shank", "r_shank")
+        return calls[0].with_bone_lengths({"torso": k * length["torso"], **{b: length[b] / k for b in legs}}), 0.1
+
+    monkeypatch.setattr(MarkerlessTracker, "_fit_bone_lengths", running_away)
+    subj, blobs, T = _proportioned_body(skel)
+    tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=True))
+    errs = []
+    for t in range(T.shape[0]):
+        r = tracker.step(_observation(subj, blobs, T[t]))
+        assert r.valid
+        errs.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+    assert len(calls) == 2  # the first (real) round lowered the cost, the run-away one raised it and ended the fit
+    np.testing.assert_allclose(tracker.subject.skeleton.bone_lengths.numpy(), calls[0].bone_lengths.numpy(),
+                               rtol=1e-6)
+    assert np.mean(errs) < 0.03, errs
+
+
+def test_initial_height_counts_each_voxels_own_extent(skel, monkeypatch):
+    """The hull keeps coarse interior cubes beside fine surface voxels: the starting height measured from such a
+    set is the one from uniform voxels of the same body (not half the largest cube taller)."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    angles = procedural_motion(subj, "walk", 1 / 30, 30, starfish_s=0.3)[0]
+    fine = _observation(subj, blobs, angles)  # 3 cm voxels
+    # merge every 6 cm cell whose 8 fine voxels are all occupied into one cube at the cell's centre
+    cell = torch.floor(fine.points.double() / 0.06).long()
+    keys, inverse, counts = torch.unique(cell, dim=0, return_inverse=True, return_counts=True)
+    full = counts[inverse] == 8
+    cubes = (keys[counts == 8].double() + 0.5) * 0.06
+    assert full.float().mean() > 0.3
+    n = cubes.shape[0]
+    mixed = VoxelObservation(
+        torch.cat([fine.points[~full], cubes.float()]),
+        torch.cat([fine.sizes[~full], torch.full((n,), 0.06)]),
+        torch.cat([fine.weights[~full], torch.full((n,), 0.06 ** 3)]),
+        torch.cat([fine.colours[~full], fine.colours[full][:1].expand(n, -1, -1)]),
+        fine.cameras_valid)
+    heights = []
+    setup = MarkerlessTracker._setup
+
+    def recording(self, height_m, device):
+        heights.append(height_m)
+        setup(self, height_m, device)
+
+    monkeypatch.setattr(MarkerlessTracker, "_setup", recording)
+    for obs in (fine, mixed):
+        MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=False)).step(obs)
+    assert abs(heights[0] - 1.80) < 0.04
+    assert abs(heights[1] - heights[0]) < 0.01, heights
 
 
 def test_frames_with_nobody_are_invalid_and_tracking_resumes(skel):
