@@ -263,6 +263,16 @@ def _proportioned_body(skel):
     return subj, BlobModel.from_config(subj), procedural_motion(subj, "walk", 6 / 30, 30, starfish_s=0.1)
 
 
+def _track_body(tracker, subj, blobs, T):
+    """Track the voxels of ``subj`` in the poses ``T``; every frame must be valid. Mean landmark error per frame."""
+    errs = []
+    for t in range(T.shape[0]):
+        r = tracker.step(_observation(subj, blobs, T[t]))
+        assert r.valid
+        errs.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+    return np.array(errs)
+
+
 def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
     """fit_bone_lengths at the starfish frame, on the voxels of a body of other proportions than the template's:
     the torso's and legs' lengths and the neck's height move towards the body's, and the track is better than
@@ -271,12 +281,7 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
     errs, bones = {}, {}
     for fit in (False, True):
         tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=fit))
-        e = []
-        for t in range(T.shape[0]):
-            r = tracker.step(_observation(subj, blobs, T[t]))
-            assert r.valid
-            e.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
-        errs[fit] = np.mean(e)
+        errs[fit] = _track_body(tracker, subj, blobs, T).mean()
         bones[fit] = dict(zip(subj.bone_names, tracker.subject.skeleton.bone_lengths.tolist()))
         fitted = tracker.subject.skeleton
         bones[fit]["neck above shoulders"] = fitted.proportions()["neck_above_shoulders"]
@@ -315,11 +320,7 @@ def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
     monkeypatch.setattr(MarkerlessTracker, "_fit_bone_lengths", running_away)
     subj, blobs, T = _proportioned_body(skel)
     tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=True))
-    errs = []
-    for t in range(T.shape[0]):
-        r = tracker.step(_observation(subj, blobs, T[t]))
-        assert r.valid
-        errs.append(float((r.output_points[:16] - _landmarks(subj, T[t])).norm(dim=-1).mean()))
+    errs = _track_body(tracker, subj, blobs, T)
     assert len(calls) == 2  # the first (real) round lowered the cost, the run-away one raised it and ended the fit
     np.testing.assert_allclose(tracker.subject.skeleton.bone_lengths.numpy(), calls[0].bone_lengths.numpy(),
                                rtol=1e-6)
