@@ -58,7 +58,8 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
-#: change). Three left the CMU bodies' torsos halfway (8 cameras, Bayesian grid: CMU 131_02 26.6 mm, 20.6 with 8).
+#: change, or at a round that fits worse). Three left the CMU bodies' torsos halfway (measured before that guard:
+#: 8 cameras, Bayesian grid, CMU 131_02 26.6 mm with 3 rounds, 20.6 with 8).
 FIT_ROUNDS = 8
 
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
@@ -81,7 +82,7 @@ class TrackerConfig:
         init_passes: EM/IK passes on the first frame during initialisation.
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
-            CMU walks' torsos are about 0.25 m, the height-scaled template's 0.40); BONE_GROUPS has figures.
+            CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37); BONE_GROUPS has figures.
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
