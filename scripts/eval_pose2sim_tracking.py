@@ -8,8 +8,14 @@ RHip/LHip, neck, head, shoulders, elbows, wrists, hips, knees, ankles (15 of our
 thorax point). Prints MPJPE per landmark and lost frames; saves a picture of one tracked frame in the four
 views.
 
+``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
+each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
+between them, the trunk a rounded quadrilateral of shoulders and hips) and the Bayesian grid is fed those
+binary silhouettes. It is a diagnostic with the reference's own keypoints, not a result.
+
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
-       [--init-from-reference] [--fill-prior-log-odds 0] [--picture docs/images/pose2sim_tracking.jpg]
+       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes]
+       [--picture docs/images/pose2sim_tracking.jpg]
 """
 
 from __future__ import annotations
@@ -21,18 +27,82 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.eval import evaluate
-from torchtrack.io.pose2sim import pose2sim_sequence, reference_landmarks
+from torchtrack.cameras import CameraRig
+from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.observation import Observer, VoxelObservation
 from torchtrack.tracking.run import track_sequence
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
+
+#: Body segments of the reference silhouettes: two BODY_25B keypoints and a radius (m), an adult's limb girths.
+CAPSULES = (("RHip", "RKnee", 0.07), ("RKnee", "RAnkle", 0.05), ("RAnkle", "RBigToe", 0.035),
+            ("RHeel", "RBigToe", 0.035), ("LHip", "LKnee", 0.07), ("LKnee", "LAnkle", 0.05),
+            ("LAnkle", "LBigToe", 0.035), ("LHeel", "LBigToe", 0.035), ("RShoulder", "RElbow", 0.045),
+            ("RElbow", "RWrist", 0.035), ("LShoulder", "LElbow", 0.045), ("LElbow", "LWrist", 0.035),
+            ("Neck", "Head", 0.06), ("Head", "Nose", 0.09))
+#: The trunk: the quadrilateral of shoulders and hips, rounded by this radius (m).
+TRUNK_ROUNDING_M = 0.06
+
+
+def reference_silhouettes(rig: CameraRig, names: list[str], points: np.ndarray, samples: int = 24) -> torch.Tensor:
+    """(T, C, H, W) bool silhouettes of a body drawn around keypoints ``points (T, K, 3)`` named ``names``: discs
+    of each capsule's radius (at each sample's depth) along :data:`CAPSULES` and the rounded trunk."""
+    import cv2
+
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    k = {n: i for i, n in enumerate(names)}
+    s = np.linspace(0.0, 1.0, samples)[:, None]
+    quad = ("LShoulder", "RShoulder", "RHip", "LHip")
+    out = np.zeros((points.shape[0], len(rig), H, W), bool)
+    for t, p in enumerate(points):
+        centres, radii = [], []
+        for a, b, r in CAPSULES:
+            centres.append(p[k[a]] * (1 - s) + p[k[b]] * s)
+            radii.append(np.full(samples, r))
+        for a, b in zip(quad, quad[1:] + quad[:1]):
+            centres.append(p[k[a]] * (1 - s) + p[k[b]] * s)
+            radii.append(np.full(samples, TRUNK_ROUNDING_M))
+        pts = torch.as_tensor(np.concatenate(centres), dtype=torch.float32)
+        uv, _ = rig.project(pts)
+        depth = rig.world_to_camera(pts)[..., 2]  # (C, M)
+        corners, _ = rig.project(torch.as_tensor(p[[k[n] for n in quad]], dtype=torch.float32))
+        px = (rig.K[:, 0, 0, None] * torch.as_tensor(np.concatenate(radii), dtype=torch.float32) / depth).round()
+        for c in range(len(rig)):
+            mask = np.zeros((H, W), np.uint8)
+            cv2.fillPoly(mask, [corners[c].round().numpy().astype(np.int32)], 1)
+            for (u, v), r in zip(uv[c].round().int().tolist(), px[c].int().tolist()):
+                cv2.circle(mask, (u, v), max(r, 1), 1, -1)
+            out[t, c] = mask > 0
+    return torch.from_numpy(out)
+
+
+class SilhouetteObserver(nn.Module):
+    """A Bayesian-grid observer fed given binary silhouettes ``(T, C, H, W)`` (frame by frame, in order)
+    instead of its background model's foreground; voxel colours still come from the images."""
+
+    def __init__(self, observer: Observer, silhouettes: torch.Tensor) -> None:
+        super().__init__()
+        self.observer, self.silhouettes, self.next_frame = observer, silhouettes, 0
+        self.rig, self.model = observer.rig, observer.model
+        self.volumes_m3: list[float] = []
+
+    def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor) -> list[VoxelObservation]:
+        _, yuv = self.observer.background.log_likelihood_and_yuv(images)
+        mask = self.silhouettes[self.next_frame:self.next_frame + images.shape[0]].to(yuv.device)
+        self.next_frame += images.shape[0]
+        log_bg = torch.where(mask, -50.0, 50.0).to(yuv.dtype)  # certain foreground / certain background
+        out = self.observer.from_log_likelihood(log_bg, yuv, cameras_valid)
+        self.volumes_m3 += [o.volume_m3() for o in out]
+        return out
 
 
 def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: list[str]) -> Poses:
@@ -107,6 +177,8 @@ def main() -> None:
                          "de Bem's saved initial pose, instead of the automatic starfish initialisation")
     ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
                     help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
+    ap.add_argument("--reference-silhouettes", action="store_true",
+                    help="diagnostic: feed the Bayesian grid silhouettes drawn from the reference keypoints")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
@@ -123,8 +195,12 @@ def main() -> None:
                                                                     fill_prior_log_odds=args.fill_prior_log_odds),
                                          size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
-        tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))
         names, ref = reference_landmarks(args.demo)
+        if args.reference_silhouettes:
+            if args.model != "bayes":
+                raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
+            observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
+        tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))
         if args.init_from_reference:
             angles, height = fit_to_landmarks(tracker, names, ref[0])
             tracker.initialize_from_pose(angles, height)
@@ -132,8 +208,11 @@ def main() -> None:
         poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
-        print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, {poses.num_frames / elapsed:.1f} "
-              f"frames/s, subject height {float(poses.extra['subject_height_m']):.2f} m")
+        print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, "
+              f"{poses.num_frames / elapsed:.1f} frames/s, subject height {float(poses.extra['subject_height_m']):.2f} m")
+        if args.reference_silhouettes:
+            print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
+                  "(a body is about 0.07)")
         print(rep.format())
         if args.picture is not None:
             ok = np.flatnonzero(poses.valid)

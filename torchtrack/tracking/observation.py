@@ -104,21 +104,27 @@ class Observer(nn.Module):
 
     def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor | None = None) -> list[VoxelObservation]:
         """(B, C, 3, H, W) RGB frames (NaN: unreadable) -> B observations."""
-        B, C = images.shape[:2]
         if cameras_valid is None:
             cameras_valid = torch.isfinite(images.flatten(2)).all(-1)
-        out = []
         if self.model == "hull":
-            for b in range(B):
+            out = []
+            for b in range(images.shape[0]):
                 v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b]))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
+        return self.from_log_likelihood(log_bg, yuv, cameras_valid)
+
+    def from_log_likelihood(self, log_bg: torch.Tensor, yuv: torch.Tensor, cameras_valid: torch.Tensor
+                            ) -> list[VoxelObservation]:
+        """Bayesian grid only: observations from per-pixel background log-likelihoods ``(B, C, H, W)`` and the
+        gain-normalised YUV images ``(B, C, 3, H, W)`` (:meth:`BackgroundModel.log_likelihood_and_yuv`)."""
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
         keep = prob > self.threshold
         s = self.spec.voxel_size_m
-        for b in range(B):
+        out = []
+        for b in range(log_bg.shape[0]):
             idx = keep[b].nonzero()[:, 0]
             pts = self.centres[idx]
             pix = self.grid.lookup.pixel_index[:, idx]  # (C, n)
