@@ -3,9 +3,9 @@
 
 The demo has no empty background frames (the background is estimated from the moving clip, the subject's
 static parts painted out unless ``--no-fill``) and starts with
-the subject balancing arms out. Landmarks compared (``torchtrack.io.pose2sim.LANDMARK_MAP``): pelvis = mean of
-RHip/LHip, neck, head, shoulders, elbows, wrists, hips, knees, ankles (15 of our 16; the reference has no
-thorax point). Prints MPJPE per landmark and lost frames; saves a picture of one tracked frame in the four
+the subject balancing arms out. Points compared (``torchtrack.io.pose2sim.LANDMARK_MAP``): pelvis = mean of
+RHip/LHip, neck, shoulders, elbows, wrists, hips, knees, ankles (14 of our 16 landmarks; the reference has no
+thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames; saves a picture of one tracked frame in the four
 views.
 
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
@@ -49,6 +49,10 @@ CAPSULES = (("RHip", "RKnee", 0.07), ("RKnee", "RAnkle", 0.05), ("RAnkle", "RBig
             ("LAnkle", "LBigToe", 0.035), ("LHeel", "LBigToe", 0.035), ("RShoulder", "RElbow", 0.045),
             ("RElbow", "RWrist", 0.035), ("LShoulder", "LElbow", 0.045), ("LElbow", "LWrist", 0.035),
             ("Neck", "Head", 0.06), ("Head", "Nose", 0.09))
+#: Segments whose lengths scale the template in :func:`fit_to_landmarks` (they do not depend on the pose).
+SCALE_SEGMENTS = (("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("r_hip", "r_knee"), ("r_knee", "r_ankle"),
+                  ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("r_shoulder", "r_elbow"),
+                  ("r_elbow", "r_wrist"), ("pelvis", "neck"))
 #: The trunk: the quadrilateral of shoulders and hips, rounded by this radius (m).
 TRUNK_ROUNDING_M = 0.06
 
@@ -118,24 +122,24 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
 
 def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.ndarray
                      ) -> tuple[torch.Tensor, float]:
-    """A state vector and height that put the skeleton's landmarks on ``points (L, 3)`` (named ``names``):
-    height from the reference's head-to-ankle span, root by Kabsch on the trunk, limbs by CCD."""
+    """A state vector and height that put the skeleton's output points on ``points (L, 3)`` (named ``names``):
+    height from the median length ratio of :data:`SCALE_SEGMENTS` (a span such as head top to ankles depends on
+    the pose: 1.63 m from this clip's frame 0, where its limbs say 1.73-1.75), root by Kabsch on the trunk, limbs by CCD."""
     from torchtrack.skeleton.ik import CCDConfig, CCDSolver
-    from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES
+    from torchtrack.skeleton.model import EXTRA_OUTPUT_FRAMES, JOINT_FRAMES, LANDMARK_FRAMES
     from torchtrack.tracking.goals import GoalModel
 
     generic = tracker.generic
-    rest = generic.forward(generic.rest_angles()[None]).landmarks[0]
-    lm = list(generic.output_names[:16])
-    span = lambda p, i, j: float(np.linalg.norm(p[i] - (p[j[0]] + p[j[1]]) / 2))  # noqa: E731
-    ref_span = span(points, names.index("head"), (names.index("l_ankle"), names.index("r_ankle")))
-    model_span = span(rest.numpy(), lm.index("head"), (lm.index("l_ankle"), lm.index("r_ankle")))
-    height = generic.height() * ref_span / model_span
+    rest = generic.forward(generic.rest_angles()[None]).output_points[0]
+    out = list(generic.output_names)
+    ratios = [np.linalg.norm(points[names.index(a)] - points[names.index(b)])
+              / float(torch.linalg.vector_norm(rest[out.index(a)] - rest[out.index(b)])) for a, b in SCALE_SEGMENTS]
+    height = generic.height() * float(np.median(ratios))
     skel = generic.scaled_to_height(height)
     goals = torch.zeros(1, len(JOINT_FRAMES), 3)
     weights = torch.zeros(1, len(JOINT_FRAMES))
     for n, p in zip(names, points):
-        j = JOINT_FRAMES.index(LANDMARK_FRAMES[n])
+        j = JOINT_FRAMES.index({**LANDMARK_FRAMES, **EXTRA_OUTPUT_FRAMES}[n])
         goals[0, j], weights[0, j] = torch.as_tensor(p, dtype=torch.float32), 1.0
     from torchtrack.blobs import BlobModel
 

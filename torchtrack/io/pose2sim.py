@@ -18,9 +18,12 @@ from torchtrack.io.trc import read_trc, y_up_to_world
 CALIBRATION = "calibration/Calib_qualisys_pose2sim.toml"
 REFERENCE = "reference_3d/S00_P00_T01_BalancingTrial_0-100.trc"
 
-#: Pose2Sim BODY_25B keypoints -> our landmarks, where the two define the same point.
+#: Pose2Sim BODY_25B keypoints -> our output points (``Skeleton.output_names``), where the two define the same
+#: point. BODY_25B's ``Head`` is the top of the head (0.29 m from its ``Neck`` in the demo; our template's
+#: neck -> head_top is 0.27 m at the subject's height, neck -> head centre 0.15), so it is our ``head_top``; our
+#: ``head`` landmark (the head centre) and ``spine`` (the thorax) have no BODY_25B counterpart.
 LANDMARK_MAP: dict[str, tuple[str, ...]] = {
-    "pelvis": ("RHip", "LHip"), "neck": ("Neck",), "head": ("Head",),
+    "pelvis": ("RHip", "LHip"), "neck": ("Neck",), "head_top": ("Head",),
     "l_shoulder": ("LShoulder",), "l_elbow": ("LElbow",), "l_wrist": ("LWrist",),
     "r_shoulder": ("RShoulder",), "r_elbow": ("RElbow",), "r_wrist": ("RWrist",),
     "l_hip": ("LHip",), "l_knee": ("LKnee",), "l_ankle": ("LAnkle",),
@@ -51,7 +54,7 @@ def reference_keypoints(demo: str | Path) -> tuple[list[str], np.ndarray]:
 
 
 def reference_landmarks(demo: str | Path) -> tuple[list[str], np.ndarray]:
-    """The reference mapped onto our landmarks (:data:`LANDMARK_MAP`): names (L,), (T, L, 3)."""
+    """The reference mapped onto our output points (:data:`LANDMARK_MAP`): names (L,), (T, L, 3)."""
     names, pts = reference_keypoints(demo)
     out = [pts[:, [names.index(s) for s in src]].mean(axis=1) for src in LANDMARK_MAP.values()]
     return list(LANDMARK_MAP), np.stack(out, axis=1)

@@ -1,0 +1,51 @@
+"""Pose2Sim's BODY_25B keypoints mapped onto our skeleton's output points (torchtrack.io.pose2sim.LANDMARK_MAP).
+
+The reference for the mapping is the template skeleton's own geometry, scaled by the subject's limbs: a mapped
+point must sit where the template puts the point of that name. BODY_25B's ``Head`` is the top of the head.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import shared_data
+
+from torchtrack.io.pose2sim import LANDMARK_MAP, reference_landmarks
+from torchtrack.skeleton import Skeleton
+
+
+@pytest.fixture(scope="module")
+def mapped():
+    demo = shared_data("pose2sim_demo")
+    names, points = reference_landmarks(demo)
+    return names, points
+
+
+def test_every_mapped_point_is_a_skeleton_output(mapped):
+    names, points = mapped
+    outputs = Skeleton.from_urdf().output_names
+    assert names == list(LANDMARK_MAP)
+    assert set(names) <= set(outputs), sorted(set(names) - set(outputs))
+    assert points.shape == (100, len(names), 3) and np.isfinite(points).all()
+
+
+def test_the_reference_head_point_is_the_head_top(mapped):
+    """Neck to BODY_25B Head, median over the clip, against the template scaled by the subject's thighs and
+    shanks (pose-independent lengths): within 15 % of neck -> head_top, and far from neck -> head centre."""
+    names, points = mapped
+    skel = Skeleton.from_urdf()
+    rest = dict(zip(skel.output_names, skel.forward(skel.rest_angles()[None]).output_points[0].numpy()))
+    ref = {n: points[:, i] for i, n in enumerate(names)}  # (T, 3) each
+
+    def ref_length(a: str, b: str) -> float:
+        return float(np.median(np.linalg.norm(ref[a] - ref[b], axis=-1)))
+
+    def model_length(a: str, b: str) -> float:
+        return float(np.linalg.norm(rest[a] - rest[b]))
+
+    legs = [("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("r_hip", "r_knee"), ("r_knee", "r_ankle")]
+    scale = float(np.median([ref_length(a, b) / model_length(a, b) for a, b in legs]))
+    neck_head = ref_length("neck", "head_top")
+    to_top, to_centre = scale * model_length("neck", "head_top"), scale * model_length("neck", "head")
+    assert abs(neck_head - to_top) < 0.15 * to_top, (neck_head, to_top)
+    assert neck_head > 1.5 * to_centre, (neck_head, to_centre)
