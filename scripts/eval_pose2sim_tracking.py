@@ -14,7 +14,7 @@ between them, the trunk a rounded quadrilateral of shoulders and hips) and the B
 binary silhouettes. It is a diagnostic with the reference's own keypoints, not a result.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
-       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes]
+       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
 
@@ -30,6 +30,7 @@ import torch
 from torch import nn
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.checks import with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
@@ -181,6 +182,8 @@ def main() -> None:
                          "de Bem's saved initial pose, instead of the automatic starfish initialisation")
     ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
                     help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
+    ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="TrackerConfig overrides of the config's tracker section, e.g. velocity=0")
     ap.add_argument("--reference-silhouettes", action="store_true",
                     help="diagnostic: feed the Bayesian grid silhouettes drawn from the reference keypoints")
     ap.add_argument("--no-fill", action="store_true",
@@ -204,7 +207,9 @@ def main() -> None:
             if args.model != "bayes":
                 raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
             observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
-        tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"]))
+        tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
+                                        "--tracker")
+        tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
         if args.init_from_reference:
             angles, height = fit_to_landmarks(tracker, names, ref[0])
             tracker.initialize_from_pose(angles, height)
