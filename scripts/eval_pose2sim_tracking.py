@@ -5,13 +5,14 @@ The demo has no empty background frames (the background is estimated from the mo
 static parts painted out unless ``--no-fill``) and starts with
 the subject balancing arms out. Points compared (``torchtrack.io.pose2sim.LANDMARK_MAP``): pelvis = mean of
 RHip/LHip, neck, shoulders, elbows, wrists, hips, knees, ankles (14 of our 16 landmarks; the reference has no
-thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames; saves a picture of one tracked frame in the four
-views.
+thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames;
+saves a picture of one tracked frame in the four views.
 
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
 each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
-between them, the trunk a rounded quadrilateral of shoulders and hips) and the Bayesian grid is fed those
-binary silhouettes. It is a diagnostic with the reference's own keypoints, not a result.
+between them, the trunk a rounded quadrilateral of shoulders and hips) and the Bayesian grid's voxels are carved
+from them (shape-from-silhouette; every camera must see a voxel). It is a diagnostic with the reference's own
+keypoints, not a result.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
        [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes] [--tracker velocity=0 ...]
@@ -36,6 +37,7 @@ from torchtrack.cameras import CameraRig
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
+from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
@@ -91,8 +93,9 @@ def reference_silhouettes(rig: CameraRig, names: list[str], points: np.ndarray, 
 
 
 class SilhouetteObserver(nn.Module):
-    """A Bayesian-grid observer fed given binary silhouettes ``(T, C, H, W)`` (frame by frame, in order)
-    instead of its background model's foreground; voxel colours still come from the images."""
+    """The Bayesian grid's voxels carved from given binary silhouettes ``(T, C, H, W)`` (frame by frame, in order;
+    :func:`torchtrack.occupancy.carve` through the grid's voxel -> pixel table) instead of fused from the
+    background model's foreground; voxel colours still come from the images."""
 
     def __init__(self, observer: Observer, silhouettes: torch.Tensor) -> None:
         super().__init__()
@@ -101,11 +104,11 @@ class SilhouetteObserver(nn.Module):
         self.volumes_m3: list[float] = []
 
     def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor) -> list[VoxelObservation]:
-        _, yuv = self.observer.background.log_likelihood_and_yuv(images)
-        mask = self.silhouettes[self.next_frame:self.next_frame + images.shape[0]].to(yuv.device)
+        mask = self.silhouettes[self.next_frame:self.next_frame + images.shape[0]].to(images.device)
         self.next_frame += images.shape[0]
-        log_bg = torch.where(mask, -50.0, 50.0).to(yuv.dtype)  # certain foreground / certain background
-        out = self.observer.from_log_likelihood(log_bg, yuv, cameras_valid)
+        occupied = carve(mask, self.observer.grid.lookup, min_views=len(self.rig))  # (B, V)
+        out = self.observer.from_probability(occupied.to(images.dtype), self.observer.background.normalise(images),
+                                             cameras_valid)
         self.volumes_m3 += [o.volume_m3() for o in out]
         return out
 
@@ -124,8 +127,8 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
 def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.ndarray
                      ) -> tuple[torch.Tensor, float]:
     """A state vector and height that put the skeleton's output points on ``points (L, 3)`` (named ``names``):
-    height from the median length ratio of :data:`SCALE_SEGMENTS` (a span such as head top to ankles depends on
-    the pose: 1.63 m from this clip's frame 0, where its limbs say 1.73-1.75), root by Kabsch on the trunk, limbs by CCD."""
+    height from the median length ratio of :data:`SCALE_SEGMENTS` (a span such as head top to ankles shortens
+    with the pose), root by Kabsch on the trunk, limbs by CCD."""
     from torchtrack.skeleton.ik import CCDConfig, CCDSolver
     from torchtrack.skeleton.model import EXTRA_OUTPUT_FRAMES, JOINT_FRAMES, LANDMARK_FRAMES
     from torchtrack.tracking.goals import GoalModel
@@ -218,7 +221,8 @@ def main() -> None:
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
         print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, "
-              f"{poses.num_frames / elapsed:.1f} frames/s, subject height {float(poses.extra['subject_height_m']):.2f} m")
+              f"{poses.num_frames / elapsed:.1f} frames/s, "
+              f"subject height {float(poses.extra['subject_height_m']):.2f} m")
         if args.reference_silhouettes:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                   "(a body is about 0.07)")

@@ -548,3 +548,38 @@ def test_tracker_on_cuda_matches_cpu(skel):
             pts.append(r.output_points[:16].cpu())
         out[dev] = torch.stack(pts)
     assert float((out["cpu"] - out["cuda"]).norm(dim=-1).max()) < 0.005
+
+
+def test_observer_voxels_from_a_given_probability_take_the_projected_pixels_colour(seq):
+    """Observer.from_probability (the Bayesian grid's voxels from any per-voxel probability): the kept voxels are
+    those over the threshold, weighted P s^3, each with the YUV of the pixel its centre projects to in every view
+    (reference: CameraRig.project, checked against OpenCV's projectPoints in test_cameras)."""
+    from torchtrack.background import BackgroundModel
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking.observation import Observer
+
+    folder = SequenceFolder(seq)
+    rig = folder.rig.float()
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    bg = BackgroundModel.from_folder(folder, size_wh=(W, H))
+    observer = Observer(rig, bg, "bayes", voxel_size_m=0.05)
+    images = folder.read_frame(0, size_wh=(W, H))[None]  # (1, C, 3, H, W)
+    yuv = bg.normalise(images)
+    V = observer.centres.shape[0]
+    prob = torch.rand(1, V, generator=torch.Generator().manual_seed(0))
+    obs = observer.from_probability(prob, yuv, torch.ones(1, len(rig), dtype=torch.bool))[0]
+    keep = (prob[0] > observer.threshold).nonzero()[:, 0]
+    assert torch.equal(obs.points, observer.centres[keep])
+    assert torch.allclose(obs.weights, prob[0, keep] * 0.05 ** 3)
+    uv, visible = rig.project(obs.points)  # (C, N, 2), (C, N)
+    px = uv.round().long()
+    agree = []
+    for c in range(len(rig)):
+        seen = visible[c].nonzero()[:, 0]
+        ref = yuv[0, c][:, px[c, seen, 1], px[c, seen, 0]].T  # (n, 3)
+        agree.append((obs.colours[seen, c] - ref).abs().amax(-1) < 1e-6)
+        assert bool(torch.isnan(obs.colours[~visible[c], c]).all())
+    # a centre within float rounding of a pixel border may land on the neighbour in the lookup
+    assert float(torch.cat(agree).float().mean()) > 0.999
+    with pytest.raises(InputError, match="Bayesian grid"):
+        Observer(rig, bg, "hull", voxel_size_m=0.05).from_probability(prob, yuv, torch.ones(1, len(rig)).bool())

@@ -114,17 +114,20 @@ class Observer(nn.Module):
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b]))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
-        return self.from_log_likelihood(log_bg, yuv, cameras_valid)
-
-    def from_log_likelihood(self, log_bg: torch.Tensor, yuv: torch.Tensor, cameras_valid: torch.Tensor
-                            ) -> list[VoxelObservation]:
-        """Bayesian grid only: observations from per-pixel background log-likelihoods ``(B, C, H, W)`` and the
-        gain-normalised YUV images ``(B, C, 3, H, W)`` (:meth:`BackgroundModel.log_likelihood_and_yuv`)."""
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
+        return self.from_probability(prob, yuv, cameras_valid)
+
+    def from_probability(self, prob: torch.Tensor, yuv: torch.Tensor, cameras_valid: torch.Tensor
+                         ) -> list[VoxelObservation]:
+        """Bayesian grid only: observations from an occupancy probability per grid voxel ``(B, V)`` (the grid's
+        own, or another over the same grid, e.g. a silhouette carving through ``self.grid.lookup``) and the
+        gain-normalised YUV images ``(B, C, 3, H, W)`` the voxels take their colours from."""
+        if self.model != "bayes":
+            raise InputError(f"Observer.from_probability needs the Bayesian grid's voxels, not model {self.model!r}")
         keep = prob > self.threshold
         s = self.spec.voxel_size_m
         out = []
-        for b in range(log_bg.shape[0]):
+        for b in range(prob.shape[0]):
             idx = keep[b].nonzero()[:, 0]
             pts = self.centres[idx]
             pix = self.grid.lookup.pixel_index[:, idx]  # (C, n)
