@@ -14,8 +14,14 @@ between them, the trunk a rounded quadrilateral of shoulders and hips) and the B
 from them (shape-from-silhouette; every camera must see a voxel). It is a diagnostic with the reference's own
 keypoints, not a result.
 
+``--reference-background`` is the other half of that diagnostic: the observation is computed from the images as
+usual, but each pixel's background is the median of the frames where those drawn silhouettes (dilated by
+:data:`REFERENCE_MARGIN_PX`) leave it free (``BackgroundModel.from_sequence(..., subject_masks=...)``): the
+background an estimator that knew where the subject is would find in this clip.
+
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
-       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes] [--tracker velocity=0 ...]
+       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes | --reference-background]
+       [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
 
@@ -31,6 +37,7 @@ import torch
 from torch import nn
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.background.estimate import dilate
 from torchtrack.checks import with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
@@ -58,6 +65,9 @@ SCALE_SEGMENTS = (("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("r_hip", "r_knee"
                   ("r_elbow", "r_wrist"), ("pelvis", "neck"))
 #: The trunk: the quadrilateral of shoulders and hips, rounded by this radius (m).
 TRUNK_ROUNDING_M = 0.06
+#: ``--reference-background``: the drawn silhouettes are grown by this many pixels (at the processing size) before
+#: they exclude a frame from a pixel's background (the capsules are approximate and the reference is a few cm off).
+REFERENCE_MARGIN_PX = 6
 
 
 def reference_silhouettes(rig: CameraRig, names: list[str], points: np.ndarray, samples: int = 24) -> torch.Tensor:
@@ -189,9 +199,14 @@ def main() -> None:
                     help="TrackerConfig overrides of the config's tracker section, e.g. velocity=0")
     ap.add_argument("--reference-silhouettes", action="store_true",
                     help="diagnostic: feed the Bayesian grid silhouettes drawn from the reference keypoints")
+    ap.add_argument("--reference-background", action="store_true",
+                    help="diagnostic: estimate each pixel's background from the frames the silhouettes drawn from "
+                         "the reference keypoints leave free")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
+    if args.reference_silhouettes and args.reference_background:
+        raise SystemExit("--reference-silhouettes replaces the background: give one of the two")
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
     if not (args.demo / "videos").is_dir():
@@ -201,9 +216,14 @@ def main() -> None:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])
         rig = folder.rig.resized(W, H).float()
-        bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=not args.no_fill,
-                                                                    fill_prior_log_odds=args.fill_prior_log_odds),
-                                         size_wh=(W, H))
+        bg_config = BackgroundConfig(fill_static_subject=not args.no_fill, fill_prior_log_odds=args.fill_prior_log_odds)
+        if args.reference_background:
+            frames = torch.cat([b.images for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
+            masks = dilate(reference_silhouettes(rig, *reference_keypoints(args.demo)), REFERENCE_MARGIN_PX)
+            bg = BackgroundModel.from_sequence(frames, bg_config, folder.camera_names, subject_masks=masks)
+            del frames
+        else:
+            bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
         names, ref = reference_landmarks(args.demo)
         if args.reference_silhouettes:

@@ -308,6 +308,35 @@ def test_chunked_statistics_equal_unchunked(monkeypatch):
                                rtol=1e-12, atol=1e-12)
 
 
+def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free():
+    frames, _, _ = _noise_frames(N=41, H=20, W=16)
+    frames[:30, :, :, 5:15, 4:12] = 0.9  # a body standing in the same place for 30 of 41 frames: the median ghosts
+    frames[:38, :, :, 0:3, 0:3] = 0.2  # a corner covered in all but 3 frames: too few to re-estimate it from
+    masks = torch.zeros(41, 2, 20, 16, dtype=torch.bool)
+    masks[:30, :, 5:15, 4:12] = True
+    masks[:38, :, 0:3, 0:3] = True
+    plain = BackgroundModel.from_sequence(frames, EXACT)
+    model = BackgroundModel.from_sequence(frames, EXACT, subject_masks=masks)
+    yuv = _yuv_np(frames.numpy())  # (N, C, 3, H, W)
+    free = np.where(masks.numpy()[:, :, None], np.nan, yuv)
+    ref_med = np.nanmedian(free, 0)  # 11 free frames in the body's square, 41 elsewhere: odd counts
+    ref_std = 1.4826 * np.nanmedian(np.abs(free - ref_med), 0)
+    body = (slice(None), slice(None), slice(5, 15), slice(4, 12))
+    assert np.abs(plain.mean_yuv.numpy()[body][:, 0] - 0.9).max() < 1e-9  # the ghost (grey: Y = 0.9)
+    ok = np.ones((2, 20, 16), bool)
+    ok[:, 0:3, 0:3] = False
+    np.testing.assert_allclose(model.mean_yuv.numpy().transpose(0, 2, 3, 1)[ok],
+                               ref_med.transpose(0, 2, 3, 1)[ok], atol=1e-12)
+    np.testing.assert_allclose(model.std_yuv.numpy().transpose(0, 2, 3, 1)[ok],
+                               np.maximum(ref_std, EXACT.min_std).transpose(0, 2, 3, 1)[ok], rtol=1e-9)
+    corner = (slice(None), slice(None), slice(0, 3), slice(0, 3))  # < MIN_CLEAN_FRAMES free: as without masks
+    torch.testing.assert_close(model.mean_yuv[corner], plain.mean_yuv[corner], rtol=0, atol=0)
+    with pytest.raises(ShapeError, match="subject_masks"):
+        BackgroundModel.from_sequence(frames, EXACT, subject_masks=masks[:40])
+    with pytest.raises(InputError, match="subject_masks.*bool"):
+        BackgroundModel.from_sequence(frames, EXACT, subject_masks=masks.float())
+
+
 # ----------------------------------------------------------------------------------------------- bad input
 
 
