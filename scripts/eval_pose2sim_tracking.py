@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
-from torchtrack.background.estimate import dilate
+from torchtrack.background.estimate import MIN_CLEAN_FRAMES, dilate, subsample
 from torchtrack.checks import with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
@@ -222,6 +222,11 @@ def main() -> None:
             masks = dilate(reference_silhouettes(rig, *reference_keypoints(args.demo)), REFERENCE_MARGIN_PX)
             bg = BackgroundModel.from_sequence(frames, bg_config, folder.camera_names, subject_masks=masks)
             del frames
+            used = subsample(masks, bg_config.max_frames)  # the frames from_sequence took
+            free = (~used).sum(0) >= MIN_CLEAN_FRAMES  # (C, H, W)
+            ever = masks.any(0)
+            print(f"reference background: {used.shape[0]} frames; {100 * float((free & ever).sum() / ever.sum()):.0f} "
+                  f"% of the pixels the masks ever cover are free in >= {MIN_CLEAN_FRAMES} of them")
         else:
             bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)

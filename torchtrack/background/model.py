@@ -200,7 +200,7 @@ class BackgroundModel(nn.Module):
         segmentation, a previous track's projected body), each pixel's median and MAD come from the frames where
         it is free of the subject, wherever at least ``MIN_CLEAN_FRAMES`` such frames exist; passes 1-3 give the
         other pixels. On the Pose2Sim demo, masks drawn around the reference keypoints leave that many frames at
-        93 % of the pixels the subject ever covers, and the track from that background is 99 mm from the
+        93 % of the pixels the subject ever covers, and the track from that background is 104.9 mm from the
         reference against 412 mm from passes 1-3 (``scripts/eval_pose2sim_tracking.py --init-from-reference
         --reference-background``).
 
