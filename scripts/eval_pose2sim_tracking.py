@@ -38,7 +38,7 @@ from torch import nn
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.background.estimate import MIN_CLEAN_FRAMES, dilate, subsample
-from torchtrack.checks import with_overrides
+from torchtrack.checks import InputError, with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
@@ -218,7 +218,7 @@ def main() -> None:
         rig = folder.rig.resized(W, H).float()
         bg_config = BackgroundConfig(fill_static_subject=not args.no_fill, fill_prior_log_odds=args.fill_prior_log_odds)
         if args.reference_background:
-            frames = torch.cat([b.images for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
+            frames = torch.cat([b.images.half() for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
             masks = dilate(reference_silhouettes(rig, *reference_keypoints(args.demo)), REFERENCE_MARGIN_PX)
             bg = BackgroundModel.from_sequence(frames, bg_config, folder.camera_names, subject_masks=masks)
             del frames
@@ -242,7 +242,10 @@ def main() -> None:
             angles, height = fit_to_landmarks(tracker, names, ref[0])
             tracker.initialize_from_pose(angles, height)
             print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
-        poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
+        try:
+            poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
+        except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
+            raise SystemExit(f"tracking failed: {e}") from None
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
         print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, "

@@ -323,7 +323,7 @@ def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free():
     ref_std = 1.4826 * np.nanmedian(np.abs(free - ref_med), 0)
     body = (slice(None), slice(None), slice(5, 15), slice(4, 12))
     assert np.abs(plain.mean_yuv.numpy()[body][:, 0] - 0.9).max() < 1e-9  # the ghost (grey: Y = 0.9)
-    ok = np.ones((2, 20, 16), bool)
+    ok = np.ones((2, 20, 16), bool)  # every pixel but the corner, also those the masks never cover (all frames)
     ok[:, 0:3, 0:3] = False
     np.testing.assert_allclose(model.mean_yuv.numpy().transpose(0, 2, 3, 1)[ok],
                                ref_med.transpose(0, 2, 3, 1)[ok], atol=1e-12)

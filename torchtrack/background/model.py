@@ -198,11 +198,12 @@ class BackgroundModel(nn.Module):
 
         Known subject: with ``subject_masks`` (where the subject is, or may be, in each frame: a person
         segmentation, a previous track's projected body), each pixel's median and MAD come from the frames where
-        it is free of the subject, wherever at least ``MIN_CLEAN_FRAMES`` such frames exist; passes 1-3 give the
-        other pixels. On the Pose2Sim demo, masks drawn around the reference keypoints leave that many frames at
-        93 % of the pixels the subject ever covers, and the track from that background is 104.9 mm from the
-        reference against 412 mm from passes 1-3 (``scripts/eval_pose2sim_tracking.py --init-from-reference
-        --reference-background``).
+        it is free of the subject, wherever at least ``MIN_CLEAN_FRAMES`` such frames exist, passes 1-3 only
+        elsewhere. The masks are trusted: a pixel they never cover takes the median of all frames (pass 3 may
+        have painted it), so anything else that moves, another person too, belongs in them. On the Pose2Sim
+        demo, masks drawn around the reference keypoints leave that many frames at 93 % of the pixels the
+        subject ever covers, and the track from that background is 104.2 mm from the reference against 412 mm
+        from passes 1-3 (``scripts/eval_pose2sim_tracking.py --init-from-reference --reference-background``).
 
         Args:
             frames: (N, C, 3, H, W) RGB in [0, 1] (float16 storage is fine), N >= 5; at most ``max_frames`` are
@@ -399,6 +400,7 @@ def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: S
                                       prior_log_odds=config.fill_prior_log_odds)
         mean = static.paint_out(mean, ghost)
     if subject_masks is not None:
+        # every pixel, also those the masks never cover: the masks override pass 3's fill and pass 2's guesses
         med3, spread3, count = est.median_mad(frames, dead, gains, dtype, foreground=subject_masks.to(frames.device))
         use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
         logger.info("background from the frames free of the given subject masks at %.1f%% of the pixels",
