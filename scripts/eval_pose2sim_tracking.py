@@ -21,7 +21,7 @@ background an estimator that knew where the subject is would find in this clip.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
        [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes | --reference-background]
-       [--tracker velocity=0 ...]
+       [--refine-passes 3] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
 
@@ -30,6 +30,7 @@ from __future__ import annotations
 import argparse
 import logging
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
-from torchtrack.tracking.run import track_sequence
+from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -202,6 +203,9 @@ def main() -> None:
     ap.add_argument("--reference-background", action="store_true",
                     help="diagnostic: estimate each pixel's background from the frames the silhouettes drawn from "
                          "the reference keypoints leave free")
+    ap.add_argument("--refine-passes", type=int, default=None,
+                    help="background re-estimations from the track, each followed by a new track (default: the "
+                         "config's background_refinement.passes; 0 with the reference diagnostics)")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
@@ -235,6 +239,11 @@ def main() -> None:
             if args.model != "bayes":
                 raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
             observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
+        refine = RefineConfig.from_dict(config["background_refinement"], config["source"])
+        if args.refine_passes is not None:
+            refine = replace(refine, passes=args.refine_passes)
+        if args.reference_silhouettes or args.reference_background:
+            refine = replace(refine, passes=0)
         tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
                                         "--tracker")
         tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
@@ -243,13 +252,16 @@ def main() -> None:
             tracker.initialize_from_pose(angles, height)
             print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
         try:
-            poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
+            poses, elapsed, _ = track_with_background_refinement(
+                folder, bg, lambda b: observer if b is bg else observer_from_config(rig, b, config["observation"],
+                                                                                    args.model, args.voxel),
+                tracker, refine, bg_config, progress=False)
         except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
             raise SystemExit(f"tracking failed: {e}") from None
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
-        print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, "
-              f"{poses.num_frames / elapsed:.1f} frames/s, "
+        print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
+              f"{refine.passes} times, {poses.num_frames * (refine.passes + 1) / elapsed:.1f} frames/s, "
               f"subject height {float(poses.extra['subject_height_m']):.2f} m")
         if args.reference_silhouettes:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "

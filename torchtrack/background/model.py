@@ -246,13 +246,7 @@ class BackgroundModel(nn.Module):
         if n < MIN_SEQUENCE_FRAMES:
             raise InputError(f"{folder.root}: no background/ frames and only {len(folder)} video frames; need at "
                              f"least {MIN_SEQUENCE_FRAMES} to estimate the background")
-        indices = sorted({int(round(i)) for i in torch.linspace(0, len(folder) - 1, n).tolist()})
-        frames = None
-        for k, i in enumerate(indices):  # forward reads: the video sources decode sequentially
-            image = folder.read_frame(i, device=device, size_wh=size_wh)  # (C, 3, H, W)
-            if frames is None:  # float16 storage halves the memory; 1/255 steps survive it
-                frames = torch.empty((len(indices), *image.shape), dtype=torch.float16, device=image.device)
-            frames[k] = image
+        _, frames = folder.sample_frames(n, device=device, size_wh=size_wh)
         return cls.from_sequence(frames, config, folder.camera_names)
 
     # ------------------------------------------------------------------------------------------ evaluation

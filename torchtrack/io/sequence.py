@@ -406,6 +406,30 @@ class SequenceFolder:
             raise InputError(f"{self.root}: frame {index} outside [0, {self.num_frames})")
         return next(self.iter_batches(1, index, index + 1, device=device, size_wh=size_wh)).images[0]
 
+    def sample_frames(self, max_frames: int, start: int = 0, stop: int | None = None,
+                      device: torch.device | str | None = None, size_wh: tuple[int, int] | None = None
+                      ) -> tuple[list[int], torch.Tensor]:
+        """Up to ``max_frames`` video frames evenly spaced over ``[start, stop)``, first and last included.
+
+        Returns:
+            the frame indices and (N, C, 3, H, W) float16 RGB [0, 1] (half the memory of float32; 1/255 steps
+            survive it), NaN for a camera that fails to decode.
+        """
+        if max_frames < 1:
+            raise InputError(f"max_frames must be >= 1, got {max_frames}")
+        stop = self.num_frames if stop is None else min(stop, self.num_frames)
+        if not 0 <= start < stop:
+            raise InputError(f"{self.root}: no frames in [{start}, {stop}) ({self.num_frames} frames)")
+        n = min(max_frames, stop - start)
+        indices = sorted({start + int(i) for i in np.linspace(0, stop - start - 1, n).round()})
+        frames = None
+        for k, i in enumerate(indices):  # forward reads: the video sources decode sequentially
+            image = self.read_frame(i, device=device, size_wh=size_wh)  # (C, 3, H, W)
+            if frames is None:
+                frames = torch.empty((len(indices), *image.shape), dtype=torch.float16, device=image.device)
+            frames[k] = image
+        return indices, frames
+
     def background_frames(self, max_frames: int, device: torch.device | str | None = None,
                           size_wh: tuple[int, int] | None = None) -> torch.Tensor | None:
         """Up to ``max_frames`` empty-scene frames, evenly spaced over the background sources.

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
-import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +38,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fill-static-subject", action="store_true", default=None,
                    help="without background/ frames: paint the parts of the subject that never move out of the "
                         "estimated background (a subject balancing in place; overrides config)")
+    p.add_argument("--refine-passes", type=int, default=None,
+                   help="without background/ frames: re-estimate the background from the track and track again "
+                        "this many times (overrides the config's background_refinement.passes; 0: off)")
     p.set_defaults(func=run)
 
 
@@ -49,7 +52,8 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The YAML tracking config as a dict with ``observation`` and ``tracker`` sections (and ``source``).
+    """The YAML tracking config as a dict with ``observation``, ``tracker`` and ``background_refinement``
+    sections (and ``source``).
 
     A file may start from another with ``extends: NAME`` and override some settings.
     """
@@ -63,8 +67,9 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
         doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "extends"}:
-        raise InputError(f"{path}: expected the sections 'observation' and 'tracker' (and 'extends') only")
+    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "background_refinement", "extends"}:
+        raise InputError(f"{path}: expected the sections 'observation', 'tracker' and 'background_refinement' "
+                         "(and 'extends') only")
     if "extends" in doc:
         if str(path) in _seen:
             raise InputError(f"{path}: 'extends' loops back to itself")
@@ -73,6 +78,7 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
         doc = _merge(base, doc)
     doc.setdefault("observation", {})
     doc.setdefault("tracker", {})
+    doc.setdefault("background_refinement", {})
     doc["source"] = str(path)
     return doc
 
@@ -129,7 +135,7 @@ def _run(args: argparse.Namespace) -> int:
     from torchtrack.logging import RunLogger
     from torchtrack.skeleton import Skeleton
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
-    from torchtrack.tracking.run import track_sequence
+    from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
 
     cfg = load_config(args.config)
     ocfg = dict(cfg["observation"])
@@ -143,24 +149,34 @@ def _run(args: argparse.Namespace) -> int:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA device is available to PyTorch")
 
+    rcfg = RefineConfig.from_dict(cfg["background_refinement"], cfg["source"])
+    if args.refine_passes is not None:
+        rcfg = replace(rcfg, passes=args.refine_passes)
+
     folder = SequenceFolder(args.seq)
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float().to(device)
     fill = bool(args.fill_static_subject or ocfg.get("fill_static_subject", False))
-    bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=fill), size_wh=(W, H), device=device)
-    observer = observer_from_config(rig, bg, ocfg, model, voxel).to(device)
+    bg_config = BackgroundConfig(fill_static_subject=fill)
+    bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
         angles, height = _initial_pose(args.init_pose, tracker.generic.dof_names)
         height = args.height or height or folder.meta.subject_height_m or 1.75
         tracker.initialize_from_pose(torch.as_tensor(angles, dtype=torch.float32, device=device), height)
+    if folder.has_background and rcfg.passes:
+        log.info("%s has background/ frames: the background is measured, not refined from the track", args.seq)
+        rcfg = replace(rcfg, passes=0)
 
     args.out.mkdir(parents=True, exist_ok=True)
     with RunLogger(args.out / "tb") as tb:
-        poses, elapsed = track_sequence(folder, observer, tracker, args.start, args.stop, args.batch, device,
-                                        logger=tb, log_every=args.log_every, progress=True)
+        poses, elapsed, _ = track_with_background_refinement(
+            folder, bg, lambda b: observer_from_config(rig, b, ocfg, model, voxel).to(device), tracker, rcfg,
+            bg_config, args.start, args.stop, args.batch, device, logger=tb, log_every=args.log_every)
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
+    rate = f"{T * (rcfg.passes + 1) / elapsed:.1f} frames/s" + (f" over {rcfg.passes + 1} passes" if rcfg.passes
+                                                                  else "")
     print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
-          f"{reinit.sum()} (re)initialisations), {T / elapsed:.1f} frames/s; TensorBoard logs in {args.out / 'tb'}")
+          f"{reinit.sum()} (re)initialisations), {rate}; TensorBoard logs in {args.out / 'tb'}")
     return 0

@@ -205,10 +205,17 @@ class MarkerlessTracker:
         self.subject = _Subject(skeleton, self.config, self.blob_specs).to(skeleton.lower.device)
         self.height_m = skeleton.height()
 
-    def initialize_from_pose(self, angles: torch.Tensor, height_m: float) -> None:
-        """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall."""
+    def initialize_from_pose(self, angles: torch.Tensor, height_m: float | None = None, *,
+                             skeleton: Skeleton | None = None) -> None:
+        """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall (the body model
+        scaled to it) or with a given ``skeleton`` (e.g. a previous run's fitted one); give one of the two."""
         check_shape(angles, (self.generic.num_dofs,), "angles")
-        self._setup(height_m, angles.device)
+        if (height_m is None) == (skeleton is None):
+            raise InputError("initialize_from_pose: give the subject's height_m or its skeleton")
+        if skeleton is None:
+            self._setup(height_m, angles.device)
+        else:
+            self._use(skeleton.to(angles.device))
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0

@@ -19,7 +19,8 @@ log = logging.getLogger(__name__)
 
 def track_sequence(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int = 0,
                    stop: int | None = None, batch: int = 4, device: torch.device | str | None = None,
-                   logger=None, log_every: int = 10, progress: bool = True) -> tuple[Poses, float]:
+                   logger=None, log_every: int = 10, progress: bool = True, desc: str = "track"
+                   ) -> tuple[Poses, float]:
     """Track frames ``[start, stop)`` of ``folder``.
 
     A frame with an unreadable camera frame is not tracked and comes out ``valid = False``; so does a frame
@@ -30,6 +31,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
             size frames are read at). tracker: a fresh or initialised :class:`MarkerlessTracker`.
         logger: a :class:`~torchtrack.logging.RunLogger` or None; it gets per-frame scalars and, every
             ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton.
+        desc: the progress bar's label.
 
     Returns:
         the poses (DESIGN.md schema; ``extra`` holds ``subject_height_m``, ``observation_model``,
@@ -52,7 +54,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     explained = np.zeros(T, np.float32)
     reinit = np.zeros(T, bool)
     t_start = time.perf_counter()
-    with tqdm(total=T, unit="frame", desc="track", disable=not progress) as bar:
+    with tqdm(total=T, unit="frame", desc=desc, disable=not progress) as bar:
         for fb in folder.iter_batches(batch, start, stop, device=device, size_wh=(W, H)):
             t0 = time.perf_counter()
             observations = observer(fb.images, fb.valid)

@@ -1,0 +1,191 @@
+"""Background refinement from the track (torchtrack.tracking.refine) against plain loops and a synthetic scene."""
+
+from __future__ import annotations
+
+import math
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.blobs import BlobModel
+from torchtrack.cameras import CameraRig
+from torchtrack.checks import InputError, ShapeError
+from torchtrack.skeleton import Skeleton
+from torchtrack.tracking.refine import RefineConfig, body_masks, clear_frame_masks, clearance_px, refined_background
+
+W, H = 64, 64
+
+
+def _rig() -> CameraRig:
+    """Two pinhole cameras 4 m from the origin, looking at it horizontally from +y and from -x."""
+    K = torch.tensor([[80.0, 0, (W - 1) / 2], [0, 80.0, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    Rs, ts = [], []
+    for yaw in (math.pi / 2, math.pi):
+        centre = torch.tensor([4 * math.cos(yaw), 4 * math.sin(yaw), 0.9], dtype=torch.float64)
+        z = -centre / centre.norm()
+        z[2] = 0.0
+        z = z / z.norm()
+        x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        y = torch.linalg.cross(z, x)
+        R = torch.stack([x, y, z])  # world -> camera rows
+        Rs.append(R)
+        ts.append(-R @ centre)
+    return CameraRig(["a", "b"], K.expand(2, 3, 3).clone(), torch.stack(Rs), torch.stack(ts),
+                     torch.tensor([[W, H], [W, H]]), torch.zeros(2, 5, dtype=torch.float64)).float()
+
+
+@pytest.fixture(scope="module")
+def skel() -> Skeleton:
+    return Skeleton.from_urdf()
+
+
+def _pose(skel: Skeleton, x: float, y: float = 0.0) -> torch.Tensor:
+    a = skel.rest_angles()
+    a[skel.dof_names.index("root_tx")] = x
+    a[skel.dof_names.index("root_ty")] = y
+    return a
+
+
+def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel):
+    rig = _rig()
+    angles = torch.stack([_pose(skel, 0.0), _pose(skel, 0.3), torch.full_like(_pose(skel, 0.0), float("nan"))])
+    got = body_masks(rig, skel, angles, blob_scale=1.2)
+    assert got.shape == (3, 2, H, W) and got.dtype == torch.bool
+    assert got[2].all()  # an untracked frame: the body may be anywhere
+    blobs = BlobModel.from_config(skel)
+    centres, R = blobs.ellipsoids(skel.forward(angles[:2]).bone_frames)
+    axes = (blobs.semi_axes * 1.2).double().numpy()
+    v, u = np.mgrid[0:H, 0:W]
+    pix = np.stack([u.ravel(), v.ravel(), np.ones(H * W)])  # (3, HW)
+    for t in range(2):
+        for c in range(2):
+            Rc, tc = rig.R_cam_world[c].double().numpy(), rig.t_cam_world[c].double().numpy()
+            eye = -Rc.T @ tc
+            d = Rc.T @ np.linalg.inv(rig.K[c].double().numpy()) @ pix  # (3, HW) ray directions
+            want = np.zeros(H * W, bool)
+            for k in range(len(axes)):  # |A (eye + s d - c)|^2 = 1 in the ellipsoid's unit frame, some s > 0
+                A = R[t, k].double().numpy().T / axes[k][:, None]
+                o, dd = A @ (eye - centres[t, k].double().numpy()), A @ d  # (3,), (3, HW)
+                a, b, cc = (dd * dd).sum(0), 2 * o @ dd, o @ o - 1
+                disc = b * b - 4 * a * cc
+                want |= (disc >= 0) & ((-b + np.sqrt(np.maximum(disc, 0))) / (2 * a) > 0)
+            want = want.reshape(H, W)
+            mismatch = got[t, c].numpy() != want
+            assert want.sum() > 100, want.sum()  # the body is in view
+            assert mismatch.sum() <= 2, (t, c, mismatch.sum())  # only rays grazing a rim may differ
+
+
+def test_clearance_is_the_distance_to_the_nearest_set_pixel():
+    gen = torch.Generator().manual_seed(0)
+    masks = torch.rand(3, 2, 9, 11, generator=gen) > 0.93
+    masks[1, 1] = False
+    got = clearance_px(masks)
+    v, u = np.mgrid[0:9, 0:11]
+    for i in range(3):
+        for c in range(2):
+            m = masks[i, c].numpy()
+            if not m.any():
+                assert torch.isinf(got[i, c]).all()
+                continue
+            d = np.sqrt((v[..., None] - v[m]) ** 2 + (u[..., None] - u[m]) ** 2).min(-1)
+            np.testing.assert_allclose(got[i, c].numpy(), d, atol=1e-5)
+
+
+def test_clear_frame_masks_keep_the_clearest_frames_and_never_the_body():
+    k, big = 5, 20.0
+    cases = {  # clearance over 12 frames -> the frames kept
+        "many frames far": ([25, 30, 40, 21, 22, 23, 20, 0, 0, 3, 1, 2], [0, 1, 2, 3, 4, 5, 6]),
+        "few far: the 5 clearest": ([0, 0, 0, 4, 9, 25, 30, 1, 2, 0, 0, 0], [3, 4, 5, 6, 8]),
+        "ties at the 5th": ([7, 7, 7, 9, 9, 9, 0, 0, 0, 0, 1, 1], [0, 1, 2, 3, 4, 5]),
+        "only 3 off the body": ([0, 0, 0, 0, 0, 0, 0, 0, 0, 4, 6, 8], [9, 10, 11]),
+        "never clear": ([0] * 12, []),
+    }
+    clearance = torch.tensor([c for c, _ in cases.values()], dtype=torch.float32).T[:, :, None]  # (12, 5, 1)
+    used = ~clear_frame_masks(clearance, k, big)
+    for j, (name, (_, keep)) in enumerate(cases.items()):
+        assert torch.nonzero(used[:, j, 0])[:, 0].tolist() == keep, name
+    with pytest.raises(ShapeError):
+        clear_frame_masks(torch.zeros(4, 5), k, big)
+
+
+def test_refined_background_removes_the_ghost_of_a_subject_who_stands_still(skel):
+    """A body stands in one place in 20 of 30 frames and elsewhere in the others: the temporal median keeps it
+    as a ghost; re-estimated from the frames the true poses leave each pixel clearest of, the background is the
+    room's (this scene's ground truth) wherever the body ever stood."""
+    rig = _rig()
+    gen = torch.Generator().manual_seed(1)
+    room = 0.25 + 0.5 * torch.rand(2, 3, H, W, generator=gen)
+    angles = torch.stack([_pose(skel, 0.0)] * 20 + [_pose(skel, 0.9, -0.9)] * 10)
+    body = body_masks(rig, skel, angles)  # (30, 2, H, W): the body's silhouette
+    shirt = torch.tensor([0.9, 0.1, 0.1])[None, None, :, None, None]
+    frames = torch.where(body[:, :, None], shirt, room[None]) + 0.004 * torch.randn(30, 2, 3, H, W, generator=gen)
+    frames = frames.clamp(0, 1)
+    ghost = body[0] & ~body[-1]  # (2, H, W): covered where the subject stands still
+    assert ghost.sum() > 200
+    truth = BackgroundModel.from_frames(room[None].expand(5, -1, -1, -1, -1).contiguous())
+
+    def error(bg):  # mean |mean - room| in YUV over the ghost pixels
+        return float((bg.mean_yuv - truth.mean_yuv).abs().sum(1)[ghost].mean())
+
+    plain = BackgroundModel.from_sequence(frames, BackgroundConfig())
+    assert error(plain) > 0.3  # the ghost: the median is the shirt
+    refined = refined_background(frames, angles, rig, skel, BackgroundConfig(), RefineConfig())
+    assert error(refined) < 0.02, error(refined)
+    # a track that is off by 10 cm still finds the room: its body is still nearer the pixels it covers
+    off = refined_background(frames, angles + 0.1 * (torch.arange(angles.shape[1]) ==
+                                                     skel.dof_names.index("root_ty")), rig, skel,
+                             BackgroundConfig(), RefineConfig())
+    assert error(off) < 0.05, error(off)
+
+
+def test_refine_config_names_bad_settings():
+    assert RefineConfig.from_dict(None) == RefineConfig()
+    with pytest.raises(InputError, match="unknown background_refinement settings"):
+        RefineConfig.from_dict({"pases": 2}, "my.yaml")
+    for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            RefineConfig.from_dict(bad)
+
+
+def test_initial_pose_with_a_skeleton_keeps_it(skel):
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    tall = skel.scaled_to_height(1.93)
+    tracker.initialize_from_pose(skel.rest_angles(), skeleton=tall)
+    assert tracker.subject.skeleton is tall and tracker.height_m == pytest.approx(1.93, abs=1e-3)
+    with pytest.raises(InputError, match="height_m or its skeleton"):
+        tracker.initialize_from_pose(skel.rest_angles())
+    with pytest.raises(InputError, match="height_m or its skeleton"):
+        tracker.initialize_from_pose(skel.rest_angles(), 1.8, skeleton=tall)
+
+
+def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
+    """A synthetic sequence without background/ frames: the CLI tracks it twice (one refinement), writes
+    complete poses and logs only the last pass."""
+    import dataclasses
+
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses
+    from torchtrack.synth.scene import SceneConfig
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+
+    cfg = SynthConfig(motion="walk", duration_s=1.0, starfish_s=0.2, fps=20, background_frames=1,
+                      video_format="png", rig=RigConfig(num_cameras=4, width=240, height=180),
+                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
+    seq = write_sequence(cfg, tmp_path / "seq", progress=False)
+    shutil.rmtree(seq / "background")
+    out = tmp_path / "out"
+    assert main(["track", str(seq), "--out", str(out), "--scale", "1", "--refine-passes", "1",
+                 "--log-every", "0"]) == 0
+    assert "over 2 passes" in capsys.readouterr().out
+    poses = load_poses(out / "poses.npz")
+    gt = load_poses(seq / "gt.npz")
+    assert poses.num_frames == gt.num_frames and poses.valid.all()
+    err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
+    assert err < 0.06, err
+    assert main(["track", str(seq), "--out", str(out), "--refine-passes", "-1"]) == 2
+    assert "passes must be >= 0" in capsys.readouterr().err
