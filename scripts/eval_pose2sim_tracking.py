@@ -8,6 +8,9 @@ RHip/LHip, neck, shoulders, elbows, wrists, hips, knees, ankles (14 of our 16 la
 thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames;
 saves a picture of one tracked frame in the four views.
 
+Without empty frames the background is refined from the track (``torchtrack.tracking.refine``: the config's
+``background_refinement.passes`` re-estimations, each followed by a new track; ``--refine-passes N``).
+
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
 each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
 between them, the trunk a rounded quadrilateral of shoulders and hips) and the Bayesian grid's voxels are carved
