@@ -24,7 +24,7 @@ background an estimator that knew where the subject is would find in this clip.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
        [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes | --reference-background]
-       [--refine-passes 3] [--tracker velocity=0 ...]
+       [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
 
@@ -209,6 +209,8 @@ def main() -> None:
     ap.add_argument("--refine-passes", type=int, default=None,
                     help="background re-estimations from the track, each followed by a new track (default: the "
                          "config's background_refinement.passes; 0 with the reference diagnostics)")
+    ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
@@ -242,7 +244,8 @@ def main() -> None:
             if args.model != "bayes":
                 raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
             observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
-        refine = RefineConfig.from_dict(config["background_refinement"], config["source"])
+        refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
+                                args.refine, "--refine")
         if args.refine_passes is not None:
             refine = replace(refine, passes=args.refine_passes)
         if args.reference_silhouettes or args.reference_background:
