@@ -244,10 +244,13 @@ def main() -> None:
             if args.model != "bayes":
                 raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
             observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
-        refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
-                                args.refine, "--refine")
-        if args.refine_passes is not None:
-            refine = replace(refine, passes=args.refine_passes)
+        try:
+            refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
+                                    args.refine, "--refine")
+            if args.refine_passes is not None:
+                refine = replace(refine, passes=args.refine_passes)
+        except InputError as e:
+            raise SystemExit(str(e)) from None
         if args.reference_silhouettes or args.reference_background:
             refine = replace(refine, passes=0)
         tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
@@ -257,11 +260,22 @@ def main() -> None:
             angles, height = fit_to_landmarks(tracker, names, ref[0])
             tracker.initialize_from_pose(angles, height)
             print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
+        truth = None
+
+        def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
+            nonlocal truth
+            if truth is None:
+                truth = reference_poses(names, ref, folder.fps, poses.joint_names)
+            if refine.passes:
+                r = evaluate(poses, truth, landmarks=names)
+                print(f"pass {p + 1} of {refine.passes + 1}: MPJPE {r.mpjpe_mm:.1f} mm, "
+                      f"{int((~poses.valid).sum())} lost", flush=True)
+
         try:
             poses, elapsed, _ = track_with_background_refinement(
                 folder, bg, lambda b: observer if b is bg else observer_from_config(rig, b, config["observation"],
                                                                                     args.model, args.voxel),
-                tracker, refine, bg_config, progress=False)
+                tracker, refine, bg_config, progress=False, on_pass=report_pass)
         except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
             raise SystemExit(f"tracking failed: {e}") from None
         truth = reference_poses(names, ref, folder.fps, poses.joint_names)

@@ -19,8 +19,9 @@ from torchtrack.tracking.refine import RefineConfig, body_masks, clear_frame_mas
 W, H = 64, 64
 
 
-def _rig() -> CameraRig:
-    """Two pinhole cameras 4 m from the origin, looking at it horizontally from +y and from -x."""
+def _rig(k1: float = 0.0) -> CameraRig:
+    """Two cameras 4 m from the origin, looking at it horizontally from +y and from -x; the second with radial
+    distortion ``k1``."""
     K = torch.tensor([[80.0, 0, (W - 1) / 2], [0, 80.0, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
     Rs, ts = [], []
     for yaw in (math.pi / 2, math.pi):
@@ -34,7 +35,8 @@ def _rig() -> CameraRig:
         Rs.append(R)
         ts.append(-R @ centre)
     return CameraRig(["a", "b"], K.expand(2, 3, 3).clone(), torch.stack(Rs), torch.stack(ts),
-                     torch.tensor([[W, H], [W, H]]), torch.zeros(2, 5, dtype=torch.float64)).float()
+                     torch.tensor([[W, H], [W, H]]),
+                     torch.tensor([[0.0] * 5, [k1, 0, 0, 0, 0]], dtype=torch.float64)).float()
 
 
 @pytest.fixture(scope="module")
@@ -50,8 +52,11 @@ def _pose(skel: Skeleton, x: float, y: float = 0.0) -> torch.Tensor:
 
 
 def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel):
-    rig = _rig()
-    angles = torch.stack([_pose(skel, 0.0), _pose(skel, 0.3), torch.full_like(_pose(skel, 0.0), float("nan"))])
+    import cv2
+
+    rig = _rig(k1=-0.6)
+    nan = torch.full_like(_pose(skel, 0.0), float("nan"))
+    angles = torch.stack([_pose(skel, 0.0), _pose(skel, 0.3, -1.0), nan])  # the second off-centre in view b
     got = body_masks(rig, skel, angles, blob_scale=1.2)
     assert got.shape == (3, 2, H, W) and got.dtype == torch.bool
     assert got[2].all()  # an untracked frame: the body may be anywhere
@@ -59,12 +64,14 @@ def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel):
     centres, R = blobs.ellipsoids(skel.forward(angles[:2]).bone_frames)
     axes = (blobs.semi_axes * 1.2).double().numpy()
     v, u = np.mgrid[0:H, 0:W]
-    pix = np.stack([u.ravel(), v.ravel(), np.ones(H * W)])  # (3, HW)
+    pix = np.stack([u.ravel(), v.ravel()]).astype(np.float64)  # (2, HW)
     for t in range(2):
         for c in range(2):
             Rc, tc = rig.R_cam_world[c].double().numpy(), rig.t_cam_world[c].double().numpy()
             eye = -Rc.T @ tc
-            d = Rc.T @ np.linalg.inv(rig.K[c].double().numpy()) @ pix  # (3, HW) ray directions
+            xy = cv2.undistortPoints(pix[:2].T[:, None], rig.K[c].double().numpy(),
+                                     rig.dist[c].double().numpy())[:, 0]  # (HW, 2) OpenCV's undistortion
+            d = Rc.T @ np.concatenate([xy.T, np.ones((1, H * W))])  # (3, HW) ray directions
             want = np.zeros(H * W, bool)
             for k in range(len(axes)):  # |A (eye + s d - c)|^2 = 1 in the ellipsoid's unit frame, some s > 0
                 A = R[t, k].double().numpy().T / axes[k][:, None]
@@ -74,7 +81,7 @@ def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel):
                 want |= (disc >= 0) & ((-b + np.sqrt(np.maximum(disc, 0))) / (2 * a) > 0)
             want = want.reshape(H, W)
             mismatch = got[t, c].numpy() != want
-            assert want.sum() > 100, want.sum()  # the body is in view
+            assert want.sum() > 50, want.sum()  # the body is in view
             assert mismatch.sum() <= 2, (t, c, mismatch.sum())  # only rays grazing a rim may differ
 
 
@@ -145,9 +152,13 @@ def test_refine_config_names_bad_settings():
     assert RefineConfig.from_dict(None) == RefineConfig()
     with pytest.raises(InputError, match="unknown background_refinement settings"):
         RefineConfig.from_dict({"pases": 2}, "my.yaml")
-    for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0}):
+    for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0},
+                {"passes": 2.5}, {"passes": True}, {"blob_scale": "big"}):
         with pytest.raises(InputError, match=next(iter(bad))):
             RefineConfig.from_dict(bad)
+    for section in (False, 0, "off"):
+        with pytest.raises(InputError, match="must be a mapping"):
+            RefineConfig.from_dict(section, "my.yaml")
 
 
 def test_initial_pose_with_a_skeleton_keeps_it(skel):
@@ -164,9 +175,11 @@ def test_initial_pose_with_a_skeleton_keeps_it(skel):
 
 
 def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
-    """A synthetic sequence without background/ frames: the CLI tracks it twice (one refinement), writes
-    complete poses and logs only the last pass."""
+    """A synthetic sequence without background/ frames, from frame 2: the CLI tracks it twice (one refinement),
+    writes complete poses and logs the last pass only."""
     import dataclasses
+
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     from torchtrack.cli import main
     from torchtrack.io.poses import load_poses
@@ -178,14 +191,49 @@ def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
                       scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
     seq = write_sequence(cfg, tmp_path / "seq", progress=False)
     shutil.rmtree(seq / "background")
-    out = tmp_path / "out"
-    assert main(["track", str(seq), "--out", str(out), "--scale", "1", "--refine-passes", "1",
-                 "--log-every", "0"]) == 0
-    assert "over 2 passes" in capsys.readouterr().out
-    poses = load_poses(out / "poses.npz")
     gt = load_poses(seq / "gt.npz")
-    assert poses.num_frames == gt.num_frames and poses.valid.all()
-    err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
-    assert err < 0.06, err
-    assert main(["track", str(seq), "--out", str(out), "--refine-passes", "-1"]) == 2
+    errors = {}
+    for passes in (1, 0):
+        out = tmp_path / f"out{passes}"
+        assert main(["track", str(seq), "--out", str(out), "--scale", "1", "--refine-passes", str(passes),
+                     "--start", "2", "--log-every", "0"]) == 0
+        assert ("over 2 passes" in capsys.readouterr().out) == (passes == 1)
+        poses = load_poses(out / "poses.npz")
+        assert poses.num_frames == gt.num_frames - 2 and poses.valid.all()
+        assert poses.frame_index.tolist() == list(range(2, gt.num_frames))
+        errors[passes] = float(np.linalg.norm(poses.landmarks() - gt.landmarks()[2:], axis=-1).mean())
+        acc = EventAccumulator(str(out / "tb"))
+        acc.Reload()
+        assert len(acc.Scalars("voxels")) == poses.num_frames  # one pass logged
+    # this short walk moves through its whole clip, so its median has little ghost: refining must not hurt
+    assert errors[1] < 0.08 and errors[1] < errors[0] + 0.005, errors
+    assert main(["track", str(seq), "--out", str(tmp_path / "bad"), "--refine-passes", "-1"]) == 2
     assert "passes must be >= 0" in capsys.readouterr().err
+
+
+def test_a_first_pass_that_tracks_nothing_is_returned_with_a_warning(monkeypatch, skel):
+    """Nothing to render a body from: no refinement, the first pass's poses come back."""
+    from types import SimpleNamespace
+
+    from torchtrack.io.poses import Poses
+    from torchtrack.io.video import DataWarning
+    from torchtrack.tracking import refine
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+
+    T, D = 8, skel.num_dofs
+    empty = Poses(fps=10.0, frame_index=np.arange(T), joint_names=["pelvis"], joints3d=np.full((T, 1, 3), np.nan),
+                  dof_names=list(skel.dof_names), angles=np.full((T, D), np.nan, np.float32),
+                  valid=np.zeros(T, bool), confidence=np.zeros((T, 1), np.float32))
+    calls = []
+    monkeypatch.setattr(refine, "track_sequence", lambda *a, **k: (calls.append(k) or empty, 1.0))
+    folder = SimpleNamespace(num_frames=T, root="seq")
+    observer = SimpleNamespace(rig=_rig())
+    with pytest.warns(DataWarning, match="tracked no frame"):
+        poses, _, bg = refine.track_with_background_refinement(
+            folder, "first background", lambda b: observer, MarkerlessTracker(skel, TrackerConfig()),
+            RefineConfig(passes=2), BackgroundConfig())
+    assert poses is empty and bg == "first background" and len(calls) == 1
+    with pytest.raises(InputError, match="at least 5 frames"):
+        refine.track_with_background_refinement(
+            folder, "first background", lambda b: observer, MarkerlessTracker(skel, TrackerConfig()),
+            RefineConfig(passes=2), BackgroundConfig(), start=4)

@@ -103,14 +103,16 @@ def dead_frames(images: torch.Tensor) -> torch.Tensor:
 
 
 def subsample(frames: torch.Tensor, max_frames: int) -> torch.Tensor:
-    """At most ``max_frames`` frames of (N, ...), evenly spaced, first and last included (a view when N fits)."""
+    """At most ``max_frames`` frames of (N, ...), evenly spaced, first and last included (a view when N fits);
+    the frames :meth:`~torchtrack.io.sequence.SequenceFolder.sample_frames` reads."""
+    from torchtrack.io.sequence import evenly_spaced
+
     n = frames.shape[0]
     if max_frames < 1:
         raise InputError(f"max_frames must be >= 1, got {max_frames}")
     if n <= max_frames:
         return frames
-    idx = torch.linspace(0, n - 1, max_frames, dtype=torch.float64).round().long().unique()
-    return frames[idx.to(frames.device)]
+    return frames[torch.tensor(evenly_spaced(n, max_frames), device=frames.device)]
 
 
 def check_cameras(dead: torch.Tensor, names: Sequence[str], min_frames: int, what: str) -> None:

@@ -146,6 +146,8 @@ class BackgroundModel(nn.Module):
             raise InputError("std_yuv: every std must be > 0 (NaN or <= 0 found)")
         self.config = config
         self.camera_names = _camera_names(camera_names, mean_yuv.shape[0])
+        #: True when estimated from a moving sequence (:meth:`from_sequence`), not from empty-scene frames
+        self.from_moving_sequence = False
         self.register_buffer("mean_yuv", mean_yuv)
         self.register_buffer("std_yuv", std_yuv)
         # derived once, used every frame: 1 / std and the Gaussian's log normaliser (C, H, W)
@@ -222,7 +224,9 @@ class BackgroundModel(nn.Module):
             if subject_masks.dtype != torch.bool:
                 raise InputError(f"subject_masks: expected a bool tensor, got {subject_masks.dtype}")
         mean, std = sequence_statistics(frames, config, names, refine=True, subject_masks=subject_masks)
-        return cls(mean, std, config, names)
+        model = cls(mean, std, config, names)
+        model.from_moving_sequence = True
+        return model
 
     @classmethod
     def from_folder(cls, folder: SequenceFolder, config: BackgroundConfig = BackgroundConfig(),

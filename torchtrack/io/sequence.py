@@ -50,6 +50,15 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 logger = logging.getLogger(__name__)
 
+
+def evenly_spaced(count: int, max_count: int) -> list[int]:
+    """At most ``max_count`` indices into ``range(count)``, evenly spaced, first and last included (rounded to
+    the nearest index, duplicates dropped)."""
+    if max_count < 1:
+        raise InputError(f"max_frames must be >= 1, got {max_count}")
+    return sorted({int(i) for i in np.linspace(0, count - 1, min(max_count, count)).round()})
+
+
 #: Frame rate assumed when neither meta.toml nor the videos give one.
 DEFAULT_FPS = 30.0
 #: Largest codec padding (pixels per dimension) accepted between decoded and calibrated frame sizes.
@@ -415,13 +424,10 @@ class SequenceFolder:
             the frame indices and (N, C, 3, H, W) float16 RGB [0, 1] (half the memory of float32; 1/255 steps
             survive it), NaN for a camera that fails to decode.
         """
-        if max_frames < 1:
-            raise InputError(f"max_frames must be >= 1, got {max_frames}")
         stop = self.num_frames if stop is None else min(stop, self.num_frames)
         if not 0 <= start < stop:
             raise InputError(f"{self.root}: no frames in [{start}, {stop}) ({self.num_frames} frames)")
-        n = min(max_frames, stop - start)
-        indices = sorted({start + int(i) for i in np.linspace(0, stop - start - 1, n).round()})
+        indices = [start + i for i in evenly_spaced(stop - start, max_frames)]
         frames = None
         for k, i in enumerate(indices):  # forward reads: the video sources decode sequentially
             image = self.read_frame(i, device=device, size_wh=size_wh)  # (C, 3, H, W)
@@ -444,8 +450,7 @@ class SequenceFolder:
         if max_frames < 1:
             raise InputError(f"max_frames must be >= 1, got {max_frames}")
         count = self._common_count(self.background_sources, "background frame")
-        n = min(max_frames, count)
-        indices = sorted({int(i) for i in np.linspace(0, count - 1, n).round()})
+        indices = evenly_spaced(count, max_frames)
         buf, valid = self._read_block(self.background_sources, indices, size_wh)
         keep = valid.all(axis=1)  # (N,)
         if not keep.all():

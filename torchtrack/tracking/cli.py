@@ -164,8 +164,9 @@ def _run(args: argparse.Namespace) -> int:
         angles, height = _initial_pose(args.init_pose, tracker.generic.dof_names)
         height = args.height or height or folder.meta.subject_height_m or 1.75
         tracker.initialize_from_pose(torch.as_tensor(angles, dtype=torch.float32, device=device), height)
-    if folder.has_background and rcfg.passes:
-        log.info("%s has background/ frames: the background is measured, not refined from the track", args.seq)
+    if not bg.from_moving_sequence and rcfg.passes:
+        log.info("%s: the background is measured from its background/ frames, not refined from the track",
+                 args.seq)
         rcfg = replace(rcfg, passes=0)
 
     args.out.mkdir(parents=True, exist_ok=True)

@@ -27,6 +27,8 @@ keypoints leave free gives 104.2 mm. Trusting the grown masks as they are oscill
 from __future__ import annotations
 
 import logging
+import time
+import warnings
 from dataclasses import dataclass, fields
 from typing import Any, Callable
 
@@ -35,12 +37,14 @@ import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.background.estimate import MIN_CLEAN_FRAMES
+from torchtrack.background.model import MIN_SEQUENCE_FRAMES
 from torchtrack.cameras import CameraRig
 from torchtrack.checks import InputError, ShapeError, check_shape
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
-from torchtrack.synth.render import bounding_sphere_pairs, ray_ellipsoid_pair_hits
+from torchtrack.synth.render import ray_ellipsoid_intersect
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
@@ -58,7 +62,9 @@ class RefineConfig:
     Attributes:
         passes: re-estimations of the background, each followed by a new track (0: track once).
         blob_scale: the blobs' ellipsoids are grown by this factor before they are rendered.
-        clear_frames: a pixel's background comes from at least this many of its clearest frames.
+        clear_frames: k: each pixel's background comes from its k clearest frames (ties included) or from more
+            (see ``clear_fraction``), never from a frame where the rendered body covers it: where fewer than
+            ``MIN_CLEAN_FRAMES`` frames leave a pixel, the sequence estimate (passes 1-3) is kept there.
         clear_fraction: frames at least this fraction of the image's larger side clear of the body all count.
     """
 
@@ -68,6 +74,12 @@ class RefineConfig:
     clear_fraction: float = 0.04
 
     def __post_init__(self) -> None:
+        for name, kind in (("passes", int), ("clear_frames", int), ("blob_scale", float),
+                           ("clear_fraction", float)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
+                raise InputError(f"background_refinement.{name} must be a number{' (whole)' * (kind is int)}, "
+                                 f"got {value!r}")
         if self.passes < 0:
             raise InputError(f"background_refinement.passes must be >= 0, got {self.passes}")
         if not self.blob_scale >= 1.0:
@@ -81,7 +93,11 @@ class RefineConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str = "<config>") -> RefineConfig:
         """Build from the YAML section (None: the defaults), naming unknown keys."""
-        doc = doc or {}
+        if doc is None:
+            doc = {}
+        if not isinstance(doc, dict):
+            raise InputError(f"{source}: background_refinement must be a mapping of settings (passes: 0 turns it "
+                             f"off), got {doc!r}")
         known = {f.name for f in fields(cls)}
         unknown = set(doc) - known
         if unknown:
@@ -95,47 +111,43 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     """Where the body of the blob model is seen: the union of its ellipsoids in every view.
 
     A pixel is set when its ray (through the lens model, :meth:`CameraRig.pixel_rays`) meets an ellipsoid in
-    front of the camera.
+    front of the camera (:func:`~torchtrack.synth.render.ray_ellipsoid_intersect`).
 
     Args:
-        rig: the cameras at the size of the masks.
+        rig: the cameras at the size of the masks (one size for all).
         skeleton: the subject's skeleton; its blobs are ``BlobModel(skeleton, *specs)`` (default: blobs.yaml).
         angles: (T, D) state vectors; a frame with a non-finite value (an untracked frame) gives a mask that is
             set everywhere (the body may be anywhere).
         blob_scale: the ellipsoids' semi-axes are multiplied by this.
 
     Returns:
-        (T, C, H, W) bool.
+        (T, C, H, W) bool on the rig's device.
     """
     from torchtrack.blobs import BlobModel
     from torchtrack.blobs.model import load_blob_specs
 
     check_shape(angles, ("T", skeleton.num_dofs), "angles")
-    blobs = BlobModel(skeleton, *(specs if specs is not None else load_blob_specs()))
-    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
         raise InputError("body_masks: the cameras must share one image size")
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32),
-                          indexing="ij")
-    uv = torch.stack([u, v], -1).reshape(1, -1, 2).expand(len(rig), -1, -1).to(rig.K.device)
+    device = rig.K.device
+    skeleton = skeleton.to(device)
+    blobs = BlobModel(skeleton, *(specs if specs is not None else load_blob_specs())).to(device)
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=device),
+                          torch.arange(W, dtype=torch.float32, device=device), indexing="ij")
+    uv = torch.stack([u, v], -1).reshape(1, -1, 2).expand(len(rig), -1, -1)
     origins, dirs = rig.pixel_rays(uv)  # (C, HW, 3)
     T, C = angles.shape[0], len(rig)
-    out = torch.ones((T, C, H * W), dtype=torch.bool, device=angles.device)
+    angles = angles.to(device, torch.float32)
+    out = torch.ones((T, C, H * W), dtype=torch.bool, device=device)
     ok = torch.isfinite(angles).all(-1)
     if bool(ok.any()):
-        frames = skeleton.forward(angles[ok]).bone_frames
-        centres, R = blobs.ellipsoids(frames)  # (T', K, 3), (T', K, 3, 3)
-    axes = blobs.semi_axes * blob_scale  # (K, 3)
-    radii = axes.amax(-1)
-    for i, t in enumerate(ok.nonzero()[:, 0].tolist()):
-        c, r_ = centres[i].to(origins.dtype), R[i].to(origins.dtype)
-        for cam in range(C):
-            rays, parts = bounding_sphere_pairs(origins[cam], dirs[cam], c, radii.to(origins.dtype))
-            hit = torch.isfinite(ray_ellipsoid_pair_hits(origins[cam][rays], dirs[cam][rays], parts, c, r_,
-                                                         axes.to(origins.dtype)))
-            mask = torch.zeros(H * W, dtype=torch.bool, device=out.device)
-            mask[rays[hit]] = True
-            out[t, cam] = mask
+        centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
+        axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
+        for i, t in enumerate(ok.nonzero()[:, 0].tolist()):
+            _, part, _ = ray_ellipsoid_intersect(origins, dirs, centres[i].to(origins.dtype),
+                                                 R[i].to(origins.dtype), axes)
+            out[t] = part >= 0
     return out.reshape(T, C, H, W)
 
 
@@ -198,50 +210,64 @@ def track_with_background_refinement(
         folder: SequenceFolder, background: BackgroundModel, make_observer: Callable[[BackgroundModel], Observer],
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
         stop: int | None = None, batch: int = 4, device: torch.device | str | None = None, logger=None,
-        log_every: int = 10, progress: bool = True) -> tuple[Poses, float, BackgroundModel]:
+        log_every: int = 10, progress: bool = True,
+        on_pass: Callable[[int, Poses], None] | None = None) -> tuple[Poses, float, BackgroundModel]:
     """Track, then ``config.passes`` times re-estimate the background from the track and track again.
 
-    Every pass starts from the same state: the tracker's initial pose when it was given one, else the first
-    pass's first tracked frame (the automatic initialisation may refuse the refined observation of a start
-    that is not a clean starfish) with the subject's skeleton as the first pass fitted it. The background is
-    re-estimated from ``bg_config.max_frames`` evenly spaced frames of ``[start, stop)``, read once. Only the
-    last pass is logged.
+    Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
+    else the first pass's first tracked frame with the subject's skeleton as the first pass fitted it (the
+    automatic initialisation may refuse the refined observation of a start that is not a clean starfish; when
+    that frame is after ``start``, the frames before it had nobody in the volume and the tracker re-acquires
+    the body from that pose). The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
+    of ``[start, stop)``, read once (the first background may come from the whole clip); frames a pass did not
+    track leave every pixel out of the frame's estimate. Only the last pass is logged. A first pass that
+    tracks no frame ends the refinement with a warning and its poses.
 
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
+        on_pass: called with the pass number (0 first) and its poses after each pass.
         Others: as :func:`~torchtrack.tracking.run.track_sequence`.
 
     Returns:
-        the last pass's poses, the seconds all passes took, and its background.
+        the last pass's poses, the seconds all passes took (reading, refinement and tracking), and its
+        background.
+
+    Raises:
+        InputError: refinement asked for with fewer than ``MIN_SEQUENCE_FRAMES`` frames in ``[start, stop)``.
     """
+    t0 = time.perf_counter()
     stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
+    if config.passes and stop - start < MIN_SEQUENCE_FRAMES:
+        raise InputError(f"{folder.root}: background refinement needs at least {MIN_SEQUENCE_FRAMES} frames, "
+                         f"[{start}, {stop}) has {max(stop - start, 0)} (set background_refinement.passes to 0)")
     start_state = (tracker.angles.clone(), tracker.subject.skeleton) if tracker.initialized else None
     observer = make_observer(background)
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
-    indices, frames = None, None
-    elapsed = 0.0
+    indices, frames, poses = None, None, None
     for p in range(config.passes + 1):
         last = p == config.passes
         if p > 0:
+            if not poses.valid.any():
+                warnings.warn(f"{folder.root}: the first pass tracked no frame; the background is not refined",
+                              DataWarning, stacklevel=2)
+                break
             if frames is None:
                 indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device,
                                                        size_wh=(W, H))
-            angles = torch.as_tensor(poses.angles[np.asarray(indices) - start])
+            k = np.asarray(indices) - start
+            angles = torch.as_tensor(np.where(poses.valid[k, None], poses.angles[k], np.nan))
             if start_state is None:
-                first = np.flatnonzero(poses.valid)
-                if first.size == 0:
-                    raise InputError(f"{folder.root}: no frame was tracked; nothing to refine the background from")
-                start_state = (torch.as_tensor(poses.angles[first[0]]).to(tracker.angles), tracker.subject.skeleton)
+                first = int(np.flatnonzero(poses.valid)[0])
+                start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton)
             background = refined_background(frames, angles, rig, tracker.subject.skeleton, bg_config, config,
                                             folder.camera_names, tracker.blob_specs)
             observer = make_observer(background)
             tracker.initialize_from_pose(start_state[0], skeleton=start_state[1])
-        if config.passes:
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
-        poses, seconds = track_sequence(folder, observer, tracker, start, stop, batch, device,
-                                        logger=logger if last else None, log_every=log_every,
-                                        progress=progress, desc=f"track {p + 1}/{config.passes + 1}"
-                                        if config.passes else "track")
-        elapsed += seconds
-    return poses, elapsed, background
+        poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
+                                  logger=logger if last else None, log_every=log_every, progress=progress,
+                                  desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track")
+        if on_pass is not None:
+            on_pass(p, poses)
+    return poses, time.perf_counter() - t0, background
