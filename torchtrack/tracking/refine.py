@@ -223,8 +223,8 @@ def track_with_background_refinement(
     of ``[start, stop)``, read once (the first background may come from the whole clip). A frame a pass lost
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
     was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes: the first pass loses
-    38 of its 100 frames). Frames never tracked (before the first initialisation) are left out. Only the last pass is logged. A first pass that
-    tracks no frame ends the refinement with a warning and its poses.
+    38 of its 100 frames). Frames never tracked (before the first initialisation) are left out. Only the last
+    pass is logged. A first pass that tracks no frame ends the refinement with a warning and its poses.
 
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
