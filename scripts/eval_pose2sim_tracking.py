@@ -260,12 +260,9 @@ def main() -> None:
             angles, height = fit_to_landmarks(tracker, names, ref[0])
             tracker.initialize_from_pose(angles, height)
             print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
-        truth = None
+        truth = reference_poses(names, ref, folder.fps, list(tracker.generic.output_names))
 
         def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
-            nonlocal truth
-            if truth is None:
-                truth = reference_poses(names, ref, folder.fps, poses.joint_names)
             if refine.passes:
                 r = evaluate(poses, truth, landmarks=names)
                 print(f"pass {p + 1} of {refine.passes + 1}: MPJPE {r.mpjpe_mm:.1f} mm, "
@@ -278,7 +275,6 @@ def main() -> None:
                 tracker, refine, bg_config, progress=False, on_pass=report_pass)
         except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
             raise SystemExit(f"tracking failed: {e}") from None
-        truth = reference_poses(names, ref, folder.fps, poses.joint_names)
         rep = evaluate(poses, truth, landmarks=names)
         print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
               f"{refine.passes} times, {poses.num_frames * (refine.passes + 1) / elapsed:.1f} frames/s, "

@@ -39,6 +39,7 @@ import torch
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.background.estimate import MIN_CLEAN_FRAMES
 from torchtrack.background.model import MIN_SEQUENCE_FRAMES
+from torchtrack.blobs import BlobModel
 from torchtrack.cameras import CameraRig
 from torchtrack.checks import InputError, ShapeError, check_shape
 from torchtrack.io.poses import Poses
@@ -108,7 +109,7 @@ class RefineConfig:
 
 
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
-               specs: tuple[list, float] | None = None) -> torch.Tensor:
+               blobs: BlobModel | None = None) -> torch.Tensor:
     """Where the body of the blob model is seen: the union of its ellipsoids in every view.
 
     A pixel is set when its ray (through the lens model, :meth:`CameraRig.pixel_rays`) meets an ellipsoid in
@@ -116,7 +117,8 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
 
     Args:
         rig: the cameras at the size of the masks (one size for all).
-        skeleton: the subject's skeleton; its blobs are ``BlobModel(skeleton, *specs)`` (default: blobs.yaml).
+        skeleton: the subject's skeleton.
+        blobs: its blob model (the tracker's ``subject.blobs``; default: blobs.yaml on ``skeleton``).
         angles: (T, D) state vectors; a frame with a non-finite value (an untracked frame) gives a mask that is
             set everywhere (the body may be anywhere).
         blob_scale: the ellipsoids' semi-axes are multiplied by this.
@@ -124,15 +126,12 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     Returns:
         (T, C, H, W) bool on the rig's device.
     """
-    from torchtrack.blobs import BlobModel
-    from torchtrack.blobs.model import load_blob_specs
-
     check_shape(angles, ("T", skeleton.num_dofs), "angles")
     if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
         raise InputError("body_masks: the cameras must share one image size")
     device = rig.K.device
     skeleton = skeleton.to(device)
-    blobs = BlobModel(skeleton, *(specs if specs is not None else load_blob_specs())).to(device)
+    blobs = (BlobModel.from_config(skeleton) if blobs is None else blobs).to(device)
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=device),
                           torch.arange(W, dtype=torch.float32, device=device), indexing="ij")
@@ -145,7 +144,7 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     if bool(ok.any()):
         centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
         axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
-        for i, t in enumerate(ok.nonzero()[:, 0].tolist()):
+        for i, t in enumerate(ok.nonzero()[:, 0].tolist()):  # per frame: its own K ellipsoids, all views' rays
             _, part, _ = ray_ellipsoid_intersect(origins, dirs, centres[i].to(origins.dtype),
                                                  R[i].to(origins.dtype), axes)
             out[t] = part >= 0
@@ -189,19 +188,19 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
 
 def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRig, skeleton: Skeleton,
                        bg_config: BackgroundConfig, config: RefineConfig, camera_names: list[str] | None = None,
-                       specs: tuple[list, float] | None = None) -> BackgroundModel:
+                       blobs: BlobModel | None = None) -> BackgroundModel:
     """The background re-estimated from each pixel's frames clearest of the tracked body (module docstring).
 
     Args:
         frames: (N, C, 3, H, W) RGB frames of the sequence (float16 is fine), at the rig's size.
         angles: (N, D) the tracked state vectors of those frames (NaN where untracked).
-        skeleton: the tracked subject's skeleton.
+        skeleton, blobs: the tracked subject's skeleton and blob model (see :func:`body_masks`).
     """
     N, C, _, H, W = frames.shape
     check_shape(angles, (N, skeleton.num_dofs), "angles")
     clear_px = config.clear_fraction * max(H, W)
     masks = torch.empty((N, C, H, W), dtype=torch.bool)
-    body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, specs).cpu()
+    body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs).cpu()
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
         masks[:, c] = clear_frame_masks(clearance_px(body[:, c]), config.clear_frames, clear_px)
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
@@ -264,7 +263,7 @@ def track_with_background_refinement(
                 first = int(np.flatnonzero(poses.valid)[0])
                 start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton)
             background = refined_background(frames, angles, rig, tracker.subject.skeleton, bg_config, config,
-                                            folder.camera_names, tracker.blob_specs)
+                                            folder.camera_names, tracker.subject.blobs)
             observer = make_observer(background)
             tracker.initialize_from_pose(start_state[0], skeleton=start_state[1])
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
