@@ -7,7 +7,6 @@ import dataclasses
 import logging
 import shutil
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest

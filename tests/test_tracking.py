@@ -18,11 +18,14 @@ from scipy.spatial.transform import Rotation
 from torchtrack.blobs import BlobModel
 from torchtrack.blobs.em import EMConfig, e_step, fit_blobs, prior_blobs
 from torchtrack.checks import InputError
+from torchtrack.conventions import LANDMARKS
 from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import procedural_motion
 from torchtrack.skeleton import root_rotation_angles, root_rotation_matrix
-from torchtrack.tracking.goals import GoalModel, bound_rotation, least_rotation, weighted_kabsch
+from torchtrack.skeleton.model import JOINT_FRAMES
+from torchtrack.tracking.goals import (GoalModel, bound_rotation, feet_index, floor_contact, least_rotation,
+                                     weighted_kabsch)
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 
@@ -217,6 +220,81 @@ def test_fit_root_recovers_a_moved_trunk(skel):
     np.testing.assert_allclose(out[0, :6].numpy(), truth[:6].numpy(), atol=1e-5)
     bounded = gm.fit_root(start[None], fk_s.joints, fk_t.joints, w, max_rotation=0.1)
     assert abs(float(bounded[0, 3]) - 0.1) < 1e-5  # the heading change is clipped
+
+
+def test_floor_contact_stands_the_lowest_foot_on_the_floor():
+    """Worked by hand: two frames, 22 joints; the support foot's ankle and toe goals move down together."""
+    G = len(JOINT_FRAMES)
+    la, lt, ra, rt = (JOINT_FRAMES.index(n) for n in ("l_foot", "l_toe", "r_foot", "r_toe"))
+    goals = torch.zeros(2, G, 3)
+    weights = torch.full((2, G), 0.5)
+    joints = torch.full((2, G, 3), 7.0)
+    # frame 0: left sole at min(0.30, 0.38 - 0.08) = 0.30, right sole at min(0.25, 0.40 - 0.08) = 0.25: right
+    goals[0, la], goals[0, lt] = torch.tensor([0.1, 0.2, 0.38]), torch.tensor([0.2, 0.2, 0.30])
+    goals[0, ra], goals[0, rt] = torch.tensor([0.1, -0.2, 0.40]), torch.tensor([0.2, -0.2, 0.25])
+    # frame 1: the left foot has no goals (from the joints: heel 0.12 - 0.08 = 0.04 under the toe's 0.10);
+    # right sole 0.20: the left foot is the support; its ankle gets a goal from the joint, weighted 1, and its
+    # toe none (a goal from the prediction would hold the foot's pitch)
+    weights[1, [la, lt]] = 0.0
+    joints[1, la], joints[1, lt] = torch.tensor([0.0, 0.1, 0.12]), torch.tensor([0.1, 0.1, 0.10])
+    goals[1, ra], goals[1, rt] = torch.tensor([0.0, -0.1, 0.28]), torch.tensor([0.1, -0.1, 0.20])
+    out, w = floor_contact(goals, weights, joints, 0.05, feet_index(), torch.tensor([0.08, 0.08]))
+    np.testing.assert_allclose(out[0, ra].numpy(), [0.1, -0.2, 0.20], atol=1e-6)  # moved by 0.05 - 0.25
+    np.testing.assert_allclose(out[0, rt].numpy(), [0.2, -0.2, 0.05], atol=1e-6)
+    np.testing.assert_allclose(out[1, la].numpy(), [0.0, 0.1, 0.13], atol=1e-6)  # moved by 0.05 - 0.04
+    changed = torch.zeros(2, G, dtype=torch.bool)
+    changed[0, [ra, rt]] = changed[1, la] = True
+    assert torch.equal(out[~changed], goals[~changed])  # everything else untouched, the left toe's too
+    assert torch.equal(w[~changed], weights[~changed])
+    np.testing.assert_allclose(w[changed].numpy(), 1.0)  # 0.5 and 0 raised to the minimum weight
+    assert float(goals[0, rt, 2]) == pytest.approx(0.25)  # the inputs are not modified
+
+
+def test_floor_contact_brings_a_lifted_foot_down_when_the_voxels_cannot(skel):
+    """Arms raised, feet planted (the ground truth's soles on z = 0); every voxel under 0.3 m is gone (the feet
+    and the shanks' lower half unseen, as a static stance leg learnt into the background) and the start has both
+    knees bent by 1.0 and 0.8 rad. Without contact nothing pulls the feet down; with it the lower foot stands on
+    the floor again."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, "arm_raise", 0.8, 30, starfish_s=0.0)
+    toes = subj.frame_index(["l_toe", "r_toe"])
+    ankles = [LANDMARKS.index("l_ankle"), LANDMARKS.index("r_ankle")]
+    start = T[0].clone()
+    start[skel.dof_names.index("l_knee_flex")] += 1.0
+    start[skel.dof_names.index("r_knee_flex")] += 0.8
+
+    def run(contact):
+        tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact, floor_z_m=0.0))
+        tracker.initialize_from_pose(skel.clamp(start), 1.80)
+        err = []
+        for t in range(1, T.shape[0]):
+            obs = _observation(subj, blobs, T[t])
+            keep = obs.points[:, 2] > 0.3
+            r = tracker.step(VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep],
+                                              obs.colours[keep], obs.cameras_valid))
+            assert r.valid
+            err.append(float((r.output_points[ankles] - _landmarks(subj, T[t])[ankles]).norm(dim=-1).min()))
+        sole = float(tracker.subject.skeleton.forward_frames(r.angles[None])[0, toes, 2, 3].min())
+        return np.array(err), sole
+
+    err, sole = run(True)
+    assert err[-5:].max() < 0.04, err
+    assert abs(sole) < 0.02
+    err_off, _ = run(False)
+    assert err_off[-5:].min() > 0.2, err_off  # the feet stay up
+
+
+def test_the_floor_is_the_initial_poses_lower_sole_or_the_configured_height(skel):
+    pose = skel.rest_angles(0.9).clone()  # a standing subject with the root 0.9 m up: soles 0.9 - its rest height
+    pose[skel.dof_names.index("r_hip_flex")] = 0.5  # the right foot forward and up: the left is the lower
+    tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=True))
+    tracker.initialize_from_pose(pose, 1.75)
+    body = skel.scaled_to_height(1.75)
+    assert tracker.floor_z == pytest.approx(0.9 - body.standing_root_height(), abs=1e-5)
+    tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=True, floor_z_m=-0.02))
+    tracker.initialize_from_pose(pose, 1.75)
+    assert tracker.floor_z == -0.02
 
 
 # --------------------------------------------------------------------------------------------- the tracker

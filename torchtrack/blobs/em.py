@@ -134,7 +134,6 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         was used, or for a blob without a colour model yet the first view that sees the voxel (-1 if none);
         cost (N,) the least distance.
     """
-    K = blobs.num_blobs
     d_pos = _mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
     d_pos = torch.where(blobs.active, d_pos, torch.inf)
     view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)

@@ -189,3 +189,61 @@ class GoalModel(nn.Module):
         out[:, root_r] = root_rotation_angles(R @ R_root)
         ok = (w > 0).sum(-1) >= 3
         return torch.where(ok[:, None], out, angles)
+
+
+#: The feet's (ankle, sole) joints, for floor contact: the ankle and the toe site, which is on the sole.
+FEET: tuple[tuple[str, str], ...] = (("l_foot", "l_toe"), ("r_foot", "r_toe"))
+
+
+def feet_index() -> torch.Tensor:
+    """(F, 2) long: the ``JOINT_FRAMES`` indices of each foot's ankle and toe site (``FEET``)."""
+    return torch.tensor([[JOINT_FRAMES.index(a), JOINT_FRAMES.index(t)] for a, t in FEET])
+
+
+def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor, floor_z: float,
+                  feet: torch.Tensor, ankle_height: torch.Tensor, min_weight: float = 1.0
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Goals with the lowest foot standing on the floor (Caillette §4.2: at least one part of the body touches
+    the floor).
+
+    Each foot's sole height is the lower of its toe site and its ankle less the ankle's rest height above the
+    sole (the heel), read from the foot's goals, or from the current joints where a goal has no weight. The
+    foot with the lowest sole is the support: its ankle and toe goals move vertically, together, until its
+    sole is at ``floor_z``, and weigh at least ``min_weight``. A lifted stance foot is pulled down; one sunk
+    below the floor is lifted. Motions with both feet off the ground (jumps, running) break the assumption,
+    which is why the contact is optional.
+
+    Args:
+        goals, weights: (B, G, 3), (B, G) from :meth:`GoalModel.joint_goals`.
+        joints: (B, G, 3) the current joint positions (for feet without goals).
+        floor_z: the floor's height (m).
+        feet: (F, 2) long, each foot's ankle and toe indices into G (:func:`feet_index`).
+        ankle_height: (F,) each ankle's height above its sole in the rest pose (m).
+
+    Returns:
+        the goals and weights with the support foot's two replaced (new tensors).
+    """
+    B, G, _ = goals.shape
+    check_shape(weights, (B, G), "weights")
+    check_shape(joints, (B, G, 3), "joints")
+    F = feet.shape[0]
+    check_shape(ankle_height, (F,), "ankle_height")
+    feet = feet.to(goals.device)
+    has = weights[:, feet] > 0  # (B, F, 2)
+    pos = torch.where(has[..., None], goals[:, feet], joints[:, feet])  # (B, F, 2, 3)
+    sole = torch.minimum(pos[..., 1, 2], pos[..., 0, 2] - ankle_height.to(pos))  # (B, F)
+    support = sole.argmin(-1)  # (B,)
+    b = torch.arange(B, device=goals.device)
+    moved = pos[b, support].clone()  # (B, 2, 3)
+    moved[..., 2] += (floor_z - sole[b, support])[:, None]
+    idx = feet[support]  # (B, 2)
+    # the ankle always gets a goal; the toe only where the blobs gave it one (a toe goal taken from the joints
+    # would hold the foot's pitch at the prediction's)
+    keep = has[b, support]  # (B, 2)
+    keep[:, 0] = True
+    out_g = goals.clone()
+    out_w = weights.clone()
+    cur_g, cur_w = goals[b[:, None], idx], weights[b[:, None], idx]
+    out_g[b[:, None], idx] = torch.where(keep[..., None], moved, cur_g)
+    out_w[b[:, None], idx] = torch.where(keep, cur_w.clamp(min=min_weight), cur_w)
+    return out_g, out_w

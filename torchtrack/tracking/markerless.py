@@ -31,12 +31,12 @@ from typing import Any
 
 import torch
 
-from torchtrack.blobs.em import Blobs, EMConfig, ellipsoid_volume, e_step, fit_blobs, prior_blobs
+from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, load_blob_specs
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, Skeleton
-from torchtrack.tracking.goals import GoalModel
+from torchtrack.tracking.goals import FEET, GoalModel, feet_index, floor_contact
 from torchtrack.tracking.observation import VoxelObservation
 
 log = logging.getLogger(__name__)
@@ -86,6 +86,10 @@ class TrackerConfig:
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
+        floor_contact: keep the lowest foot on the floor (Caillette §4.2: at least one part of the body touches
+            the floor; :func:`~torchtrack.tracking.goals.floor_contact`). Off for jumps and running.
+        floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
+            lowest voxels of the starfish frame, or the initial pose's lower toe site).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -102,6 +106,8 @@ class TrackerConfig:
     fit_bone_lengths: bool = True
     em_cell_m: float = 0.0
     blobs: str = "blobs.yaml"
+    floor_contact: bool = False
+    floor_z_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
@@ -160,6 +166,10 @@ class _Subject:
         self.goals = GoalModel(skeleton, self.blobs)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
         self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
+        self.feet = feet_index()  # (2, 2) ankle and toe site of each foot
+        rest_z = skeleton.rest_frames[:, 2, 3]
+        self.ankle_height = rest_z[skeleton.frame_index([a for a, _ in FEET])] - rest_z[
+            skeleton.frame_index([t for _, t in FEET])]  # (2,) ankle above the sole
         self.output_joint = torch.tensor([JOINT_FRAMES.index(LANDMARK_FRAMES.get(n, n)) if
                                           LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
                                           for n in skeleton.output_names])
@@ -168,6 +178,7 @@ class _Subject:
         for m in (self.skeleton, self.blobs, self.goals, self.ccd):
             m.to(device)
         self.output_joint = self.output_joint.to(device)
+        self.feet, self.ankle_height = self.feet.to(device), self.ankle_height.to(device)
         return self
 
 
@@ -192,6 +203,7 @@ class MarkerlessTracker:
         self.colour: Blobs | None = None  # carries the learnt colour model
         self.lost = 0
         self.height_m: float | None = None
+        self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -219,6 +231,12 @@ class MarkerlessTracker:
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
+        toes = self.subject.skeleton.forward_frames(angles[None])[0, self.subject.skeleton.frame_index(
+            [t for _, t in FEET]), 2, 3]
+        self._set_floor(float(toes.min()))
+
+    def _set_floor(self, soles_z: float) -> None:
+        self.floor_z = soles_z if self.config.floor_z_m is None else float(self.config.floor_z_m)
 
     def _starfish_top_ratio(self) -> float:
         """Head-top height in the starfish pose over standing height (the spread legs lower the body)."""
@@ -236,7 +254,7 @@ class MarkerlessTracker:
         try:
             return self._initialize(obs)
         except InputError:
-            self.subject = self.angles = self.previous = self.colour = self.height_m = None
+            self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
             self.lost = 0
             raise
 
@@ -251,6 +269,7 @@ class MarkerlessTracker:
         top = float(torch.quantile(pts[:, 2] + half, 0.998))
         height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
         self._setup(height, pts.device)
+        self._set_floor(sole)
         skel = self.subject.skeleton
         c = (w[:, None] * pts).sum(0) / w.sum()
         d = pts[:, :2] - c[:2]
@@ -434,6 +453,8 @@ class MarkerlessTracker:
         for _ in range(cfg.refinements):
             fk = sub.skeleton.forward(state)
             goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
+            if cfg.floor_contact and self.floor_z is not None:
+                goals, goal_w = floor_contact(goals, goal_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
             state = sub.goals.fit_root(state, fk.joints, goals, goal_w, max_rotation=max_rot)
             rz = sub.skeleton.dof_names.index("root_rz")
             state[:, rz] = _unwrap(state[:, rz], a[rz])
@@ -451,7 +472,6 @@ class MarkerlessTracker:
 
     def _invalid(self) -> FrameResult:
         sub = self.subject
-        D = self.generic.num_dofs
         if sub is None or self.angles is None:
             like = self.generic.lower
             J, nb = len(self.generic.output_names), len(self.generic.bone_names)
