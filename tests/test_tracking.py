@@ -475,6 +475,45 @@ def test_no_starfish_start_gives_a_clear_error(skel):
         tracker.step(obs)
 
 
+def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
+    """Arms hanging, a person-high phantom column 0.6 m to the side (as a static ghost in an estimated background):
+    the voxels span as wide as a starfish, but the arms are not where the starfish puts them."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    obs = _observation(subj, blobs, subj.rest_angles())
+    g = torch.arange(0.015, 0.15, 0.03)
+    col = torch.stack(torch.meshgrid(g - 0.075, g + 0.6, torch.arange(0.615, 1.5, 0.03), indexing="ij"), -1)
+    col = col.reshape(-1, 3).float()
+    n = col.shape[0]
+    obs = VoxelObservation(torch.cat([obs.points, col]), torch.cat([obs.sizes, obs.sizes[:n]]),
+                           torch.cat([obs.weights, obs.weights[:n]]),
+                           torch.cat([obs.colours, obs.colours[:1].expand(n, -1, -1)]), obs.cameras_valid)
+    tracker = MarkerlessTracker(skel)
+    with pytest.raises(InputError, match=r"the right arm is not raised.*--init-pose"):
+        tracker.step(obs)
+    assert not tracker.initialized
+
+
+def test_a_starfish_inside_phantom_volume_is_refused(skel):
+    """A voxelised starfish (0.057 m^3 of body) and a 0.6 m phantom box (0.22 m^3) behind it: the fit may take
+    the body, but the voxels hold 4.8 times its volume, which is not one person."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    obs = _observation(subj, blobs, subj.starfish_angles())
+    g = torch.arange(0.015, 0.6, 0.03)
+    box = torch.stack(torch.meshgrid(g - 0.9, g - 0.3, g + 0.3, indexing="ij"), -1).reshape(-1, 3).float()
+    n = box.shape[0]
+    size = obs.sizes[:1].expand(n)
+    obs = VoxelObservation(torch.cat([obs.points, box]), torch.cat([obs.sizes, size]),
+                           torch.cat([obs.weights, size ** 3]), torch.cat([obs.colours, obs.colours[:1].expand(n, -1, -1)]), obs.cameras_valid)
+    ratio = obs.volume_m3() / float((4 / 3 * math.pi * blobs.semi_axes.double().prod(-1)).sum())
+    assert 4.0 < ratio < 6.0
+    tracker = MarkerlessTracker(skel)
+    with pytest.raises(InputError, match=r"times the volume of the fitted .* m body.*--init-pose"):
+        tracker.step(obs)
+    assert not tracker.initialized
+
+
 def test_initial_pose_replaces_the_starfish(skel):
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)

@@ -62,6 +62,21 @@ NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 #: 8 cameras, Bayesian grid, CMU 131_02 26.6 mm with 3 rounds, 20.6 with 8).
 FIT_ROUNDS = 8
 
+#: A starfish's arms are raised: the initialisation refuses a fit whose upper arm hangs within this angle of
+#: straight down (the starfish has them 72 deg up; the fits of the 28 synthetic starfish starts, 68-93 deg).
+STARFISH_MIN_ARM_RAISE_DEG = 45.0
+
+#: The starfish frame's voxels may hold at most this many times the fitted body's volume (its blobs'
+#: ellipsoids): more is not one person (phantom volume; a background estimated from a video whose subject
+#: stands still and painted out with the room around them). Synthetic starfish starts: 1.05-1.89 (4 cameras,
+#: hull, the most); the Pose2Sim demo's non-starfish first frame on the filled background: 4.1.
+STARFISH_MAX_VOLUME_RATIO = 3.0
+
+#: What every refusal of the automatic initialisation tells the user to do.
+START_ADVICE = ("Start the sequence with the subject standing arms and legs spread, or give an initial pose with "
+                "--init-pose POSES.npz (the first valid frame of a poses.npz of this subject, e.g. from an earlier "
+                "run)")
+
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
 CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
 
@@ -286,9 +301,7 @@ class MarkerlessTracker:
         if span < 0.5 * height:  # a starfish spans about 0.9 of the height hand to hand, a standing body 0.3
             raise InputError(
                 f"initialisation: the first frame with a person does not look like the starfish pose (arm span "
-                f"{span:.2f} m for a height of {height:.2f} m). Start the sequence with the subject standing arms "
-                "and legs spread, or give an initial pose with --init-pose POSES.npz (the first valid frame of a "
-                "poses.npz of this subject, e.g. from an earlier run)")
+                f"{span:.2f} m for a height of {height:.2f} m). " + START_ADVICE)
         yaw = math.atan2(float(facing[1]), float(facing[0]))
         best = None
         # the horizontal spread's main axis is the arms' line and the toes tell front from back (they point
@@ -348,19 +361,56 @@ class MarkerlessTracker:
                 break
             best_fit = (cost, self.subject.skeleton, res)
         self.colour = None
+        body_m3 = float((4.0 / 3.0 * math.pi * self.subject.blobs.semi_axes.double().prod(-1)).sum())
+        ratio = obs.volume_m3() / body_m3
+        if ratio > STARFISH_MAX_VOLUME_RATIO:
+            height_fit = self.height_m
+            self.subject = None
+            raise InputError(
+                f"initialisation: the first frame's voxels hold {ratio:.1f} times the volume of the fitted "
+                f"{height_fit:.2f} m body (at most {STARFISH_MAX_VOLUME_RATIO:g}): not one person in the starfish "
+                "pose (phantom volume, or a background that keeps parts of the room or a subject who stands "
+                "still). " + START_ADVICE)
+        missing = self._missing_arms(res)
+        if missing:
+            self.subject = None
+            raise InputError(
+                f"initialisation: the first frame does not look like the starfish pose: the {' and '.join(missing)} "
+                f"arm{'s are' if len(missing) > 1 else ' is'} not raised where the starfish puts "
+                f"{'them' if len(missing) > 1 else 'it'} (no voxels there, or the fit found the arm hanging). "
+                + START_ADVICE)
         if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
             self.subject = None
             raise InputError(
                 f"initialisation: the first frame does not fit a person in the starfish pose (goal residual "
-                f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). Start the "
-                "sequence with the subject standing arms and legs spread, or give an initial pose with "
-                "--init-pose POSES.npz (the first valid frame of a poses.npz of this subject, e.g. from an "
-                "earlier run)")
+                f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
+                + START_ADVICE)
         # learn the colours on the initial frame
         res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
         self.angles = self.previous = res.angles
         self.colour = res.blobs
         return replace(res, reinitialised=True)
+
+    def _missing_arms(self, res: FrameResult) -> list[str]:
+        """The sides ("left", "right") without a raised arm after the starfish fit: the upper arm and forearm
+        blobs both fill less than ``em.min_fill`` of their volume (no voxels where the starfish puts the arm),
+        or the fitted upper arm hangs within ``STARFISH_MIN_ARM_RAISE_DEG`` of straight down (EM followed a
+        hanging arm). The raised arms tell the starfish from someone standing: trunk and legs alone fit a
+        standing body too, and the voxels of something beside the body (a ghost of an estimated background)
+        can make it as wide as a starfish."""
+        names = self.subject.blobs.names
+        fill = res.blobs.fill
+        out_names = list(self.subject.skeleton.output_names)
+        P = res.output_points
+        floor = -math.cos(math.radians(STARFISH_MIN_ARM_RAISE_DEG))
+        out = []
+        for side, word in (("l", "left"), ("r", "right")):
+            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm")]
+            upper = P[out_names.index(f"{side}_elbow")] - P[out_names.index(f"{side}_shoulder")]
+            raised = float(upper[2] / upper.norm().clamp(min=1e-9)) >= floor
+            if float(fill[k].max()) < self.config.em.min_fill or not raised:
+                out.append(word)
+        return out
 
     def _scale_from_blobs(self, res: FrameResult) -> float:
         """Least-squares scale of the fitted blob means about their centroid relative to the model's blobs."""
