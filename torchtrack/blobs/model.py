@@ -145,3 +145,8 @@ class BlobModel(nn.Module):
         var = (self.semi_axes.to(R) / math.sqrt(5.0)) ** 2  # (K, 3)
         cov = R @ torch.diag_embed(var) @ R.transpose(-1, -2)
         return centres, cov
+
+
+def blob_volumes(blobs: BlobModel) -> torch.Tensor:
+    """(K,) each blob's solid-ellipsoid volume (m^3), ``4/3 pi`` times the product of its semi-axes."""
+    return (4.0 / 3.0) * math.pi * blobs.semi_axes.double().prod(-1)

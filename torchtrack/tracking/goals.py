@@ -200,18 +200,23 @@ def feet_index() -> torch.Tensor:
     return torch.tensor([[JOINT_FRAMES.index(a), JOINT_FRAMES.index(t)] for a, t in FEET])
 
 
+def sole_heights(feet_points: torch.Tensor, ankle_height: torch.Tensor) -> torch.Tensor:
+    """(..., F, 2, 3) each foot's ankle and toe-site positions, (F,) the ankles' rest heights above the sole ->
+    (..., F) each sole's height: the lower of the toe site and the ankle less its rest height (the heel)."""
+    return torch.minimum(feet_points[..., 1, 2], feet_points[..., 0, 2] - ankle_height.to(feet_points))
+
+
 def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor, floor_z: float,
                   feet: torch.Tensor, ankle_height: torch.Tensor, min_weight: float = 1.0
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Goals with the lowest foot standing on the floor (Caillette §4.2: at least one part of the body touches
     the floor).
 
-    Each foot's sole height is the lower of its toe site and its ankle less the ankle's rest height above the
-    sole (the heel), read from the foot's goals, or from the current joints where a goal has no weight. The
-    foot with the lowest sole is the support: its ankle and toe goals move vertically, together, until its
-    sole is at ``floor_z``, and weigh at least ``min_weight``. A lifted stance foot is pulled down; one sunk
-    below the floor is lifted. Motions with both feet off the ground (jumps, running) break the assumption,
-    which is why the contact is optional.
+    Each foot's sole height (:func:`sole_heights`) is read from the foot's goals, or from the current joints
+    where a goal has no weight. The foot with the lowest sole is the support: its ankle goal, and its toe goal
+    where the blobs gave one, move vertically, together, until its sole is at ``floor_z``, and weigh at least
+    ``min_weight``. A lifted stance foot is pulled down; one sunk below the floor is lifted. Motions with both
+    feet off the ground (jumps, running) break the assumption, which is why the contact is optional.
 
     Args:
         goals, weights: (B, G, 3), (B, G) from :meth:`GoalModel.joint_goals`.
@@ -221,7 +226,7 @@ def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tens
         ankle_height: (F,) each ankle's height above its sole in the rest pose (m).
 
     Returns:
-        the goals and weights with the support foot's two replaced (new tensors).
+        the goals and weights with the support foot's replaced (new tensors; the inputs are not modified).
     """
     B, G, _ = goals.shape
     check_shape(weights, (B, G), "weights")
@@ -231,10 +236,10 @@ def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tens
     feet = feet.to(goals.device)
     has = weights[:, feet] > 0  # (B, F, 2)
     pos = torch.where(has[..., None], goals[:, feet], joints[:, feet])  # (B, F, 2, 3)
-    sole = torch.minimum(pos[..., 1, 2], pos[..., 0, 2] - ankle_height.to(pos))  # (B, F)
+    sole = sole_heights(pos, ankle_height)  # (B, F)
     support = sole.argmin(-1)  # (B,)
     b = torch.arange(B, device=goals.device)
-    moved = pos[b, support].clone()  # (B, 2, 3)
+    moved = pos[b, support]  # (B, 2, 3), a copy (advanced indexing)
     moved[..., 2] += (floor_z - sole[b, support])[:, None]
     idx = feet[support]  # (B, 2)
     # the ankle always gets a goal; the toe only where the blobs gave it one (a toe goal taken from the joints

@@ -32,11 +32,11 @@ from typing import Any
 import torch
 
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
-from torchtrack.blobs.model import BlobModel, load_blob_specs
+from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, Skeleton
-from torchtrack.tracking.goals import FEET, GoalModel, feet_index, floor_contact
+from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact, sole_heights
 from torchtrack.tracking.observation import VoxelObservation
 
 log = logging.getLogger(__name__)
@@ -66,10 +66,10 @@ FIT_ROUNDS = 8
 #: straight down (the starfish has them 72 deg up; the fits of the 28 synthetic starfish starts, 68-93 deg).
 STARFISH_MIN_ARM_RAISE_DEG = 45.0
 
-#: The starfish frame's voxels may hold at most this many times the fitted body's volume (its blobs'
-#: ellipsoids): more is not one person (phantom volume; a background estimated from a video whose subject
-#: stands still and painted out with the room around them). Synthetic starfish starts: 1.05-1.89 (4 cameras,
-#: hull, the most); the Pose2Sim demo's non-starfish first frame on the filled background: 4.1.
+#: The starfish frame's voxels may hold at most this many times the volume of the body (its blobs' ellipsoids)
+#: scaled to their height: more is not one person (phantom volume; a background estimated from a video whose
+#: subject stands still, painted out with the room around them). The 28 synthetic starfish starts: 1.1-1.9
+#: (4 cameras, hull, the most); the Pose2Sim demo's first frame (no starfish) on the filled background: 6.6.
 STARFISH_MAX_VOLUME_RATIO = 3.0
 
 #: What every refusal of the automatic initialisation tells the user to do.
@@ -181,10 +181,10 @@ class _Subject:
         self.goals = GoalModel(skeleton, self.blobs)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
         self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
-        self.feet = feet_index()  # (2, 2) ankle and toe site of each foot
-        rest_z = skeleton.rest_frames[:, 2, 3]
-        self.ankle_height = rest_z[skeleton.frame_index([a for a, _ in FEET])] - rest_z[
-            skeleton.frame_index([t for _, t in FEET])]  # (2,) ankle above the sole
+        self.feet = feet_index()  # (2, 2) ankle and toe site of each foot (JOINT_FRAMES indices)
+        rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
+        self.ankle_height = rest[self.feet[:, 0], 2] - rest[self.feet[:, 1], 2]  # (2,) ankle above the sole
+        self.body_volume_m3 = float(blob_volumes(self.blobs).sum())
         self.output_joint = torch.tensor([JOINT_FRAMES.index(LANDMARK_FRAMES.get(n, n)) if
                                           LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
                                           for n in skeleton.output_names])
@@ -233,9 +233,11 @@ class MarkerlessTracker:
         self.height_m = skeleton.height()
 
     def initialize_from_pose(self, angles: torch.Tensor, height_m: float | None = None, *,
-                             skeleton: Skeleton | None = None) -> None:
+                             skeleton: Skeleton | None = None, floor_z_m: float | None = None) -> None:
         """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall (the body model
-        scaled to it) or with a given ``skeleton`` (e.g. a previous run's fitted one); give one of the two."""
+        scaled to it) or with a given ``skeleton`` (e.g. a previous run's fitted one); give one of the two.
+        The floor (for ``floor_contact``) is ``floor_z_m`` when given (e.g. the floor an earlier run measured),
+        else the pose's lower sole; the config's ``floor_z_m`` overrides both."""
         check_shape(angles, (self.generic.num_dofs,), "angles")
         if (height_m is None) == (skeleton is None):
             raise InputError("initialize_from_pose: give the subject's height_m or its skeleton")
@@ -246,9 +248,11 @@ class MarkerlessTracker:
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
-        toes = self.subject.skeleton.forward_frames(angles[None])[0, self.subject.skeleton.frame_index(
-            [t for _, t in FEET]), 2, 3]
-        self._set_floor(float(toes.min()))
+        if floor_z_m is None:
+            sub = self.subject
+            feet = sub.skeleton.forward(angles[None]).joints[0, sub.feet]  # (2, 2, 3)
+            floor_z_m = float(sole_heights(feet, sub.ankle_height).min())
+        self._set_floor(floor_z_m)
 
     def _set_floor(self, soles_z: float) -> None:
         self.floor_z = soles_z if self.config.floor_z_m is None else float(self.config.floor_z_m)
@@ -284,6 +288,7 @@ class MarkerlessTracker:
         top = float(torch.quantile(pts[:, 2] + half, 0.998))
         height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
         self._setup(height, pts.device)
+        body_m3 = self.subject.body_volume_m3
         self._set_floor(sole)
         skel = self.subject.skeleton
         c = (w[:, None] * pts).sum(0) / w.sum()
@@ -361,23 +366,21 @@ class MarkerlessTracker:
                 break
             best_fit = (cost, self.subject.skeleton, res)
         self.colour = None
-        body_m3 = float((4.0 / 3.0 * math.pi * self.subject.blobs.semi_axes.double().prod(-1)).sum())
+        # against the body scaled to the voxels' height, not the fitted one (the bone fit may grow into phantoms)
         ratio = obs.volume_m3() / body_m3
         if ratio > STARFISH_MAX_VOLUME_RATIO:
-            height_fit = self.height_m
-            self.subject = None
             raise InputError(
-                f"initialisation: the first frame's voxels hold {ratio:.1f} times the volume of the fitted "
-                f"{height_fit:.2f} m body (at most {STARFISH_MAX_VOLUME_RATIO:g}): not one person in the starfish "
-                "pose (phantom volume, or a background that keeps parts of the room or a subject who stands "
-                "still). " + START_ADVICE)
+                f"initialisation: the first frame's voxels hold {ratio:.1f} times the volume of a body as tall as "
+                f"they are ({height:.2f} m; at most {STARFISH_MAX_VOLUME_RATIO:g} times): not one person in the "
+                "starfish pose (phantom volume, or a background that keeps parts of the room or a subject who "
+                "stands still). " + START_ADVICE)
         missing = self._missing_arms(res)
         if missing:
-            self.subject = None
             raise InputError(
                 f"initialisation: the first frame does not look like the starfish pose: the {' and '.join(missing)} "
                 f"arm{'s are' if len(missing) > 1 else ' is'} not raised where the starfish puts "
-                f"{'them' if len(missing) > 1 else 'it'} (no voxels there, or the fit found the arm hanging). "
+                f"{'them' if len(missing) > 1 else 'it'} (no voxels there, or the fit found "
+                f"{'them' if len(missing) > 1 else 'it'} hanging). "
                 + START_ADVICE)
         if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
             self.subject = None
@@ -405,10 +408,11 @@ class MarkerlessTracker:
         floor = -math.cos(math.radians(STARFISH_MIN_ARM_RAISE_DEG))
         out = []
         for side, word in (("l", "left"), ("r", "right")):
-            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm")]
+            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm") if f"{side}_{b}" in names]
+            filled = not k or float(fill[k].max()) >= self.config.em.min_fill  # a blob config without arm blobs
             upper = P[out_names.index(f"{side}_elbow")] - P[out_names.index(f"{side}_shoulder")]
             raised = float(upper[2] / upper.norm().clamp(min=1e-9)) >= floor
-            if float(fill[k].max()) < self.config.em.min_fill or not raised:
+            if not filled or not raised:
                 out.append(word)
         return out
 
@@ -503,13 +507,14 @@ class MarkerlessTracker:
         for _ in range(cfg.refinements):
             fk = sub.skeleton.forward(state)
             goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
+            ik_goals, ik_w = goals, goal_w  # the residual and confidences below are the observation's
             if cfg.floor_contact and self.floor_z is not None:
-                goals, goal_w = floor_contact(goals, goal_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
-            state = sub.goals.fit_root(state, fk.joints, goals, goal_w, max_rotation=max_rot)
+                ik_goals, ik_w = floor_contact(goals, goal_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
+            state = sub.goals.fit_root(state, fk.joints, ik_goals, ik_w, max_rotation=max_rot)
             rz = sub.skeleton.dof_names.index("root_rz")
             state[:, rz] = _unwrap(state[:, rz], a[rz])
             idx = sub.ccd_goal_index
-            state = sub.ccd(state, goals[:, idx], goal_w[:, idx])
+            state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
         fk = sub.skeleton.forward(state)
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum

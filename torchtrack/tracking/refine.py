@@ -242,7 +242,8 @@ def track_with_background_refinement(
     if config.passes and stop - start < MIN_SEQUENCE_FRAMES:
         raise InputError(f"{folder.root}: background refinement needs at least {MIN_SEQUENCE_FRAMES} frames, "
                          f"[{start}, {stop}) has {max(stop - start, 0)} (set background_refinement.passes to 0)")
-    start_state = (tracker.angles.clone(), tracker.subject.skeleton) if tracker.initialized else None
+    start_state = ((tracker.angles.clone(), tracker.subject.skeleton, tracker.floor_z) if tracker.initialized
+                   else None)
     observer = make_observer(background)
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
@@ -261,11 +262,12 @@ def track_with_background_refinement(
             angles = torch.as_tensor(poses.angles[k])  # a lost frame: the pose the tracker held for it
             if start_state is None:
                 first = int(np.flatnonzero(poses.valid)[0])
-                start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton)
+                start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton,
+                               tracker.floor_z)  # the floor the first pass measured from its voxels
             background = refined_background(frames, angles, rig, tracker.subject.skeleton, bg_config, config,
                                             folder.camera_names, tracker.subject.blobs)
             observer = make_observer(background)
-            tracker.initialize_from_pose(start_state[0], skeleton=start_state[1])
+            tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
         poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
                                   logger=logger if last else None, log_every=log_every, progress=progress,
