@@ -260,6 +260,26 @@ def test_background_frames(two_cams, device):
     assert seq.background_frames(100).shape[0] == 6
 
 
+def test_sample_frames_spread_over_a_range_as_float16(two_cams, device, monkeypatch):
+    """Frames 1..9 sampled 4 times: linspace(0, 8, 4) = 0, 2.67, 5.33, 8 rounds to 0, 3, 5, 8, offset by the start;
+    the pixels are the PNGs' own (float16 keeps 1/255 steps), decoded in blocks of 3 here."""
+    import torchtrack.io.sequence as sequence
+
+    monkeypatch.setattr(sequence, "SAMPLE_CHUNK", 3)
+    root, data = two_cams
+    seq = SequenceFolder(root, rig(["cam_a", "cam_b"]))
+    idx, out = seq.sample_frames(4, start=1, device=device)
+    assert idx == [1, 4, 6, 9]
+    assert out.shape == (4, 2, 3, H, W) and out.dtype == torch.float16 and out.device.type == device.type
+    for c, name in enumerate(["cam_a", "cam_b"]):
+        torch.testing.assert_close(out[:, c].float().cpu(), as_images(data[name][idx]), rtol=0, atol=2e-3)
+    assert seq.sample_frames(50, 2, 5)[0] == [2, 3, 4]
+    with pytest.raises(InputError, match=r"no frames in \[5, 5\)"):
+        seq.sample_frames(3, 5, 5)
+    with pytest.raises(InputError, match="max_frames must be >= 1"):
+        seq.sample_frames(0)
+
+
 def test_partial_background_is_ignored_with_warning(two_cams):
     root, _ = two_cams
     add_png(root, "cam_a", frames(4, 11), folder="background")

@@ -383,6 +383,21 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
     assert errs[True] < 0.6 * errs[False], errs
 
 
+def test_initial_pose_with_the_subjects_skeleton_tracks_its_proportions(skel):
+    """A start from a given skeleton (as the background refinement's later passes reuse the first pass's fitted
+    one) keeps that body: on a body one height scale cannot represent, its track is closer to the truth than a
+    start from the generic body scaled to the same height."""
+    subj, blobs, T = _proportioned_body(skel)
+    own = MarkerlessTracker(skel)
+    own.initialize_from_pose(T[0], skeleton=subj)
+    assert own.subject.skeleton is subj
+    generic = MarkerlessTracker(skel)
+    generic.initialize_from_pose(T[0], 1.80)
+    err_own, err_generic = _track_body(own, subj, blobs, T), _track_body(generic, subj, blobs, T)
+    assert err_own.mean() < 0.01, err_own
+    assert err_generic.mean() > 2 * err_own.mean(), (err_generic, err_own)
+
+
 def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
     """Feedback between the bone fit and the pose can run away (the hull's torso grew round after round on
     CMU 131_01): the first round whose body fits the voxels worse than the one before is undone and ends the fit.
@@ -523,6 +538,7 @@ def test_a_starfish_inside_phantom_volume_is_refused(skel, contact):
     assert abs(height - 1.75) < 0.12  # the voxels' quantiles: the box's many voxels dilute the head's top
     assert ratio == pytest.approx(obs.volume_m3() / (body_m3 * (height / 1.75) ** 3), abs=0.06)
     assert ratio > 4.0
+    assert tracker.start_check.volume_ratio == pytest.approx(ratio, abs=0.05)  # the measures stay readable
     assert not tracker.initialized
 
 

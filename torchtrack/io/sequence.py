@@ -59,6 +59,9 @@ def evenly_spaced(count: int, max_count: int) -> list[int]:
     return sorted({int(i) for i in np.linspace(0, count - 1, min(max_count, count)).round()})
 
 
+#: Frames decoded per block by :meth:`SequenceFolder.sample_frames` (bounds the full-size decode buffers).
+SAMPLE_CHUNK = 8
+
 #: Frame rate assumed when neither meta.toml nor the videos give one.
 DEFAULT_FPS = 30.0
 #: Largest codec padding (pixels per dimension) accepted between decoded and calibrated frame sizes.
@@ -428,13 +431,11 @@ class SequenceFolder:
         if not 0 <= start < stop:
             raise InputError(f"{self.root}: no frames in [{start}, {stop}) ({self.num_frames} frames)")
         indices = [start + i for i in evenly_spaced(stop - start, max_frames)]
-        frames = None
-        for k, i in enumerate(indices):  # forward reads: the video sources decode sequentially
-            image = self.read_frame(i, device=device, size_wh=size_wh)  # (C, 3, H, W)
-            if frames is None:
-                frames = torch.empty((len(indices), *image.shape), dtype=torch.float16, device=image.device)
-            frames[k] = image
-        return indices, frames
+        chunks = []
+        for k in range(0, len(indices), SAMPLE_CHUNK):  # sorted indices: each source decodes forwards
+            buf, valid = self._read_block(self.sources, indices[k:k + SAMPLE_CHUNK], size_wh)
+            chunks.append(self._to_images(buf, valid, device).half())
+        return indices, torch.cat(chunks)
 
     def background_frames(self, max_frames: int, device: torch.device | str | None = None,
                           size_wh: tuple[int, int] | None = None) -> torch.Tensor | None:
@@ -447,10 +448,8 @@ class SequenceFolder:
         """
         if self.background_sources is None:
             return None
-        if max_frames < 1:
-            raise InputError(f"max_frames must be >= 1, got {max_frames}")
         count = self._common_count(self.background_sources, "background frame")
-        indices = evenly_spaced(count, max_frames)
+        indices = evenly_spaced(count, max_frames)  # raises on max_frames < 1
         buf, valid = self._read_block(self.background_sources, indices, size_wh)
         keep = valid.all(axis=1)  # (N,)
         if not keep.all():

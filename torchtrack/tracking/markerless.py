@@ -149,6 +149,24 @@ class TrackerConfig:
 
 
 @dataclass(frozen=True)
+class StartCheck:
+    """What the automatic initialisation measured of its starfish fit (accepted or refused).
+
+    Attributes:
+        height_m: the subject's height from the voxels. volume_ratio: the voxels' volume over that of the body
+            (its blobs' ellipsoids) at that height (``STARFISH_MAX_VOLUME_RATIO``).
+        arm_raise_deg: (left, right) each fitted upper arm's angle from hanging straight down
+            (``STARFISH_MIN_ARM_RAISE_DEG``). arm_fill: (left, right) the larger fill of each arm's upper-arm and
+            forearm blobs (NaN for a blob config without them; ``em.min_fill``).
+    """
+
+    height_m: float
+    volume_ratio: float
+    arm_raise_deg: tuple[float, float]
+    arm_fill: tuple[float, float]
+
+
+@dataclass(frozen=True)
 class FrameResult:
     """One tracked frame.
 
@@ -219,6 +237,7 @@ class MarkerlessTracker:
         self.lost = 0
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
+        self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -367,14 +386,17 @@ class MarkerlessTracker:
             best_fit = (cost, self.subject.skeleton, res)
         self.colour = None
         # against the body scaled to the voxels' height, not the fitted one (the bone fit may grow into phantoms)
-        ratio = obs.volume_m3() / body_m3
-        if ratio > STARFISH_MAX_VOLUME_RATIO:
+        raise_deg, fill = self._arms(res)
+        check = self.start_check = StartCheck(height, obs.volume_m3() / body_m3, raise_deg, fill)
+        if check.volume_ratio > STARFISH_MAX_VOLUME_RATIO:
             raise InputError(
-                f"initialisation: the first frame's voxels hold {ratio:.1f} times the volume of a body as tall as "
-                f"they are ({height:.2f} m; at most {STARFISH_MAX_VOLUME_RATIO:g} times): not one person in the "
-                "starfish pose (phantom volume, or a background that keeps parts of the room or a subject who "
-                "stands still). " + START_ADVICE)
-        missing = self._missing_arms(res)
+                f"initialisation: the first frame's voxels hold {check.volume_ratio:.1f} times the volume of a body "
+                f"as tall as they are ({height:.2f} m; at most {STARFISH_MAX_VOLUME_RATIO:g} times): not one person "
+                "in the starfish pose (phantom volume, or a background that keeps parts of the room or a subject "
+                "who stands still). " + START_ADVICE)
+        # an arm is missing when its blobs found no voxels where the starfish puts it, or the fit found it hanging
+        missing = [side for side, deg, f in zip(("left", "right"), raise_deg, fill)
+                   if deg < STARFISH_MIN_ARM_RAISE_DEG or f < self.config.em.min_fill]  # NaN fill: not judged
         if missing:
             raise InputError(
                 f"initialisation: the first frame does not look like the starfish pose: the {' and '.join(missing)} "
@@ -394,27 +416,20 @@ class MarkerlessTracker:
         self.colour = res.blobs
         return replace(res, reinitialised=True)
 
-    def _missing_arms(self, res: FrameResult) -> list[str]:
-        """The sides ("left", "right") without a raised arm after the starfish fit: the upper arm and forearm
-        blobs both fill less than ``em.min_fill`` of their volume (no voxels where the starfish puts the arm),
-        or the fitted upper arm hangs within ``STARFISH_MIN_ARM_RAISE_DEG`` of straight down (EM followed a
-        hanging arm). The raised arms tell the starfish from someone standing: trunk and legs alone fit a
-        standing body too, and the voxels of something beside the body (a ghost of an estimated background)
+    def _arms(self, res: FrameResult) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(left, right) upper-arm angles from hanging (deg) and arm blob fills of a starfish fit
+        (:class:`StartCheck`). The raised arms tell the starfish from someone standing: trunk and legs alone fit
+        a standing body too, and the voxels of something beside the body (a ghost of an estimated background)
         can make it as wide as a starfish."""
-        names = self.subject.blobs.names
-        fill = res.blobs.fill
+        names, P = self.subject.blobs.names, res.output_points
         out_names = list(self.subject.skeleton.output_names)
-        P = res.output_points
-        floor = -math.cos(math.radians(STARFISH_MIN_ARM_RAISE_DEG))
-        out = []
-        for side, word in (("l", "left"), ("r", "right")):
-            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm") if f"{side}_{b}" in names]
-            filled = not k or float(fill[k].max()) >= self.config.em.min_fill  # a blob config without arm blobs
+        raise_deg, fill = [], []
+        for side in ("l", "r"):
             upper = P[out_names.index(f"{side}_elbow")] - P[out_names.index(f"{side}_shoulder")]
-            raised = float(upper[2] / upper.norm().clamp(min=1e-9)) >= floor
-            if not filled or not raised:
-                out.append(word)
-        return out
+            raise_deg.append(math.degrees(math.acos(max(-1.0, min(1.0, -float(upper[2] / upper.norm()))))))
+            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm") if f"{side}_{b}" in names]
+            fill.append(float(res.blobs.fill[k].max()) if k else math.nan)
+        return (raise_deg[0], raise_deg[1]), (fill[0], fill[1])
 
     def _scale_from_blobs(self, res: FrameResult) -> float:
         """Least-squares scale of the fitted blob means about their centroid relative to the model's blobs."""
