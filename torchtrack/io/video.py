@@ -279,6 +279,13 @@ class VideoFileSource(VideoSource):
 
         return cv2
 
+    def __getstate__(self) -> dict:
+        """Pickled without its decoder (a worker process re-opens the file on its first read)."""
+        state = dict(self.__dict__, _cap=None)
+        state.pop("_pos", None)
+        state.pop("_held", None)
+        return state
+
     def _open(self):
         self.close()
         cap = self._cv2.VideoCapture(str(self.path))

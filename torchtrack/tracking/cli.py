@@ -35,6 +35,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch", type=int, default=4, help="frames read and observed per batch")
     p.add_argument("--log-every", type=int, default=10, help="log images and the 3D view every N frames (0: never)")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--workers", type=int, choices=(0, 1), default=None,
+                   help="1: read and observe frames in a worker process ahead of the tracker (CPU); 0: in this "
+                        "process (overrides the config's observation.workers)")
     p.add_argument("--fill-static-subject", action="store_true", default=None,
                    help="without background/ frames: paint the parts of the subject that never move out of the "
                         "estimated background (a subject balancing in place; overrides config)")
@@ -89,7 +92,7 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
     from torchtrack.occupancy import HullConfig
     from torchtrack.tracking.observation import Observer
 
-    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull", "fill_static_subject"}
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull", "fill_static_subject", "workers"}
     unknown = set(ocfg) - known
     if unknown:
         raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
@@ -148,6 +151,9 @@ def _run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise InputError("--device cuda: no CUDA device is available to PyTorch")
+    workers = args.workers if args.workers is not None else ocfg.get("workers", 0)
+    if workers not in (0, 1):
+        raise InputError(f"{cfg['source']}: observation.workers must be 0 or 1, got {workers!r}")
 
     rcfg = RefineConfig.from_dict(cfg["background_refinement"], cfg["source"])
     if args.refine_passes is not None:
@@ -173,7 +179,8 @@ def _run(args: argparse.Namespace) -> int:
     with RunLogger(args.out / "tb") as tb:
         poses, elapsed, _ = track_with_background_refinement(
             folder, bg, lambda b: observer_from_config(rig, b, ocfg, model, voxel).to(device), tracker, rcfg,
-            bg_config, args.start, args.stop, args.batch, device, logger=tb, log_every=args.log_every)
+            bg_config, args.start, args.stop, args.batch, device, logger=tb, log_every=args.log_every,
+            workers=workers)
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
     rate = f"{T * (rcfg.passes + 1) / elapsed:.1f} frames/s" + (f" over {rcfg.passes + 1} passes" if rcfg.passes

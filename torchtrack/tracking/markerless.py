@@ -498,7 +498,8 @@ class MarkerlessTracker:
         return fitted_skel.to(angles.device), change
 
     # ------------------------------------------------------------------------------------------ tracking
-    def _regenerate(self, angles: torch.Tensor) -> tuple[torch.Tensor, Blobs]:
+    def _regenerate(self, angles: torch.Tensor) -> tuple[Any, Blobs]:
+        """The prior blobs at ``angles (D,)`` with the colour model, and the forward kinematics they came from."""
         sub = self.subject
         fk = sub.skeleton.forward(angles[None])
         mean, cov = sub.blobs.gaussians(fk.bone_frames)
@@ -506,21 +507,22 @@ class MarkerlessTracker:
         if self.colour is not None:
             prior = replace(prior, colour_mean=self.colour.colour_mean, colour_cov=self.colour.colour_cov,
                             colour_known=self.colour.colour_known)
-        return fk.bone_frames, prior
+        return fk, prior
 
     def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float) -> FrameResult:
         sub, cfg = self.subject, self.config
         a = self.angles + cfg.velocity * (self.angles - self.previous)
         a = sub.skeleton.clamp(a)
-        _, prior = self._regenerate(a)
+        fk, prior = self._regenerate(a)
         blobs, assign = fit_blobs(obs.points, obs.weights, obs.sizes, obs.colours, prior, cfg.em,
                                   learn_colour=learn_colour)
         weight = (blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
         residual = torch.zeros((), dtype=a.dtype, device=a.device)
         goal_w = None
         state = a[None]
-        for _ in range(cfg.refinements):
-            fk = sub.skeleton.forward(state)
+        for r in range(cfg.refinements):
+            if r:  # the first pass starts from the prediction, whose kinematics the prior came from
+                fk = sub.skeleton.forward(state)
             goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
             ik_goals, ik_w = goals, goal_w  # the residual and confidences below are the observation's
             if cfg.floor_contact and self.floor_z is not None:

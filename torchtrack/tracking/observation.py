@@ -27,6 +27,7 @@ class VoxelObservation:
         points: (N, 3) centres (m). sizes: (N,) edges (m). weights: (N,) EM weights.
         colours: (N, C, 3) per-view colour (gain-normalised YUV), NaN where the view does not see the voxel.
         cameras_valid: (C,) bool, the cameras whose frame was readable.
+        cell_m: the cell size the voxels were merged per (:meth:`pooled`), 0 for the model's own voxels.
     """
 
     points: torch.Tensor
@@ -34,6 +35,7 @@ class VoxelObservation:
     weights: torch.Tensor
     colours: torch.Tensor
     cameras_valid: torch.Tensor
+    cell_m: float = 0.0
 
     @property
     def num_voxels(self) -> int:
@@ -44,7 +46,10 @@ class VoxelObservation:
 
     def pooled(self, cell_m: float) -> VoxelObservation:
         """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
-        colours (per view, over the voxels that view sees), summed weights, volume-equivalent sizes."""
+        colours (per view, over the voxels that view sees), summed weights, volume-equivalent sizes.
+        Voxels already merged per ``cell_m`` come back as they are."""
+        if cell_m == self.cell_m:
+            return self
         key3 = torch.floor(self.points / cell_m).long()  # (N, 3)
         if key3.shape[0] == 0:
             return self
@@ -63,7 +68,7 @@ class VoxelObservation:
             0, inv, cw[..., None] * torch.nan_to_num(self.colours))
         cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
-        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid)
+        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m)
 
 
 class Observer(nn.Module):

@@ -211,7 +211,8 @@ def track_with_background_refinement(
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
         stop: int | None = None, batch: int = 4, device: torch.device | str | None = None, logger=None,
         log_every: int = 10, progress: bool = True,
-        on_pass: Callable[[int, Poses], None] | None = None) -> tuple[Poses, float, BackgroundModel]:
+        on_pass: Callable[[int, Poses], None] | None = None, workers: int = 0
+) -> tuple[Poses, float, BackgroundModel]:
     """Track, then ``config.passes`` times re-estimate the background from the track and track again.
 
     Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
@@ -271,7 +272,8 @@ def track_with_background_refinement(
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
         poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
                                   logger=logger if last else None, log_every=log_every, progress=progress,
-                                  desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track")
+                                  desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track",
+                                  workers=workers)
         if on_pass is not None:
             on_pass(p, poses)
     return poses, time.perf_counter() - t0, background

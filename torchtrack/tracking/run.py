@@ -13,14 +13,15 @@ from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
+from torchtrack.tracking.stream import observe_batches
 
 log = logging.getLogger(__name__)
 
 
 def track_sequence(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int = 0,
                    stop: int | None = None, batch: int = 4, device: torch.device | str | None = None,
-                   logger=None, log_every: int = 10, progress: bool = True, desc: str = "track"
-                   ) -> tuple[Poses, float]:
+                   logger=None, log_every: int = 10, progress: bool = True, desc: str = "track",
+                   workers: int = 0) -> tuple[Poses, float]:
     """Track frames ``[start, stop)`` of ``folder``.
 
     A frame with an unreadable camera frame is not tracked and comes out ``valid = False``; so does a frame
@@ -32,6 +33,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
         logger: a :class:`~torchtrack.logging.RunLogger` or None; it gets per-frame scalars and, every
             ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton.
         desc: the progress bar's label.
+        workers: 1 reads and observes the frames in a worker process, ahead of the tracker (CPU; see
+            :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
 
     Returns:
         the poses (DESIGN.md schema; ``extra`` holds ``subject_height_m``, ``observation_model``,
@@ -40,7 +43,6 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     from tqdm import tqdm
 
     rig = observer.rig
-    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
     if stop <= start:
         raise InputError(f"{folder.root}: no frames in [{start}, {stop}) ({folder.num_frames} frames)")
@@ -55,10 +57,11 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     reinit = np.zeros(T, bool)
     t_start = time.perf_counter()
     with tqdm(total=T, unit="frame", desc=desc, disable=not progress) as bar:
-        for fb in folder.iter_batches(batch, start, stop, device=device, size_wh=(W, H)):
-            t0 = time.perf_counter()
-            observations = observer(fb.images, fb.valid)
-            t_obs = (time.perf_counter() - t0) / len(observations)
+        keep = log_every if logger is not None else 0
+        for fb in observe_batches(folder, observer, start, stop, batch, device, keep, workers,
+                                  cell_m=tracker.config.em_cell_m):
+            observations = fb.observations
+            t_obs = fb.seconds / len(observations)
             for i, obs in enumerate(observations):
                 t1 = time.perf_counter()
                 t = int(fb.frame_index[i])
@@ -85,7 +88,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 reinit[k] = res.reinitialised
                 dt = t_obs + time.perf_counter() - t1
                 if logger is not None:
-                    _log_frame(logger, t, k, obs, res, fb.images[i], rig, dt, t_obs, log_every)
+                    _log_frame(logger, t, k, obs, res, fb.images[i], rig, dt, t_obs)
                 bar.update(1)
                 bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
     elapsed = time.perf_counter() - t_start
@@ -98,13 +101,13 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     return poses, elapsed
 
 
-def _log_frame(tb, t: int, k: int, obs, res, images: torch.Tensor, rig, dt: float, t_obs: float,
-               log_every: int) -> None:
+def _log_frame(tb, t: int, k: int, obs, res, images: torch.Tensor | None, rig, dt: float, t_obs: float) -> None:
+    """Per-frame scalars; on the frames whose ``images`` were kept (every ``log_every``), the drawings."""
     from torchtrack.tracking.draw import draw_pose_overlays
 
     tb.scalars(t, voxels=float(obs.num_voxels), ik_residual_mm=1e3 * res.residual_m, explained=res.explained,
                valid=float(res.valid), fps=1.0 / max(dt, 1e-9), observation_ms=1e3 * t_obs)
-    if not (log_every and k % log_every == 0 and res.valid):
+    if images is None or not res.valid:
         return
     lm = res.output_points[:16]
     cen = R = semi = None

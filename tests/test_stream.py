@@ -1,0 +1,105 @@
+"""Frames observed in a worker process (torchtrack.tracking.stream): the same observations, images and poses as
+in this process, errors handed over as they are, thread shares restored; video sources that pickle."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.background import BackgroundModel
+from torchtrack.checks import InputError
+from torchtrack.io.sequence import SequenceFolder
+from torchtrack.tracking.observation import Observer
+from torchtrack.tracking.stream import observe_batches
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory) -> Path:
+    from torchtrack.synth.scene import SceneConfig
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+
+    cfg = SynthConfig(motion="walk", duration_s=0.3, starfish_s=0.2, fps=20, background_frames=4,
+                      video_format="mp4", rig=RigConfig(num_cameras=4, width=320, height=240),
+                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
+    return write_sequence(cfg, tmp_path_factory.mktemp("stream") / "seq", progress=False)
+
+
+def _observer(seq: Path, model: str) -> tuple[SequenceFolder, Observer]:
+    folder = SequenceFolder(seq)
+    rig = folder.rig.resized(160, 120).float()
+    bg = BackgroundModel.from_folder(folder, size_wh=(160, 120))
+    return folder, Observer(rig, bg, model, voxel_size_m=0.05)
+
+
+@pytest.mark.parametrize("model", ["bayes", "hull"])
+def test_a_worker_observes_what_this_process_does(seq, model):
+    folder, observer = _observer(seq, model)
+    threads = torch.get_num_threads()
+    here = list(observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2))
+    seen_threads = []
+    there = []
+    for item in observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2, workers=1):
+        seen_threads.append(torch.get_num_threads())
+        there.append(item)
+    assert seen_threads and set(seen_threads) == {1}  # the caller keeps one thread while the worker runs
+    assert torch.get_num_threads() == threads  # and gets its share back
+    assert [b.frame_index.tolist() for b in there] == [b.frame_index.tolist() for b in here]
+    frames = [t for b in here for t in b.frame_index.tolist()]
+    assert frames == list(range(1, folder.num_frames))
+    for a, b in zip(here, there):
+        assert torch.equal(a.valid, b.valid)
+        for oa, ob in zip(a.observations, b.observations):
+            assert oa.num_voxels > 30
+            assert torch.equal(oa.points, ob.points) and torch.equal(oa.sizes, ob.sizes)
+            torch.testing.assert_close(ob.weights, oa.weights, rtol=1e-5, atol=1e-12)
+            torch.testing.assert_close(ob.colours, oa.colours, rtol=1e-5, atol=1e-6, equal_nan=True)
+        for t, img in zip(b.frame_index.tolist(), b.images):  # the images of every 2nd frame from the start
+            if (t - 1) % 2:
+                assert img is None
+            else:
+                ref = folder.read_frame(t, size_wh=(160, 120))  # the reader's own, independent of the stream
+                torch.testing.assert_close(img, ref)
+
+
+def test_a_workers_input_error_reaches_the_caller_as_it_is(seq):
+    folder, observer = _observer(seq, "hull")
+    threads = torch.get_num_threads()
+    with pytest.raises(InputError, match=r"frame range \[0, 99\) outside") as err:
+        list(observe_batches(folder, observer, 0, 99, workers=1))
+    assert str(folder.root) in str(err.value)
+    assert torch.get_num_threads() == threads
+    with pytest.raises(InputError, match="workers must be 0 or 1"):
+        list(observe_batches(folder, observer, 0, 2, workers=2))
+
+
+def test_a_video_source_pickles_without_its_decoder_and_reads_the_same_frames(seq):
+    folder = SequenceFolder(seq)
+    src = folder.sources[0]
+    out = np.empty((src.size_wh[1], src.size_wh[0], 3), np.uint8)
+    assert src._decode_into(3, out)  # the original is now mid-stream
+    copy = pickle.loads(pickle.dumps(src))
+    assert copy._cap is None and copy.num_frames == src.num_frames and copy.size_wh == src.size_wh
+    again = np.empty_like(out)
+    assert copy._decode_into(3, again)
+    assert np.array_equal(again, out)
+    assert src._decode_into(4, out) and copy._decode_into(4, again) and np.array_equal(again, out)
+
+
+def test_tracking_with_a_worker_gives_the_same_poses(seq):
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+    from torchtrack.tracking.run import track_sequence
+
+    folder, observer = _observer(seq, "hull")
+    cfg = TrackerConfig.from_dict(load_config("markerless.yaml")["tracker"])
+    runs = [track_sequence(folder, observer, MarkerlessTracker(Skeleton.from_urdf(), cfg), progress=False,
+                           workers=w)[0] for w in (0, 1)]
+    assert runs[0].valid.all() and np.array_equal(runs[0].valid, runs[1].valid)
+    # same observations; the tracker's float sums may round differently at another thread count
+    np.testing.assert_allclose(runs[1].joints3d, runs[0].joints3d, atol=1e-3)
