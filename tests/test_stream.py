@@ -36,16 +36,24 @@ def _observer(seq: Path, model: str) -> tuple[SequenceFolder, Observer]:
     return folder, Observer(rig, bg, model, voxel_size_m=0.05)
 
 
-@pytest.mark.parametrize("model", ["bayes", "hull"])
-def test_a_worker_observes_what_this_process_does(seq, model):
+@pytest.mark.parametrize("model, cell", [("bayes", 0.0), ("hull", 0.1)])
+def test_a_worker_observes_what_this_process_does(seq, model, cell):
     folder, observer = _observer(seq, model)
     threads = torch.get_num_threads()
-    here = list(observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2))
+    raw = [o for b in observe_batches(folder, observer, 1, folder.num_frames, batch=3) for o in b.observations]
+    here = list(observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2, cell_m=cell))
     seen_threads = []
     there = []
-    for item in observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2, workers=1):
+    for item in observe_batches(folder, observer, 1, folder.num_frames, batch=3, keep_images=2, workers=1,
+                                cell_m=cell):
         seen_threads.append(torch.get_num_threads())
         there.append(item)
+    for r, p in zip(raw, (o for b in here for o in b.observations)):  # merged where they were observed
+        assert p.num_observed == r.num_voxels and p.cell_m == cell
+        if cell:
+            assert p.num_voxels < r.num_voxels
+            torch.testing.assert_close(p.points, r.pooled(cell).points)
+            assert p.pooled(cell) is p  # the tracker does not merge them again
     assert seen_threads and set(seen_threads) == {1}  # the caller keeps one thread while the worker runs
     assert torch.get_num_threads() == threads  # and gets its share back
     assert [b.frame_index.tolist() for b in there] == [b.frame_index.tolist() for b in here]
@@ -66,6 +74,42 @@ def test_a_worker_observes_what_this_process_does(seq, model):
                 torch.testing.assert_close(img, ref)
 
 
+def _live_workers() -> int:
+    import multiprocessing
+
+    return len(multiprocessing.active_children())
+
+
+def test_a_stream_left_early_or_failing_to_start_gives_the_threads_back_and_stops_its_worker(seq):
+    folder, observer = _observer(seq, "hull")
+    threads = torch.get_num_threads()
+    stream = observe_batches(folder, observer, 0, folder.num_frames, batch=1, workers=1)
+    next(stream)
+    assert torch.get_num_threads() == 1 and _live_workers() == 1
+    stream.close()
+    assert torch.get_num_threads() == threads and _live_workers() == 0
+    observer.unpicklable = lambda: None  # the worker cannot be given it
+    with pytest.raises(Exception, match="pickle"):
+        next(observe_batches(folder, observer, 0, folder.num_frames, workers=1))
+    assert torch.get_num_threads() == threads and _live_workers() == 0
+
+
+def test_a_workers_warnings_reach_the_caller(tmp_path):
+    from torchtrack.io.video import DataWarning
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+
+    seq = write_sequence(SynthConfig(motion="walk", duration_s=0.2, starfish_s=0.0, fps=20, background_frames=3,
+                                     video_format="png", rig=RigConfig(num_cameras=4, width=160, height=120)),
+                         tmp_path / "seq", progress=False)
+    victim = sorted((seq / "video").rglob("*.png"))[2]
+    victim.write_bytes(b"not a png")
+    folder, observer = _observer(seq, "hull")
+    with pytest.warns(DataWarning, match=victim.name):
+        batches = list(observe_batches(folder, observer, 0, folder.num_frames, batch=2, workers=1))
+    valid = torch.cat([b.valid for b in batches])
+    assert int((~valid).sum()) == 1
+
+
 def test_a_workers_input_error_reaches_the_caller_as_it_is(seq):
     folder, observer = _observer(seq, "hull")
     threads = torch.get_num_threads()
@@ -75,6 +119,8 @@ def test_a_workers_input_error_reaches_the_caller_as_it_is(seq):
     assert torch.get_num_threads() == threads
     with pytest.raises(InputError, match="workers must be 0 or 1"):
         list(observe_batches(folder, observer, 0, 2, workers=2))
+    with pytest.raises(InputError, match="keep_images and cell_m must be >= 0"):
+        list(observe_batches(folder, observer, 0, 2, cell_m=-1.0))
 
 
 def test_a_video_source_pickles_without_its_decoder_and_reads_the_same_frames(seq):

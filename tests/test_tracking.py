@@ -131,10 +131,12 @@ def test_e_step_matches_a_plain_loop():
     cm = torch.rand(K, 3, generator=gen, dtype=torch.float64)
     B = torch.randn(K, 3, 3, generator=gen, dtype=torch.float64)
     ccov = B @ B.transpose(-1, -2) * 0.01 + 0.01 * torch.eye(3, dtype=torch.float64)
-    blobs = dataclasses.replace(blobs, colour_mean=cm, colour_cov=ccov, colour_known=torch.ones(K, dtype=torch.bool))
+    known = torch.tensor([True, False, True, True])  # blob 1 has no colour model yet: position only
+    blobs = dataclasses.replace(blobs, colour_mean=cm, colour_cov=ccov, colour_known=known)
     pts = torch.randn(N, 3, generator=gen, dtype=torch.float64)
     col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
     col[::5, 1] = float("nan")
+    col[3::7] = float("nan")  # voxels no view sees: no colour term, no view
     cfg = EMConfig(gate_mahalanobis2=2.0)  # gates out some blobs for some points
     assign, view, _ = e_step(pts, col, blobs, cfg)
     for n in range(N):
@@ -144,14 +146,15 @@ def test_e_step_matches_a_plain_loop():
             cost = float(d @ torch.linalg.solve(cov[k], d))
             if cost > cfg.gate_mahalanobis2:  # outside this blob's gate: it does not compete
                 continue
-            dc_best, v_best = math.inf, None
-            for v in range(C):
-                if torch.isnan(col[n, v]).any():
-                    continue
-                e = col[n, v] - cm[k]
-                dc = float(e @ torch.linalg.solve(ccov[k], e))
-                if dc < dc_best:
-                    dc_best, v_best = dc, v
+            seeing = [v for v in range(C) if not torch.isnan(col[n, v]).any()]
+            dc_best, v_best = 0.0, (seeing[0] if seeing else -1)  # no colour model, or unseen: position only
+            if known[k] and seeing:
+                dc_best = math.inf
+                for v in seeing:
+                    e = col[n, v] - cm[k]
+                    dc = float(e @ torch.linalg.solve(ccov[k], e))
+                    if dc < dc_best:
+                        dc_best, v_best = dc, v
             cost += dc_best
             if best is None or cost < best[0]:
                 best, best_view = (cost, k), v_best

@@ -35,7 +35,7 @@ from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
-from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, Skeleton
+from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton
 from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact, sole_heights
 from torchtrack.tracking.observation import VoxelObservation
 
@@ -498,7 +498,7 @@ class MarkerlessTracker:
         return fitted_skel.to(angles.device), change
 
     # ------------------------------------------------------------------------------------------ tracking
-    def _regenerate(self, angles: torch.Tensor) -> tuple[Any, Blobs]:
+    def _regenerate(self, angles: torch.Tensor) -> tuple[FKResult, Blobs]:
         """The prior blobs at ``angles (D,)`` with the colour model, and the forward kinematics they came from."""
         sub = self.subject
         fk = sub.skeleton.forward(angles[None])
@@ -554,7 +554,7 @@ class MarkerlessTracker:
             self.angles), False, math.nan, 0.0, False, None, fk.bone_frames[0])
 
     def _has_person(self, obs: VoxelObservation) -> bool:
-        return obs.num_voxels >= self.config.min_voxels and obs.volume_m3() >= self.config.min_volume_m3
+        return obs.num_observed >= self.config.min_voxels and obs.volume_m3() >= self.config.min_volume_m3
 
     def skip(self) -> FrameResult:
         """A frame that cannot be observed (an unreadable camera frame): not tracked, ``valid = False``; the

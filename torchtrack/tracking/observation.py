@@ -28,6 +28,7 @@ class VoxelObservation:
         colours: (N, C, 3) per-view colour (gain-normalised YUV), NaN where the view does not see the voxel.
         cameras_valid: (C,) bool, the cameras whose frame was readable.
         cell_m: the cell size the voxels were merged per (:meth:`pooled`), 0 for the model's own voxels.
+        observed_voxels: how many of the model's voxels were merged into these (-1: not merged).
     """
 
     points: torch.Tensor
@@ -36,10 +37,16 @@ class VoxelObservation:
     colours: torch.Tensor
     cameras_valid: torch.Tensor
     cell_m: float = 0.0
+    observed_voxels: int = -1
 
     @property
     def num_voxels(self) -> int:
         return int(self.points.shape[0])
+
+    @property
+    def num_observed(self) -> int:
+        """Voxels the observation model gave (before any merging per cell)."""
+        return self.observed_voxels if self.observed_voxels >= 0 else self.num_voxels
 
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
@@ -48,6 +55,8 @@ class VoxelObservation:
         """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
         colours (per view, over the voxels that view sees), summed weights, volume-equivalent sizes.
         Voxels already merged per ``cell_m`` come back as they are."""
+        if not cell_m > 0:
+            raise InputError(f"VoxelObservation.pooled: the cell size must be > 0, got {cell_m}")
         if cell_m == self.cell_m:
             return self
         key3 = torch.floor(self.points / cell_m).long()  # (N, 3)
@@ -68,7 +77,7 @@ class VoxelObservation:
             0, inv, cw[..., None] * torch.nan_to_num(self.colours))
         cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
-        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m)
+        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed)
 
 
 class Observer(nn.Module):

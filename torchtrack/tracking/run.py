@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import closing
 
 import numpy as np
 import torch
@@ -31,9 +32,11 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
         folder: the sequence. observer: the observation model at the processing size (its rig's size is the
             size frames are read at). tracker: a fresh or initialised :class:`MarkerlessTracker`.
         logger: a :class:`~torchtrack.logging.RunLogger` or None; it gets per-frame scalars and, every
-            ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton.
+            ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton (the
+            voxels EM fitted: merged per cell with the tracker's ``em_cell_m``).
         desc: the progress bar's label.
-        workers: 1 reads and observes the frames in a worker process, ahead of the tracker (CPU; see
+        workers: 1 reads and observes the frames in a worker process, ahead of the tracker (CPU; it starts in
+            2-3 s, and a calling script needs an ``if __name__ == "__main__":`` guard; see
             :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
 
     Returns:
@@ -56,12 +59,21 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     explained = np.zeros(T, np.float32)
     reinit = np.zeros(T, bool)
     t_start = time.perf_counter()
-    with tqdm(total=T, unit="frame", desc=desc, disable=not progress) as bar:
-        keep = log_every if logger is not None else 0
-        for fb in observe_batches(folder, observer, start, stop, batch, device, keep, workers,
-                                  cell_m=tracker.config.em_cell_m):
+    keep = log_every if logger is not None else 0
+    stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
+                             cell_m=tracker.config.em_cell_m)
+    # closing: a tracking error (its traceback holds this frame) must not keep the worker and thread share
+    with tqdm(total=T, unit="frame", desc=desc, disable=not progress) as bar, closing(stream):
+        while True:
+            t0 = time.perf_counter()
+            fb = next(stream, None)
+            if fb is None:
+                break
             observations = fb.observations
             t_obs = fb.seconds / len(observations)
+            # per frame, its share of the time the batch took to come (reading and observing it, or waiting
+            # for the worker that did) plus its own tracking: the wall-clock rate
+            t_wait = (time.perf_counter() - t0) / len(observations)
             for i, obs in enumerate(observations):
                 t1 = time.perf_counter()
                 t = int(fb.frame_index[i])
@@ -86,9 +98,9 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 residual[k] = res.residual_m
                 explained[k] = res.explained
                 reinit[k] = res.reinitialised
-                dt = t_obs + time.perf_counter() - t1
+                dt = t_wait + time.perf_counter() - t1
                 if logger is not None:
-                    _log_frame(logger, t, k, obs, res, fb.images[i], rig, dt, t_obs)
+                    _log_frame(logger, t, obs, res, fb.images[i], rig, dt, t_obs)
                 bar.update(1)
                 bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
     elapsed = time.perf_counter() - t_start
@@ -101,11 +113,12 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     return poses, elapsed
 
 
-def _log_frame(tb, t: int, k: int, obs, res, images: torch.Tensor | None, rig, dt: float, t_obs: float) -> None:
-    """Per-frame scalars; on the frames whose ``images`` were kept (every ``log_every``), the drawings."""
+def _log_frame(tb, t: int, obs, res, images: torch.Tensor | None, rig, dt: float, t_obs: float) -> None:
+    """Per-frame scalars (``dt``: the frame's wall-clock seconds; ``t_obs``: its observation's); on the frames
+    whose ``images`` were kept (every ``log_every``), the drawings."""
     from torchtrack.tracking.draw import draw_pose_overlays
 
-    tb.scalars(t, voxels=float(obs.num_voxels), ik_residual_mm=1e3 * res.residual_m, explained=res.explained,
+    tb.scalars(t, voxels=float(obs.num_observed), ik_residual_mm=1e3 * res.residual_m, explained=res.explained,
                valid=float(res.valid), fps=1.0 / max(dt, 1e-9), observation_ms=1e3 * t_obs)
     if images is None or not res.valid:
         return

@@ -10,15 +10,16 @@ not forked: a child forked from a process whose OpenMP and OpenCV threads have r
 prototype hung in its first pooled observation). Spawning costs the worker's start, about 2-3 s (importing
 torch); sources pickle without their decoders and re-open in the worker.
 
-Thread shares (``workers=1``): the caller keeps one intra-op thread for the duration of the iteration, the
-worker gets the other ``n - 1`` of the ``n`` it had (at least one), and OpenCV's and FFmpeg's own thread pools
-are limited to one thread in the worker. The tracker's small operations gain nothing from more threads, and
-oversubscribed cores cost more than they give: on the 2-core machine a tracker left at two threads next to a
-busy process ran 3.8x slower (18.7 -> 70 ms per frame), its threads waiting for each other, and a worker given
-both threads next to the tracker observed a 1.5 cm hull slower than with one. On two cores the stream pays
-where observing and tracking cost about the same and the observation gains little from a second thread (the
-hull: 23-26 -> 37 frames/s); the Bayesian grid at 64^3 over 8 cameras at 640x480 observes at half the speed
-on one thread and runs faster in turn (``scripts/bench_track.py`` prints both).
+Thread shares (``workers=1``): the caller keeps one intra-op thread for the duration of the iteration, the worker
+gets the other ``n - 1`` of the ``n`` it had (at least one), and OpenCV's own thread pool and FFmpeg's decoder
+threads are limited to one in the worker (``OPENCV_FFMPEG_THREADS``, unless the environment sets it). The
+tracker's small operations gain nothing from more threads, and oversubscribed cores cost more than they give: on
+the 2-core machine a tracker left at two threads next to a busy process ran 3.8x slower (18.7 -> 70 ms per frame),
+its threads waiting for each other, and a worker given both threads next to the tracker observed a 1.5 cm hull
+slower than with one. On two cores the stream pays where observing and tracking cost about the same and the
+observation gains little from a second thread (the fast config's 1.5 cm hull: 19.9-26.6 -> 30.2-37.0 frames/s);
+the Bayesian grid at 64^3 over 8 cameras at 640x480 observes at half the speed on one thread and runs faster in
+turn (``scripts/bench_track.py`` prints both).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import logging
 import os
 import time
+import warnings
 from collections.abc import Iterator
 from typing import NamedTuple
 
@@ -59,6 +61,13 @@ class ObservedBatch(NamedTuple):
     seconds: float
 
 
+class _Warned(NamedTuple):
+    """A warning raised in the worker, to be raised again in the caller."""
+
+    category: type[Warning]
+    message: str
+
+
 class _ObservedFrames(IterableDataset):
     """The frames of ``folder`` in ``[start, stop)``, observed batch by batch (picklable, for a worker)."""
 
@@ -70,31 +79,41 @@ class _ObservedFrames(IterableDataset):
         self.start, self.stop, self.batch, self.device = start, stop, batch, device
         self.keep_images, self.threads = keep_images, threads
 
-    def __iter__(self) -> Iterator[ObservedBatch | InputError]:
-        if self.threads is not None:  # in a worker process: its share of the cores, and nothing more
-            torch.set_num_threads(self.threads)
-            import cv2
+    def __iter__(self) -> Iterator[ObservedBatch | _Warned | InputError]:
+        if self.threads is None:
+            yield from self._batches()
+            return
+        # in a worker process: its share of the cores and nothing more (OpenCV's pool, FFmpeg's decoder
+        # threads, read as each video opens), its warnings handed to the caller
+        torch.set_num_threads(self.threads)
+        import cv2
 
-            cv2.setNumThreads(1)
-            os.environ.setdefault("OPENCV_FFMPEG_CAPTURE_OPTIONS", "threads;1")  # read as each video opens
-        W, H = (int(v) for v in self.observer.rig.image_size_wh[0].tolist())
+        cv2.setNumThreads(1)
+        os.environ.setdefault("OPENCV_FFMPEG_THREADS", "1")
         try:
-            with torch.no_grad():
-                for fb in self.folder.iter_batches(self.batch, self.start, self.stop, device=self.device,
-                                                   size_wh=(W, H)):
-                    t0 = time.perf_counter()
-                    observations = self.observer(fb.images, fb.valid)
-                    if self.cell_m > 0:
-                        observations = [o.pooled(self.cell_m) for o in observations]
-                    seconds = time.perf_counter() - t0
-                    k = self.keep_images
-                    images = [fb.images[i] if k and (int(t) - self.start) % k == 0 else None
-                              for i, t in enumerate(fb.frame_index.tolist())]
-                    yield ObservedBatch(fb.frame_index, fb.valid, observations, images, seconds)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                for item in self._batches():
+                    yield from (_Warned(w.category, str(w.message)) for w in caught)
+                    caught.clear()
+                    yield item
+                yield from (_Warned(w.category, str(w.message)) for w in caught)
         except InputError as exc:  # handed over as it is, not wrapped in the DataLoader's worker traceback
-            if self.threads is None:
-                raise
             yield exc
+
+    def _batches(self) -> Iterator[ObservedBatch]:
+        W, H = (int(v) for v in self.observer.rig.image_size_wh[0].tolist())
+        k = self.keep_images
+        for fb in self.folder.iter_batches(self.batch, self.start, self.stop, device=self.device, size_wh=(W, H)):
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                observations = self.observer(fb.images, fb.valid)
+                if self.cell_m > 0:
+                    observations = [o.pooled(self.cell_m) for o in observations]
+            seconds = time.perf_counter() - t0
+            images = [fb.images[i].clone() if k and (int(t) - self.start) % k == 0 else None
+                      for i, t in enumerate(fb.frame_index.tolist())]  # a copy: not the whole batch kept alive
+            yield ObservedBatch(fb.frame_index, fb.valid, observations, images, seconds)
 
 
 def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop: int, batch: int = 4,
@@ -102,14 +121,19 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
                     cell_m: float = 0.0, worker_threads: int | None = None) -> Iterator[ObservedBatch]:
     """Read and observe frames ``[start, stop)`` of ``folder``, ``batch`` at a time, in order.
 
+    With ``workers=1`` every call starts a worker process (2-3 s) and stops it at the end, and a script that
+    calls this (or :func:`~torchtrack.tracking.run.track_sequence` with workers) must guard its entry point
+    with ``if __name__ == "__main__":``, as for any spawned process. Warnings the worker raises (e.g. an
+    undecodable frame) are raised again here; its log records go to its own stderr.
+
     Args:
         folder: the sequence. observer: the observation model at the processing size (frames are read at its
             rig's size).
         device: where frames and observations live (None: CPU).
         keep_images: also hand out the images of every ``keep_images``-th frame from ``start`` (0: none), e.g.
             the frames a logger draws on.
-        workers: 0 observes in this process; 1 in a worker process running ahead of the caller (CPU only: on
-            another device, or from inside a worker, this falls back to 0).
+        workers: 0 observes in this process; 1 in a worker process running ahead of the caller (CPU only: for
+            an observer or device elsewhere, or from inside a worker, this falls back to 0).
         cell_m: the observations' voxels merged per cell of this size
             (:meth:`~torchtrack.tracking.observation.VoxelObservation.pooled`; 0: as observed), where they are
             observed: the tracker's ``em_cell_m``.
@@ -119,14 +143,17 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
         :class:`ObservedBatch` es.
 
     Raises:
-        InputError: as the reader and the observer raise it, from whichever process ran them.
+        InputError: bad arguments; as the reader and the observer raise it, from whichever process ran them.
     """
     if workers not in (0, 1):
         raise InputError(f"observation workers must be 0 or 1, got {workers}")
-    on_cpu = torch.device(device or "cpu").type == "cpu" and next(
-        (b.device.type == "cpu" for b in observer.buffers()), True)
-    if workers and not on_cpu:
-        log.info("observation on %s: in this process (a worker process observes on the CPU only)", device)
+    if keep_images < 0 or cell_m < 0 or (worker_threads is not None and worker_threads < 1):
+        raise InputError(f"observe_batches: keep_images and cell_m must be >= 0 and worker_threads >= 1, got "
+                         f"{keep_images}, {cell_m}, {worker_threads}")
+    where = {b.device for b in observer.buffers()} | {torch.device(device or "cpu")}
+    if workers and any(d.type != "cpu" for d in where):
+        log.info("observation on %s: in this process (a worker process observes on the CPU only)",
+                 ", ".join(sorted(map(str, where))))
         workers = 0
     if workers and torch.utils.data.get_worker_info() is not None:
         workers = 0
@@ -138,13 +165,19 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
                              worker_threads or max(1, threads - 1))
     loader = DataLoader(frames, batch_size=None, num_workers=1, prefetch_factor=PREFETCH_BATCHES,
                         multiprocessing_context="spawn")
-    torch.set_num_threads(1)
-    it = iter(loader)
+    it = None
     try:
+        torch.set_num_threads(1)
+        it = iter(loader)
         for item in it:
-            if isinstance(item, InputError):
+            if isinstance(item, _Warned):
+                warnings.warn(item.message, item.category, stacklevel=2)
+            elif isinstance(item, InputError):
                 raise item
-            yield item
+            else:
+                yield item
     finally:
-        del it  # stops the worker
+        if it is not None and hasattr(it, "_shutdown_workers"):
+            it._shutdown_workers()  # also when an exception that holds the iterator is kept by the caller
+        del it
         torch.set_num_threads(threads)
