@@ -17,9 +17,9 @@ tracker's small operations gain nothing from more threads, and oversubscribed co
 the 2-core machine a tracker left at two threads next to a busy process ran 3.8x slower (18.7 -> 70 ms per frame),
 its threads waiting for each other, and a worker given both threads next to the tracker observed a 1.5 cm hull
 slower than with one. On two cores the stream pays where observing and tracking cost about the same and the
-observation gains little from a second thread (the fast config's 1.5 cm hull: 19.9-26.6 -> 30.2-37.0 frames/s);
-the Bayesian grid at 64^3 over 8 cameras at 640x480 observes at half the speed on one thread and runs faster in
-turn (``scripts/bench_track.py`` prints both).
+observation gains little from a second thread (the fast config's 1.5 cm hull, four runs: 19.9-23.8 -> 27.6-37.0
+frames/s); the Bayesian grid at 64^3 over 8 cameras at 640x480 observes at half the speed on one thread and runs
+faster in turn (``scripts/bench_track.py`` prints both).
 """
 
 from __future__ import annotations
