@@ -63,6 +63,7 @@ def test_a_worker_observes_what_this_process_does(seq, model, cell):
         assert torch.equal(a.valid, b.valid)
         for oa, ob in zip(a.observations, b.observations):
             assert oa.num_voxels > 30
+            assert (ob.num_observed, ob.cell_m) == (oa.num_observed, oa.cell_m)
             assert torch.equal(oa.points, ob.points) and torch.equal(oa.sizes, ob.sizes)
             torch.testing.assert_close(ob.weights, oa.weights, rtol=1e-5, atol=1e-12)
             torch.testing.assert_close(ob.colours, oa.colours, rtol=1e-5, atol=1e-6, equal_nan=True)
@@ -89,7 +90,7 @@ def test_a_stream_left_early_or_failing_to_start_gives_the_threads_back_and_stop
     stream.close()
     assert torch.get_num_threads() == threads and _live_workers() == 0
     observer.unpicklable = lambda: None  # the worker cannot be given it
-    with pytest.raises(Exception, match="pickle"):
+    with pytest.raises(InputError, match="do not pickle"):
         next(observe_batches(folder, observer, 0, folder.num_frames, workers=1))
     assert torch.get_num_threads() == threads and _live_workers() == 0
 

@@ -137,6 +137,7 @@ def test_e_step_matches_a_plain_loop():
     col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
     col[::5, 1] = float("nan")
     col[3::7] = float("nan")  # voxels no view sees: no colour term, no view
+    col[1::5, 0] = float("nan")  # the first view that sees them is not view 0
     cfg = EMConfig(gate_mahalanobis2=2.0)  # gates out some blobs for some points
     assign, view, _ = e_step(pts, col, blobs, cfg)
     for n in range(N):

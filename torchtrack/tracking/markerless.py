@@ -298,7 +298,7 @@ class MarkerlessTracker:
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         pts, w = obs.points, obs.weights
-        if obs.num_voxels < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
+        if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
         # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them.
         # Each voxel's own extent: the hull's coarse interior cubes (12 cm) would add 5 cm to the height

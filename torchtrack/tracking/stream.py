@@ -18,14 +18,15 @@ the 2-core machine a tracker left at two threads next to a busy process ran 3.8x
 its threads waiting for each other, and a worker given both threads next to the tracker observed a 1.5 cm hull
 slower than with one. On two cores the stream pays where observing and tracking cost about the same and the
 observation gains little from a second thread (the fast config's 1.5 cm hull, four runs: 19.9-23.8 -> 27.6-37.0
-frames/s); the Bayesian grid at 64^3 over 8 cameras at 640x480 observes at half the speed on one thread and runs
-faster in turn (``scripts/bench_track.py`` prints both).
+frames/s); the Bayesian grid at 64^3 over 8 cameras at 640x480, which observes at half the speed on one thread,
+was slower with the worker in one run and faster in another (``scripts/bench_track.py`` prints both).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import pickle
 import time
 import warnings
 from collections.abc import Iterator
@@ -62,10 +63,21 @@ class ObservedBatch(NamedTuple):
 
 
 class _Warned(NamedTuple):
-    """A warning raised in the worker, to be raised again in the caller."""
+    """A warning raised in the worker, to be raised again in the caller where it was raised."""
 
     category: type[Warning]
     message: str
+    filename: str
+    lineno: int
+
+    @classmethod
+    def of(cls, w: warnings.WarningMessage) -> _Warned:
+        category = w.category
+        try:  # a class the caller cannot import would be lost with its item
+            pickle.dumps(category)
+        except Exception:  # noqa: BLE001 (whatever pickling raises)
+            category = UserWarning
+        return cls(category, str(w.message), w.filename, w.lineno)
 
 
 class _ObservedFrames(IterableDataset):
@@ -90,16 +102,17 @@ class _ObservedFrames(IterableDataset):
 
         cv2.setNumThreads(1)
         os.environ.setdefault("OPENCV_FFMPEG_THREADS", "1")
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
+        with warnings.catch_warnings(record=True) as caught:  # under the process's default filters
+            try:
                 for item in self._batches():
-                    yield from (_Warned(w.category, str(w.message)) for w in caught)
+                    yield from map(_Warned.of, caught)
                     caught.clear()
                     yield item
-                yield from (_Warned(w.category, str(w.message)) for w in caught)
-        except InputError as exc:  # handed over as it is, not wrapped in the DataLoader's worker traceback
-            yield exc
+            except InputError as exc:  # handed over as it is, not wrapped in the DataLoader's worker traceback
+                yield from map(_Warned.of, caught)
+                caught.clear()
+                yield exc
+            yield from map(_Warned.of, caught)
 
     def _batches(self) -> Iterator[ObservedBatch]:
         W, H = (int(v) for v in self.observer.rig.image_size_wh[0].tolist())
@@ -147,7 +160,7 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
     """
     if workers not in (0, 1):
         raise InputError(f"observation workers must be 0 or 1, got {workers}")
-    if keep_images < 0 or cell_m < 0 or (worker_threads is not None and worker_threads < 1):
+    if not (keep_images >= 0 and cell_m >= 0 and (worker_threads is None or worker_threads >= 1)):
         raise InputError(f"observe_batches: keep_images and cell_m must be >= 0 and worker_threads >= 1, got "
                          f"{keep_images}, {cell_m}, {worker_threads}")
     where = {b.device for b in observer.buffers()} | {torch.device(device or "cpu")}
@@ -168,10 +181,14 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
     it = None
     try:
         torch.set_num_threads(1)
-        it = iter(loader)
+        try:
+            it = iter(loader)
+        except (pickle.PicklingError, AttributeError, TypeError) as exc:
+            raise InputError(f"{folder.root}: the observation worker cannot be started, its folder and observer do "
+                             f"not pickle ({exc}); observe in this process (workers=0)") from exc
         for item in it:
             if isinstance(item, _Warned):
-                warnings.warn(item.message, item.category, stacklevel=2)
+                warnings.warn_explicit(item.message, item.category, item.filename, item.lineno)
             elif isinstance(item, InputError):
                 raise item
             else:
