@@ -3,7 +3,6 @@ in this process, errors handed over as they are, thread shares restored; video s
 
 from __future__ import annotations
 
-import dataclasses
 import pickle
 from pathlib import Path
 
@@ -17,16 +16,12 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.stream import observe_batches
 
+from conftest import small_walk
+
 
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    from torchtrack.synth.scene import SceneConfig
-    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
-
-    cfg = SynthConfig(motion="walk", duration_s=0.3, starfish_s=0.2, fps=20, background_frames=4,
-                      video_format="mp4", rig=RigConfig(num_cameras=4, width=320, height=240),
-                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
-    return write_sequence(cfg, tmp_path_factory.mktemp("stream") / "seq", progress=False)
+    return small_walk(tmp_path_factory.mktemp("stream") / "seq", duration_s=0.3, video_format="mp4")
 
 
 def _observer(seq: Path, model: str) -> tuple[SequenceFolder, Observer]:
@@ -97,11 +92,9 @@ def test_a_stream_left_early_or_failing_to_start_gives_the_threads_back_and_stop
 
 def test_a_workers_warnings_reach_the_caller(tmp_path):
     from torchtrack.io.video import DataWarning
-    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 
-    seq = write_sequence(SynthConfig(motion="walk", duration_s=0.2, starfish_s=0.0, fps=20, background_frames=3,
-                                     video_format="png", rig=RigConfig(num_cameras=4, width=160, height=120)),
-                         tmp_path / "seq", progress=False)
+    seq = small_walk(tmp_path / "seq", duration_s=0.2, video_format="png", starfish_s=0.0, background_frames=3,
+                     size_wh=(160, 120), noise=False)
     victim = sorted((seq / "video").rglob("*.png"))[2]
     victim.write_bytes(b"not a png")
     folder, observer = _observer(seq, "hull")

@@ -30,6 +30,8 @@ from torchtrack.tracking.goals import (GoalModel, bound_rotation, feet_index, fl
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 
+from conftest import small_walk
+
 torch.set_grad_enabled(False)
 
 
@@ -572,13 +574,7 @@ def test_tracker_config_from_dict_names_unknown_keys():
 # --------------------------------------------------------------------------------------------------- CLI
 @pytest.fixture(scope="module")
 def seq(tmp_path_factory) -> Path:
-    from torchtrack.synth.scene import SceneConfig
-    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
-
-    cfg = SynthConfig(motion="walk", duration_s=0.5, starfish_s=0.2, fps=20, background_frames=4,
-                      video_format="png", rig=RigConfig(num_cameras=4, width=320, height=240),
-                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
-    return write_sequence(cfg, tmp_path_factory.mktemp("track") / "seq", progress=False)
+    return small_walk(tmp_path_factory.mktemp("track") / "seq", duration_s=0.5, video_format="png")
 
 
 @pytest.mark.parametrize("model", ["bayes", "hull"])
