@@ -4,7 +4,9 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
 
 1. predict the pose (damped constant velocity of the state vector) and regenerate the blobs from it
    (eq. 17-18): they are EM's starting point and prior;
-2. EM of the blobs on the voxels (position and colour; :mod:`torchtrack.blobs.em`);
+2. EM of the blobs on the voxels (position and colour; :mod:`torchtrack.blobs.em`); from at most
+   ``ghost_max_cameras`` cameras, the ghost voxels the predicted body explains in every view are first given
+   ``ghost_weight`` (:mod:`torchtrack.tracking.ghosts`);
 3. joint goals from the blobs (Algorithm 2; :class:`~torchtrack.tracking.goals.GoalModel`), the root as the
    bounded Kabsch fit of the trunk goals, then CCD of the limbs onto their goals (eq. 11-16); steps 3 is
    repeated ``refinements`` times, each time from the updated bones;
@@ -36,6 +38,7 @@ from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton
+from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact, sole_heights
 from torchtrack.tracking.observation import VoxelObservation
 
@@ -105,6 +108,12 @@ class TrackerConfig:
             the floor; :func:`~torchtrack.tracking.goals.floor_contact`). Off for jumps and running.
         floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
+        ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
+            (:mod:`torchtrack.tracking.ghosts`; 1: off). ghost_max_cameras: only in frames with at most this
+            many readable cameras: from more, the hull holds few ghosts and the test takes more real voxels
+            (at the seams between blobs) than ghosts. ghost_inside_scale, ghost_cover_scale: its ellipsoid
+            scales (a voxel inside the predicted blobs grown by the first is never a ghost; a ray through them
+            grown by the second is explained).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -123,10 +132,21 @@ class TrackerConfig:
     blobs: str = "blobs.yaml"
     floor_contact: bool = False
     floor_z_m: float | None = None
+    ghost_weight: float = 0.0
+    ghost_max_cameras: int = 6
+    ghost_inside_scale: float = 1.15
+    ghost_cover_scale: float = 1.2
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
             raise InputError("TrackerConfig: refinements, lost_frames and init_passes must be >= 1")
+        if self.ghost_max_cameras < 0:
+            raise InputError(f"TrackerConfig.ghost_max_cameras must be >= 0, got {self.ghost_max_cameras}")
+        if not 0.0 <= self.ghost_weight <= 1.0:
+            raise InputError(f"TrackerConfig.ghost_weight must be in [0, 1], got {self.ghost_weight}")
+        for name in ("ghost_inside_scale", "ghost_cover_scale"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"TrackerConfig.{name} must be > 0, got {getattr(self, name)}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
 
@@ -345,7 +365,7 @@ class MarkerlessTracker:
             self.colour, self.lost = None, 0
             res = None
             for _ in range(self.config.init_passes):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False)
                 self.angles = self.previous = res.angles
             cost = self._fit_cost(res)
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
@@ -459,7 +479,8 @@ class MarkerlessTracker:
         base, base_cov = sub.blobs.gaussians(fk.bone_frames)
         base, base_cov = base[0], base_cov[0]  # (K, 3), (K, 3, 3)
         raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
-        fitted, _ = fit_blobs(obs.points, obs.weights, obs.sizes, None, prior_blobs(base, base_cov), raw)
+        start = prior_blobs(base, base_cov)
+        fitted, _ = fit_blobs(obs.points, self._ghost_weights(obs, start), obs.sizes, None, start, raw)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
         K, G = base.shape[0], len(BONE_GROUPS) + 1
         neck = skel.joint_origin(NECK_JOINT)
@@ -509,12 +530,28 @@ class MarkerlessTracker:
                             colour_known=self.colour.colour_known)
         return fk, prior
 
-    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float) -> FrameResult:
+    def _ghost_weights(self, obs: VoxelObservation, prior: Blobs) -> torch.Tensor:
+        """The voxels' EM weights with the ghosts the predicted blobs ``prior`` explain away lowered by
+        ``ghost_weight`` (:mod:`torchtrack.tracking.ghosts`)."""
+        cfg = self.config
+        if cfg.ghost_weight >= 1.0 or obs.camera_centres is None:
+            return obs.weights
+        if int(obs.cameras_valid.sum()) > cfg.ghost_max_cameras:
+            return obs.weights
+        seen = torch.isfinite(obs.colours).all(-1) & obs.cameras_valid.to(obs.points.device)
+        ghost = ghost_voxels(obs.points, seen, obs.camera_centres.to(obs.points), prior.mean, prior.cov,
+                             cfg.ghost_inside_scale, cfg.ghost_cover_scale)
+        return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
+
+    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True) -> FrameResult:
+        """One frame from the predicted pose; ``ghosts``: explain ghost voxels away against the prediction (off
+        where the prediction is only a guess: the heading search of initialisation and re-acquisition)."""
         sub, cfg = self.subject, self.config
         a = self.angles + cfg.velocity * (self.angles - self.previous)
         a = sub.skeleton.clamp(a)
         fk, prior = self._regenerate(a)
-        blobs, assign = fit_blobs(obs.points, obs.weights, obs.sizes, obs.colours, prior, cfg.em,
+        weights = self._ghost_weights(obs, prior) if ghosts else obs.weights
+        blobs, assign = fit_blobs(obs.points, weights, obs.sizes, obs.colours, prior, cfg.em,
                                   learn_colour=learn_colour)
         weight = (blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
         residual = torch.zeros((), dtype=a.dtype, device=a.device)
@@ -535,7 +572,7 @@ class MarkerlessTracker:
         fk = sub.skeleton.forward(state)
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
-        explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
+        explained = float(weights[assign >= 0].sum() / weights.sum().clamp(min=1e-30))
         conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
         oj = sub.output_joint
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
@@ -611,7 +648,7 @@ class MarkerlessTracker:
             self.angles = self.previous = a
             res = None
             for _ in range(max(2, self.config.init_passes // 2)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False)
                 self.angles = self.previous = res.angles
             if best is None or self._fit_cost(res) < self._fit_cost(best):
                 best = res

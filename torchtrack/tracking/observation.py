@@ -29,6 +29,8 @@ class VoxelObservation:
         cameras_valid: (C,) bool, the cameras whose frame was readable.
         cell_m: the cell size the voxels were merged per (:meth:`pooled`), 0 for the model's own voxels.
         observed_voxels: how many of the model's voxels were merged into these (-1: not merged).
+        camera_centres: (C, 3) the cameras' centres in the world frame, or None (then the tracker cannot
+            explain ghost voxels away: :mod:`torchtrack.tracking.ghosts`).
     """
 
     points: torch.Tensor
@@ -38,6 +40,7 @@ class VoxelObservation:
     cameras_valid: torch.Tensor
     cell_m: float = 0.0
     observed_voxels: int = -1
+    camera_centres: torch.Tensor | None = None
 
     @property
     def num_voxels(self) -> int:
@@ -77,7 +80,8 @@ class VoxelObservation:
             0, inv, cw[..., None] * torch.nan_to_num(self.colours))
         cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
-        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed)
+        return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed,
+                                self.camera_centres)
 
 
 class Observer(nn.Module):
@@ -106,6 +110,7 @@ class Observer(nn.Module):
 
             spec = GridSpec(tuple(lower_m), tuple(upper_m), voxel_size_m)
         self.spec = spec
+        self.register_buffer("camera_centres", rig.centers(), persistent=False)
         if model == "bayes":
             cfg = bayes or BayesConfig(min_views=min_views)
             self.grid = BayesianGrid(rig, spec, background, cfg)
@@ -125,7 +130,8 @@ class Observer(nn.Module):
             for b in range(images.shape[0]):
                 v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
                 w = v.sizes ** 3
-                out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b]))
+                out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b],
+                                            camera_centres=self.camera_centres.to(v.centres.dtype)))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
@@ -149,5 +155,6 @@ class Observer(nn.Module):
             col = flat.gather(2, pix.clamp(min=0)[:, None, :].expand(-1, 3, -1))  # (C, 3, n)
             col = torch.where((pix >= 0)[:, None, :], col, torch.nan).permute(2, 0, 1)  # (n, C, 3)
             sizes = torch.full_like(pts[:, 0], s)
-            out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b]))
+            out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b],
+                                        camera_centres=self.camera_centres.to(pts.dtype)))
         return out
