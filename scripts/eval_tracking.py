@@ -10,6 +10,8 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --proportions
     .venv/bin/python scripts/eval_tracking.py --motions walk --tracker fit_bone_lengths=false   # one scale
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 8 --true-body    # without the fit
+    .venv/bin/python scripts/eval_tracking.py --cameras 4 --outside            # the voxels' share outside the body
+    .venv/bin/python scripts/eval_tracking.py --cameras 4 --oracle-margin 0.04 # ghosts removed by the truth
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
@@ -26,11 +29,13 @@ from torchtrack.checks import InputError, with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
+from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.observation import VoxelObservation
 from torchtrack.tracking.run import track_sequence
 
 CMU = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "cmu"
@@ -52,10 +57,48 @@ def sequence(work: Path, motion: str, cameras: int, duration: float, fmt: str) -
     return out
 
 
+#: --outside: a voxel counts as outside the body beyond this distance from its ellipsoids (m).
+OUTSIDE_M = 0.04
+
+
+class AgainstTruth(torch.nn.Module):
+    """Diagnostic around an observer, for frames observed in order from frame 0 in this process: records the share
+    of each frame's voxel weight outside the rendered body's ellipsoids grown by OUTSIDE_M (ghosts, shadows), and
+    with ``margin`` set leaves out the voxels outside them grown by ``margin`` (an oracle: tracking without
+    ghosts)."""
+
+    def __init__(self, observer: torch.nn.Module, truth: dict, margin: float | None) -> None:
+        super().__init__()
+        self.inner, self.truth, self.margin = observer, truth, margin
+        self.rig, self.model = observer.rig, observer.model
+        self.frame, self.outside = 0, []
+
+    def _inside(self, obs: VoxelObservation, t: int, grow: float) -> torch.Tensor:
+        g = self.truth
+        return inside_ellipsoids(obs.points.double(), torch.from_numpy(g["blob_centres"][t]).double(),
+                                 torch.from_numpy(g["blob_R_world"][t]).double(),
+                                 torch.from_numpy(g["blob_semi_axes"]).double() + grow)
+
+    def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor | None = None) -> list[VoxelObservation]:
+        out = []
+        for obs in self.inner(images, cameras_valid):
+            t, self.frame = self.frame, self.frame + 1
+            w = obs.weights.double()
+            self.outside.append(float(w[~self._inside(obs, t, OUTSIDE_M)].sum() / w.sum().clamp(min=1e-30)))
+            if self.margin is not None:
+                keep = self._inside(obs, t, self.margin)
+                obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
+                                       obs.cameras_valid, camera_centres=obs.camera_centres)
+            out.append(obs)
+        return out
+
+
 def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
-          tracker_overrides: Sequence[str] = (), true_body: bool = False) -> tuple[object, float, MarkerlessTracker]:
+          tracker_overrides: Sequence[str] = (), true_body: bool = False, oracle_margin: float | None = None
+          ) -> tuple[object, float, MarkerlessTracker, AgainstTruth]:
     """Track ``seq``; with ``true_body`` on the rendered body (its body.urdf) from the first ground-truth pose,
-    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error."""
+    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error.
+    The observer is wrapped in :class:`AgainstTruth` (``oracle_margin``: its margin)."""
     folder = SequenceFolder(seq)
     ocfg = config["observation"]
     scale = float(ocfg.get("scale", 1.0))
@@ -63,6 +106,7 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     rig = folder.rig.resized(W, H).float()
     bg = BackgroundModel.from_folder(folder, background, size_wh=(W, H))
     observer = observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
+    observer = AgainstTruth(observer, dict(np.load(seq / "gt.npz")), oracle_margin)
     tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), tracker_overrides,
                                     "--tracker")
     if true_body:
@@ -72,8 +116,8 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
         tracker.initialize_from_pose(angles, body.height())
     else:
         tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
-    poses, elapsed = track_sequence(folder, observer, tracker, progress=False)
-    return poses, poses.num_frames / elapsed, tracker
+    poses, elapsed = track_sequence(folder, observer, tracker, progress=False)  # in this process, frames in order
+    return poses, poses.num_frames / elapsed, tracker, observer
 
 
 def main() -> None:
@@ -94,6 +138,12 @@ def main() -> None:
     ap.add_argument("--true-body", action="store_true",
                     help="track with the rendered body from the first ground-truth pose (no initialisation, no "
                          "bone fit): separates the fit's share of the error")
+    ap.add_argument("--outside", action="store_true",
+                    help=f"also print the share of the voxel weight outside the rendered body grown by "
+                         f"{OUTSIDE_M * 100:g} cm (ghosts, shadows), mean over frames")
+    ap.add_argument("--oracle-margin", type=float, default=None, metavar="M",
+                    help="diagnostic: leave out the voxels outside the rendered body grown by M metres (tracking "
+                         "without ghosts)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     config = load_config(args.config)
@@ -111,7 +161,8 @@ def main() -> None:
             seq = sequence(args.work, motion, cams, args.duration, args.format)
             truth = load_poses(seq / "gt.npz")
             for model in args.models:
-                poses, fps, tracker = track(seq, model, config, background, args.tracker, args.true_body)
+                poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
+                                                  args.oracle_margin)
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")
@@ -121,6 +172,9 @@ def main() -> None:
                 print(f"{motion:12s} {cams:4d} {model:6s} {rep.mpjpe_mm:7.1f} {rep.max_frame_mm:7.1f} "
                       f"{100 * pck50:5.1f}% {rep.frames_lost:5d} {fps:5.1f}  "
                       + ", ".join(f"{n} {e:.0f}" for e, n in worst) + ("" if ok else "  MISS"), flush=True)
+                if args.outside:
+                    print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
+                          f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)
                 if args.proportions and tracker.subject is not None:
                     fit = tracker.subject.skeleton.proportions()
                     true = Skeleton.from_urdf(seq / "body.urdf").proportions()

@@ -54,10 +54,14 @@ def test_a_worker_observes_what_this_process_does(seq, model, cell):
     assert [b.frame_index.tolist() for b in there] == [b.frame_index.tolist() for b in here]
     frames = [t for b in here for t in b.frame_index.tolist()]
     assert frames == list(range(1, folder.num_frames))
+    R = folder.rig.R_cam_world.double().numpy()
+    centres = torch.from_numpy(-np.einsum("cji,cj->ci", R, folder.rig.t_cam_world.double().numpy()))  # -R^T t
     for a, b in zip(here, there):
         assert torch.equal(a.valid, b.valid)
         for oa, ob in zip(a.observations, b.observations):
             assert oa.num_voxels > 30
+            for o in (oa, ob):  # the cameras' centres, for the ghost test, merged or not, from either process
+                torch.testing.assert_close(o.camera_centres.double(), centres, rtol=0, atol=1e-5)
             assert (ob.num_observed, ob.cell_m) == (oa.num_observed, oa.cell_m)
             assert torch.equal(oa.points, ob.points) and torch.equal(oa.sizes, ob.sizes)
             torch.testing.assert_close(ob.weights, oa.weights, rtol=1e-5, atol=1e-12)

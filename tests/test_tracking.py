@@ -803,3 +803,35 @@ def test_ghosts_of_four_cameras_are_explained_away(skel):
     # measured 25.1 mm (worst frame 46.5) against 47.1 (69.4) with the ghosts at full weight
     assert errs[0.0].mean() < 0.035 and errs[0.0].max() < 0.06, errs[0.0]
     assert errs[1.0].mean() > errs[0.0].mean() + 0.01, (errs[0.0].mean(), errs[1.0].mean())
+
+
+def test_the_ghost_test_lowers_the_ghosts_only_for_small_rigs_with_known_cameras(skel):
+    """On a walk frame with the ghosts of 4 carved views, predicted at the true pose: the carved ghosts clear of
+    the body lose their EM weight and the body's voxels keep theirs; without the cameras' centres, with more
+    cameras than ghost_max_cameras, or with ghost_weight 1 every weight stays as it is."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    pose = procedural_motion(subj, "walk", 0.5, 30, starfish_s=0.0)[10]
+    body = _observation(subj, blobs, pose)
+    obs, n = _four_view_ghosts(body)
+    is_ghost = torch.arange(obs.num_voxels) >= body.num_voxels
+    # the carved voxels clear of the body (the rest are the hull's loose shell around it, which the test keeps)
+    clear = is_ghost & (torch.cdist(obs.points, body.points).amin(1) > 0.06)
+
+    def weights(**config):
+        tracker = MarkerlessTracker(skel, TrackerConfig(**config))
+        tracker.initialize_from_pose(pose, 1.80)
+        _, prior = tracker._regenerate(pose)
+        return {"4 cameras": tracker._ghost_weights(obs, prior),
+                "no centres": tracker._ghost_weights(dataclasses.replace(obs, camera_centres=None), prior)}
+
+    w = weights(ghost_weight=0.0)
+    lowered = w["4 cameras"] < obs.weights
+    assert n > 0.5 * body.num_voxels
+    assert clear.sum() > 0.1 * body.num_voxels  # measured 338 against 2,219
+    assert lowered[clear].float().mean() > 0.8, lowered[clear].float().mean()
+    assert lowered[~is_ghost].float().mean() < 0.01
+    assert torch.equal(w["4 cameras"][lowered], torch.zeros(int(lowered.sum())))
+    assert torch.equal(w["no centres"], obs.weights)
+    for config in ({"ghost_weight": 0.0, "ghost_max_cameras": 3}, {"ghost_weight": 1.0}):
+        assert torch.equal(weights(**config)["4 cameras"], obs.weights), config

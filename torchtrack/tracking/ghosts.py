@@ -7,11 +7,17 @@ ghosts on the other diagonal; EM hands their voxels to the nearest blobs, which 
 
 The tracker knows where the body should be (the blobs regenerated from the predicted pose, eq. 17-18), so it can
 explain a voxel away: a voxel outside the predicted body (every blob's ellipsoid grown by ``inside_scale``) is a
-ghost when, in every view that sees it, its pixel's ray passes through the predicted body (an ellipsoid grown by
-``cover_scale``) — that view's foreground there is accounted for without it. A real voxel the prediction misses
-(a limb that moved faster than predicted) survives as long as one view sees it against no predicted body. The
-tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); measured on the synthetic sequences with
-``scripts/eval_tracking.py`` (the README's table).
+ghost when, in every view that sees it, the ray from the camera through its centre passes through the predicted
+body (an ellipsoid grown by ``cover_scale``): that view's foreground there is accounted for without it. A real
+voxel the prediction misses (a limb that moved faster than predicted) survives as long as one view sees it against
+no predicted body. The tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); measured on the
+synthetic sequences with ``scripts/eval_tracking.py`` (the README's table).
+
+Limits. The test trusts the prediction: a prediction that sits on the ghosts explains the real voxels away
+and confirms itself (the tracker's re-acquisition, after its divergence test, searches without it). Each voxel
+is tested at its centre, so a hull's coarse interior cube or a merged cell is kept or lowered whole. The inside
+margin is relative, so thin limbs get a few millimetres of it. Visibility is not modelled: a view "sees" every
+voxel inside its image.
 
 This is this project's extension to de Bem's and Caillette's EM, not part of either paper: both tracked from
 enough cameras that ghosts were small.
@@ -38,7 +44,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         mean, cov: (K, 3), (K, 3, 3) the predicted blobs (uniform-ellipsoid covariances).
         inside_scale: a voxel inside any blob's ellipsoid grown by this is never a ghost.
         cover_scale: a ray through any blob's ellipsoid grown by this is explained by the body.
-        chunk: voxels per batch (bounds the (chunk, C, K, 3) temporaries).
+        chunk: voxels per batch (bounds the (chunk, 2 K C) and (chunk, K, C) temporaries).
 
     Returns:
         (N,) bool. A voxel that no view sees is not a ghost.
@@ -59,14 +65,16 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     # every test is a quadratic form in the precision A_k = cov_k^-1 of a voxel x, a camera centre c and a blob
     # mean m: inside (x - m)^T A (x - m); along the ray from c through x, (c - m)^T A (x - c) and (x - c)^T A (x - c).
     # Expanded, each is x^T A x plus terms linear in x, so one matrix product of the voxels with the stacked
-    # linear coefficients gives them all. The expansion subtracts terms of about 3e4 (3.5 m over a blob's 2 cm
-    # standard deviation, squared) to resolve a threshold of 5 - 7: float32's rounding (about 1e-2 here) is
-    # far under it, so the points' own precision is kept (float32: 1.8 ms a frame against float64's 2.6, 4
-    # cameras, 2,900 voxels, one thread).
+    # linear coefficients gives them all. Everything is first moved to the blobs' centroid, so the expansion's
+    # terms do not grow with the world origin's distance from the subject: they are then at most about 1e5
+    # (cameras 3.5 m out over a blob's 1.25 cm standard deviation, squared), to resolve a threshold of 5 - 7,
+    # and float32's rounding (about 1e-2 of it) is far under that: the points' own precision is kept.
     dt = points.dtype
-    A = torch.linalg.inv(cov.to(dt))  # (K, 3, 3)
-    W = torch.linalg.cholesky(A).transpose(1, 2)  # (K, 3, 3): W^T W = A, so x^T A x = |W x|^2
-    m, c = mean.to(dt), camera_centres.to(dt)
+    origin = mean.to(dt).mean(0)
+    L = torch.linalg.cholesky(cov.to(dt))
+    W = torch.linalg.solve_triangular(L, torch.eye(3, dtype=dt, device=L.device).expand_as(L), upper=False)
+    A = W.transpose(1, 2) @ W  # (K, 3, 3) = cov^-1, symmetric; x^T A x = |W x|^2
+    m, c = mean.to(dt) - origin, camera_centres.to(dt) - origin
     Am = torch.einsum("kij,kj->ki", A, m)  # (K, 3)
     mAm = (Am * m).sum(-1)  # (K,)
     d = c[None] - m[:, None]  # (K, C, 3) from each blob's mean to each camera
@@ -81,7 +89,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     r_in2 = _SURFACE_M2 * inside_scale ** 2
     r_cov2 = _SURFACE_M2 * cover_scale ** 2
     for lo in range(0, N, chunk):
-        x, sn = points[lo:lo + chunk].to(dt), seen[lo:lo + chunk]
+        x, sn = points[lo:lo + chunk].to(dt) - origin, seen[lo:lo + chunk]
         lin = x @ coef_in  # (n, 3K + K)
         xAx = lin[:, :3 * K].square() @ groups  # (n, K)
         inside = (xAx - 2 * lin[:, 3 * K:] + mAm <= r_in2).any(-1)  # (n,)

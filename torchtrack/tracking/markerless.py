@@ -109,11 +109,11 @@ class TrackerConfig:
         floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
         ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
-            (:mod:`torchtrack.tracking.ghosts`; 1: off). ghost_max_cameras: only in frames with at most this
-            many readable cameras: from more, the hull holds few ghosts and the test takes more real voxels
-            (at the seams between blobs) than ghosts. ghost_inside_scale, ghost_cover_scale: its ellipsoid
-            scales (a voxel inside the predicted blobs grown by the first is never a ghost; a ray through them
-            grown by the second is explained).
+            (:mod:`torchtrack.tracking.ghosts`; 1: off). ``explained`` still counts their full weight.
+            ghost_max_cameras: only for rigs of at most this many cameras: from more, the hull holds few ghosts
+            and the test takes more real voxels (at the seams between blobs) than ghosts. ghost_inside_scale,
+            ghost_cover_scale: its ellipsoid scales (a voxel inside the predicted blobs grown by the first is
+            never a ghost; a ray through them grown by the second is explained).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -374,6 +374,10 @@ class MarkerlessTracker:
                 best = (cost, res)
         res = best[1]
         self.angles = self.previous = res.angles
+        # the bone fit's rounds explain ghosts away: so does the fit they must improve on
+        for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):
+            res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+            self.angles = self.previous = res.angles
         # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
         # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
         # undone and ends the fit (a guard against feedback between the fit and the pose: from a start 5 cm too
@@ -530,13 +534,18 @@ class MarkerlessTracker:
                             colour_known=self.colour.colour_known)
         return fk, prior
 
+    def _explains_ghosts(self, obs: VoxelObservation) -> bool:
+        """Whether the ghost test runs on ``obs``: ``ghost_weight`` < 1, the cameras' centres known, and at most
+        ``ghost_max_cameras`` in the rig (readable in this frame or not)."""
+        cfg = self.config
+        return (cfg.ghost_weight < 1.0 and obs.camera_centres is not None
+                and obs.camera_centres.shape[0] <= cfg.ghost_max_cameras)
+
     def _ghost_weights(self, obs: VoxelObservation, prior: Blobs) -> torch.Tensor:
         """The voxels' EM weights with the ghosts the predicted blobs ``prior`` explain away lowered by
         ``ghost_weight`` (:mod:`torchtrack.tracking.ghosts`)."""
         cfg = self.config
-        if cfg.ghost_weight >= 1.0 or obs.camera_centres is None:
-            return obs.weights
-        if int(obs.cameras_valid.sum()) > cfg.ghost_max_cameras:
+        if not self._explains_ghosts(obs):
             return obs.weights
         seen = torch.isfinite(obs.colours).all(-1) & obs.cameras_valid.to(obs.points.device)
         ghost = ghost_voxels(obs.points, seen, obs.camera_centres.to(obs.points), prior.mean, prior.cov,
@@ -572,7 +581,8 @@ class MarkerlessTracker:
         fk = sub.skeleton.forward(state)
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
-        explained = float(weights[assign >= 0].sum() / weights.sum().clamp(min=1e-30))
+        # of all the voxels' weight, ghosts included: the divergence test must not grow blind with the ghost test
+        explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
         conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
         oj = sub.output_joint
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())

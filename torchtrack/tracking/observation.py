@@ -110,7 +110,6 @@ class Observer(nn.Module):
 
             spec = GridSpec(tuple(lower_m), tuple(upper_m), voxel_size_m)
         self.spec = spec
-        self.register_buffer("camera_centres", rig.centers(), persistent=False)
         if model == "bayes":
             cfg = bayes or BayesConfig(min_views=min_views)
             self.grid = BayesianGrid(rig, spec, background, cfg)
@@ -127,11 +126,12 @@ class Observer(nn.Module):
             cameras_valid = torch.isfinite(images.flatten(2)).all(-1)
         if self.model == "hull":
             out = []
+            cams = self.rig.centers()  # the cameras' centres, from the rig as it is now
             for b in range(images.shape[0]):
                 v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b],
-                                            camera_centres=self.camera_centres.to(v.centres.dtype)))
+                                            camera_centres=cams.to(v.centres.dtype)))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
@@ -146,6 +146,7 @@ class Observer(nn.Module):
             raise InputError(f"Observer.from_probability needs the Bayesian grid's voxels, not model {self.model!r}")
         keep = prob > self.threshold
         s = self.spec.voxel_size_m
+        cams = self.rig.centers()  # the cameras' centres
         out = []
         for b in range(prob.shape[0]):
             idx = keep[b].nonzero()[:, 0]
@@ -156,5 +157,5 @@ class Observer(nn.Module):
             col = torch.where((pix >= 0)[:, None, :], col, torch.nan).permute(2, 0, 1)  # (n, C, 3)
             sizes = torch.full_like(pts[:, 0], s)
             out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b],
-                                        camera_centres=self.camera_centres.to(pts.dtype)))
+                                        camera_centres=cams.to(pts.dtype)))
         return out
