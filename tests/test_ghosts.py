@@ -11,11 +11,12 @@ from torchtrack.checks import InputError, ShapeError
 from torchtrack.tracking.ghosts import ghost_voxels
 
 
-def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale):
+def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale, covers=None):
     """Per voxel, camera and ellipsoid {x: (x - m)^T cov^-1 (x - m) <= 5 s^2}: the quadratic of the line from
     the camera through the voxel, a hit where its roots are real and the far one lies in front of the camera."""
     out = np.zeros(len(points), bool)
     inv = [np.linalg.inv(c) for c in cov]
+    covers = np.ones(len(mean), bool) if covers is None else covers
     for n, v in enumerate(points):
         if not seen[n].any():
             continue
@@ -27,7 +28,9 @@ def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale):
                 continue
             d = v - o
             hit = False
-            for m, A in zip(mean, inv):
+            for m, A, may in zip(mean, inv, covers):
+                if not may:
+                    continue
                 a, b, cc = d @ A @ d, 2 * d @ A @ (o - m), (o - m) @ A @ (o - m) - 5 * cover_scale ** 2
                 disc = b * b - 4 * a * cc
                 if disc >= 0 and (-b + np.sqrt(disc)) / (2 * a) > 0:
@@ -55,6 +58,13 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
                            torch.tensor(cov), inside_scale, cover_scale, chunk=64).numpy()
         assert 20 < ref.sum() < N - 20  # both kinds present
         np.testing.assert_array_equal(got, ref)
+    # only some blobs may explain a ray (the tracker's: those its last frame filled); all count for "inside"
+    covers = np.array([True, False, True, False, True])
+    ref = _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers)
+    got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
+                       torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers)).numpy()
+    assert 10 < ref.sum() < _reference(points, seen, centres, mean, cov, 1.15, 1.2).sum()
+    np.testing.assert_array_equal(got, ref)
 
 
 def test_ghost_voxels_in_float32_far_from_the_world_origin_with_thin_blobs():

@@ -10,7 +10,9 @@ explain a voxel away: a voxel outside the predicted body (every blob's ellipsoid
 ghost when, in every view that sees it, the ray from the camera through its centre passes through the predicted
 body (an ellipsoid grown by ``cover_scale``): that view's foreground there is accounted for without it. A real
 voxel the prediction misses (a limb that moved faster than predicted) survives as long as one view sees it against
-no predicted body. The tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); measured on the
+no predicted body. Only blobs with voxels of their own may explain a ray (``covers``: the tracker passes those its
+last accepted frame filled), so a limb the views lost, e.g. a stance leg a video's background holds, explains
+nothing away. The tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); measured on the
 synthetic sequences with ``scripts/eval_tracking.py`` (the README's table).
 
 Limits. The test trusts the prediction: a prediction that sits on the ghosts explains the real voxels away
@@ -34,8 +36,8 @@ _SURFACE_M2 = 5.0
 
 
 def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch.Tensor, mean: torch.Tensor,
-                 cov: torch.Tensor, inside_scale: float = 1.15, cover_scale: float = 1.2, chunk: int = 4096
-                 ) -> torch.Tensor:
+                 cov: torch.Tensor, inside_scale: float = 1.15, cover_scale: float = 1.2,
+                 covers: torch.Tensor | None = None, chunk: int = 4096) -> torch.Tensor:
     """Which voxels the predicted body explains away (see the module docstring).
 
     Args:
@@ -44,6 +46,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         mean, cov: (K, 3), (K, 3, 3) the predicted blobs (uniform-ellipsoid covariances).
         inside_scale: a voxel inside any blob's ellipsoid grown by this is never a ghost.
         cover_scale: a ray through any blob's ellipsoid grown by this is explained by the body.
+        covers: (K,) bool, the blobs that may explain a ray (default: all); every blob counts for "inside".
         chunk: voxels per batch (bounds the (chunk, 2 K C) and (chunk, K, C) temporaries).
 
     Returns:
@@ -60,8 +63,12 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     if not (inside_scale > 0 and cover_scale > 0):
         raise InputError(f"ghost_voxels: the scales must be > 0, got {inside_scale} and {cover_scale}")
     out = torch.zeros(N, dtype=torch.bool, device=points.device)
+    if covers is not None:
+        check_shape(covers, (K,), "covers")
     if N == 0 or K == 0:
         return out
+    cover_k = (torch.ones(K, dtype=torch.bool, device=points.device) if covers is None
+               else covers.to(device=points.device, dtype=torch.bool))[:, None]  # (K, 1)
     # every test is a quadratic form in the precision A_k = cov_k^-1 of a voxel x, a camera centre c and a blob
     # mean m: inside (x - m)^T A (x - m); along the ray from c through x, (c - m)^T A (x - c) and (x - c)^T A (x - c).
     # Expanded, each is x^T A x plus terms linear in x, so one matrix product of the voxels with the stacked
@@ -101,6 +108,6 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         along = lin[:, 0] - vc  # (m, K, C): (c - m)^T A (x - c), < 0 when the closest point is in front of c
         qq = (xAx - 2 * lin[:, 1] + cAc).clamp(min=1e-30)  # (x - c)^T A (x - c)
         # the blob mean's squared Mahalanobis distance to the ray through x
-        covered = ((dAd - along.square() / qq <= r_cov2) & (along < 0)).any(1)  # (m, C)
+        covered = ((dAd - along.square() / qq <= r_cov2) & (along < 0) & cover_k).any(1)  # (m, C)
         out[lo + cand] = (covered | ~sn[cand]).all(-1)
     return out

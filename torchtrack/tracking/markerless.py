@@ -548,8 +548,10 @@ class MarkerlessTracker:
         if not self._explains_ghosts(obs):
             return obs.weights
         seen = torch.isfinite(obs.colours).all(-1) & obs.cameras_valid.to(obs.points.device)
+        # only blobs the last accepted frame's voxels filled may explain a ray: not a limb the views lost
+        covers = self.colour.active if self.colour is not None else None
         ghost = ghost_voxels(obs.points, seen, obs.camera_centres.to(obs.points), prior.mean, prior.cov,
-                             cfg.ghost_inside_scale, cfg.ghost_cover_scale)
+                             cfg.ghost_inside_scale, cfg.ghost_cover_scale, covers)
         return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
 
     def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True) -> FrameResult:
