@@ -112,7 +112,7 @@ def ellipsoid_volume(cov: torch.Tensor) -> torch.Tensor:
 _UNSEEN_COLOUR = 1e4
 
 
-def _mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+def mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
     """x (..., 3), mean (K, 3), covariances (K, 3, 3) -> (..., K) squared Mahalanobis distances.
 
     Whitened with the inverse Cholesky factors W_k (W_k^T W_k = cov_k^-1): ``|W_k x - W_k mu_k|^2``, all K blobs
@@ -141,7 +141,7 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         was used, or for a blob without a colour model yet the first view that sees the voxel (-1 if none);
         cost (N,) the least distance.
     """
-    d_pos = _mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
+    d_pos = mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
     d_pos = torch.where(blobs.active, d_pos, torch.inf)
     view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
     cost = d_pos
@@ -151,7 +151,7 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
         # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
         far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
-        d_col = _mahalanobis2(far, blobs.colour_mean, blobs.colour_cov)  # (N, C, K)
+        d_col = mahalanobis2(far, blobs.colour_mean, blobs.colour_cov)  # (N, C, K)
         d_col_min, best_view = d_col.min(dim=1)  # (N, K)
         seen = seen_views.any(dim=1, keepdim=True) & blobs.colour_known  # (N, K)
         cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import torch
 
+from torchtrack.blobs.em import mahalanobis2
 from torchtrack.checks import InputError, check_shape
 
 #: The blobs' covariances are those of uniform solid ellipsoids: the surface lies at squared Mahalanobis 5.
@@ -69,45 +70,33 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         return out
     cover_k = (torch.ones(K, dtype=torch.bool, device=points.device) if covers is None
                else covers.to(device=points.device, dtype=torch.bool))[:, None]  # (K, 1)
-    # every test is a quadratic form in the precision A_k = cov_k^-1 of a voxel x, a camera centre c and a blob
-    # mean m: inside (x - m)^T A (x - m); along the ray from c through x, (c - m)^T A (x - c) and (x - c)^T A (x - c).
-    # Expanded, each is x^T A x plus terms linear in x, so one matrix product of the voxels with the stacked
-    # linear coefficients gives them all. Everything is first moved to the blobs' centroid, so the expansion's
-    # terms do not grow with the world origin's distance from the subject: they are then at most about 1e5
-    # (cameras 3.5 m out over a blob's 1.25 cm standard deviation, squared), to resolve a threshold of 5 - 7,
-    # and float32's rounding (about 1e-2 of it) is far under that: the points' own precision is kept.
+    # Mahalanobis distances under each blob's covariance (A = cov^-1): a voxel x is inside a blob when
+    # (x - m)^T A (x - m) is small; the ray from a camera c through x passes the blob's mean at the squared
+    # distance (c - m)^T A (c - m) - ((c - m)^T A (x - c))^2 / (x - c)^T A (x - c), on the camera's side when the
+    # middle term is negative. All about the blobs' centroid, so that float32 keeps its precision however far
+    # the world origin lies from the subject.
     dt = points.dtype
     origin = mean.to(dt).mean(0)
-    L = torch.linalg.cholesky(cov.to(dt))
-    W = torch.linalg.solve_triangular(L, torch.eye(3, dtype=dt, device=L.device).expand_as(L), upper=False)
-    A = W.transpose(1, 2) @ W  # (K, 3, 3) = cov^-1, symmetric; x^T A x = |W x|^2
+    cov = cov.to(dt)
     m, c = mean.to(dt) - origin, camera_centres.to(dt) - origin
-    Am = torch.einsum("kij,kj->ki", A, m)  # (K, 3)
-    mAm = (Am * m).sum(-1)  # (K,)
+    A = torch.cholesky_inverse(torch.linalg.cholesky(cov))  # (K, 3, 3)
     d = c[None] - m[:, None]  # (K, C, 3) from each blob's mean to each camera
     v = torch.einsum("kij,kcj->kci", A, d)  # (K, C, 3): A (c - m)
-    u = torch.einsum("kij,cj->kci", A, c)  # (K, C, 3): A c
-    dAd = (v * d).sum(-1)  # (K, C): (c - m)^T A (c - m)
+    dAd = (v * d).sum(-1)  # (K, C)
     vc = (v * c[None]).sum(-1)  # (K, C): (c - m)^T A c
-    cAc = (u * c[None]).sum(-1)  # (K, C)
-    coef_in = torch.cat([W.reshape(3 * K, 3), Am]).T  # (3, 3K + K)
-    coef_ray = torch.cat([v.reshape(K * C, 3), u.reshape(K * C, 3)]).T  # (3, 2KC)
-    groups = torch.eye(K, dtype=dt, device=points.device).repeat_interleave(3, dim=0)  # (3K, K)
+    cams = c[None].expand(K, C, 3).reshape(K * C, 3)  # each camera under each blob's covariance
+    cams_cov = cov[:, None].expand(K, C, 3, 3).reshape(K * C, 3, 3)
     r_in2 = _SURFACE_M2 * inside_scale ** 2
     r_cov2 = _SURFACE_M2 * cover_scale ** 2
     for lo in range(0, N, chunk):
         x, sn = points[lo:lo + chunk].to(dt) - origin, seen[lo:lo + chunk]
-        lin = x @ coef_in  # (n, 3K + K)
-        xAx = lin[:, :3 * K].square() @ groups  # (n, K)
-        inside = (xAx - 2 * lin[:, 3 * K:] + mAm <= r_in2).any(-1)  # (n,)
+        inside = (mahalanobis2(x, m, cov) <= r_in2).any(-1)  # (n,)
         cand = (~inside & sn.any(-1)).nonzero()[:, 0]
         if cand.numel() == 0:
             continue
-        n = cand.numel()
-        xAx, lin = xAx[cand, :, None], (x[cand] @ coef_ray).view(n, 2, K, C)
-        along = lin[:, 0] - vc  # (m, K, C): (c - m)^T A (x - c), < 0 when the closest point is in front of c
-        qq = (xAx - 2 * lin[:, 1] + cAc).clamp(min=1e-30)  # (x - c)^T A (x - c)
-        # the blob mean's squared Mahalanobis distance to the ray through x
+        xc = x[cand]
+        along = (xc @ v.reshape(K * C, 3).T).view(-1, K, C) - vc  # (c - m)^T A (x - c); < 0: in front of c
+        qq = mahalanobis2(xc, cams, cams_cov).view(-1, K, C).clamp(min=1e-30)  # (x - c)^T A (x - c)
         covered = ((dAd - along.square() / qq <= r_cov2) & (along < 0) & cover_k).any(1)  # (m, C)
         out[lo + cand] = (covered | ~sn[cand]).all(-1)
     return out
