@@ -302,7 +302,7 @@ def test_chunked_statistics_equal_unchunked(monkeypatch):
     full_frames = BackgroundModel.from_frames(frames)
     monkeypatch.setattr(estimate, "CHUNK_ELEMENTS", 900)  # a few rows / frames per chunk
     torch.testing.assert_close(BackgroundModel.from_sequence(frames).state_dict(), full_seq.state_dict(),
-                               rtol=0, atol=0)
+                               rtol=0, atol=1e-12)  # chunk shapes change SIMD rounding
     torch.testing.assert_close(BackgroundModel.from_frames(frames).state_dict(), full_frames.state_dict(),
                                rtol=1e-12, atol=1e-12)
 

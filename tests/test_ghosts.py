@@ -11,9 +11,10 @@ from torchtrack.checks import InputError, ShapeError
 from torchtrack.tracking.ghosts import ghost_voxels
 
 
-def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale, covers=None):
+def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale, covers=None, self_scale=0.0):
     """Per voxel, camera and ellipsoid {x: (x - m)^T cov^-1 (x - m) <= 5 s^2}: the quadratic of the line from
-    the camera through the voxel, a hit where its roots are real and the far one lies in front of the camera."""
+    the camera through the voxel, a hit where its roots are real and the far one lies in front of the camera
+    (an ellipsoid that holds the voxel when grown by ``self_scale`` is no hit)."""
     out = np.zeros(len(points), bool)
     inv = [np.linalg.inv(c) for c in cov]
     covers = np.ones(len(mean), bool) if covers is None else covers
@@ -29,7 +30,7 @@ def _reference(points, seen, centres, mean, cov, inside_scale, cover_scale, cove
             d = v - o
             hit = False
             for m, A, may in zip(mean, inv, covers):
-                if not may:
+                if not may or (v - m) @ A @ (v - m) <= 5 * self_scale ** 2:
                     continue
                 a, b, cc = d @ A @ d, 2 * d @ A @ (o - m), (o - m) @ A @ (o - m) - 5 * cover_scale ** 2
                 disc = b * b - 4 * a * cc
@@ -86,6 +87,32 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
                        torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers)).numpy()
     assert 10 < ref.sum() < _reference(points, seen, centres, mean, cov, 1.15, 1.2).sum()
     np.testing.assert_array_equal(got, ref)
+    # a blob does not explain a voxel inside its own ellipsoid grown by self_scale
+    for self_scale in (1.3, 2.0):
+        ref = _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers, self_scale)
+        got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
+                           torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers), chunk=64,
+                           self_scale=self_scale).numpy()
+        assert 5 < ref.sum() < _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers).sum()
+        np.testing.assert_array_equal(got, ref)
+
+
+def test_a_limb_that_moved_past_its_prediction_is_not_explained_away_by_itself():
+    """An arm raised faster than predicted, seen by 4 cameras 5 m up that look down on it: the voxels just
+    beyond the predicted arm's tip have every view's ray through the predicted arm itself, so without
+    ``self_scale`` they are ghosts and the arm cannot follow them; inside its ellipsoid grown by ``self_scale``
+    the arm does not explain them."""
+    az = np.arange(4) * np.pi / 2 + np.pi / 4
+    centres = np.stack([2.5 * np.cos(az), 2.5 * np.sin(az), np.full(4, 5.0)], 1)
+    mean = np.array([[0.0, 0.0, 1.6]])  # a vertical arm, semi-axes 4, 4, 30 cm: its tip at 1.9 m
+    cov = np.diag([0.04 ** 2, 0.04 ** 2, 0.3 ** 2])[None] / 5
+    tip = np.array([[0.0, 0.0, 1.6 + 0.3 * 1.18]])  # outside it grown by 1.15, inside it grown by 1.3
+    seen = np.ones((1, 4), bool)
+    args = [torch.tensor(a) for a in (tip, seen, centres, mean, cov)]
+    assert _reference(tip, seen, centres, mean, cov, 1.15, 1.2)[0]  # every ray passes through the arm
+    assert bool(ghost_voxels(*args)[0])
+    assert not _reference(tip, seen, centres, mean, cov, 1.15, 1.2, self_scale=1.3)[0]
+    assert not bool(ghost_voxels(*args, self_scale=1.3)[0])
 
 
 def test_ghost_voxels_in_float32_far_from_the_world_origin_with_thin_blobs():
@@ -138,11 +165,13 @@ def _hull(points, centres, body_points, radius):
     return keep
 
 
-def test_the_ghost_legs_of_four_cameras_are_explained_away_and_the_legs_kept():
+@pytest.mark.parametrize("self_scale", [0.0, 1.3])
+def test_the_ghost_legs_of_four_cameras_are_explained_away_and_the_legs_kept(self_scale):
     """Two vertical legs (cylinders of 7 cm radius, 0.8 m long) on the diagonal of a ring of 4 cameras 90 deg
     apart: the silhouettes carve two more leg-sized ghosts on the other diagonal. With the legs' own ellipsoids as
     the predicted body, the ghosts come out as ghosts and no voxel of a leg does; a voxel of a leg the prediction
-    misses (the second leg left out of it) is kept, since two views see it against nothing predicted."""
+    misses (the second leg left out of it) is kept, since two views see it against nothing predicted. The ghosts
+    lie beyond the legs' own shells (``self_scale``), so they are found with it too."""
     r, a = 0.07, 0.13
     legs = np.array([[a, a], [-a, -a]])
     z = np.arange(0.1, 0.9, 0.02)
@@ -158,13 +187,13 @@ def test_the_ghost_legs_of_four_cameras_are_explained_away_and_the_legs_kept():
     cov = np.stack([np.diag([r * r, r * r, 0.16]) / 5] * 2)
     seen = torch.ones(len(occupied), 4, dtype=torch.bool)
     ghost = ghost_voxels(torch.tensor(occupied), seen, torch.tensor(centres, dtype=torch.float64),
-                         torch.tensor(mean), torch.tensor(cov)).numpy()
+                         torch.tensor(mean), torch.tensor(cov), self_scale=self_scale).numpy()
     assert not ghost[on_leg].any()
     assert ghost[~on_leg].mean() > 0.9, ghost[~on_leg].mean()
     # predicted: the first leg only. Voxels of the second leg are not explained in the views that see them
     # clear of the first leg, and stay
     one = ghost_voxels(torch.tensor(occupied), seen, torch.tensor(centres, dtype=torch.float64),
-                       torch.tensor(mean[:1]), torch.tensor(cov[:1])).numpy()
+                       torch.tensor(mean[:1]), torch.tensor(cov[:1]), self_scale=self_scale).numpy()
     second = np.hypot(occupied[:, 0] - legs[1, 0], occupied[:, 1] - legs[1, 1]) < r
     assert second.any() and not one[second].any()
 
@@ -177,5 +206,8 @@ def test_ghost_voxels_check_their_inputs():
     with pytest.raises(InputError, match="scales"):
         ghost_voxels(pts, torch.ones(3, 4, dtype=torch.bool), torch.zeros(4, 3), torch.zeros(1, 3),
                      torch.eye(3)[None], inside_scale=0.0)
+    with pytest.raises(InputError, match="self_scale"):
+        ghost_voxels(pts, torch.ones(3, 4, dtype=torch.bool), torch.zeros(4, 3), torch.zeros(1, 3),
+                     torch.eye(3)[None], self_scale=-1.0)
     assert not ghost_voxels(pts[:0], torch.ones(0, 4, dtype=torch.bool), torch.zeros(4, 3), torch.zeros(1, 3),
                             torch.eye(3)[None]).any()

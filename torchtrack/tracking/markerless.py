@@ -113,7 +113,9 @@ class TrackerConfig:
             ghost_max_cameras: only for rigs of at most this many cameras: from more, the hull holds few ghosts
             and the test takes more real voxels (at the seams between blobs) than ghosts. ghost_inside_scale,
             ghost_cover_scale: its ellipsoid scales (a voxel inside the predicted blobs grown by the first is
-            never a ghost; a ray through them grown by the second is explained).
+            never a ghost; a ray through them grown by the second is explained). ghost_self_scale: a blob does
+            not explain the rays of voxels inside its own ellipsoid grown by this (0: it does), so that a limb
+            that moved past its prediction, seen from cameras that look down along it, can follow its voxels.
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -136,6 +138,7 @@ class TrackerConfig:
     ghost_max_cameras: int = 6
     ghost_inside_scale: float = 1.15
     ghost_cover_scale: float = 1.2
+    ghost_self_scale: float = 1.3
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
@@ -147,6 +150,8 @@ class TrackerConfig:
         for name in ("ghost_inside_scale", "ghost_cover_scale"):
             if not getattr(self, name) > 0:
                 raise InputError(f"TrackerConfig.{name} must be > 0, got {getattr(self, name)}")
+        if not self.ghost_self_scale >= 0:
+            raise InputError(f"TrackerConfig.ghost_self_scale must be >= 0 (0: off), got {self.ghost_self_scale}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
 
@@ -551,7 +556,8 @@ class MarkerlessTracker:
         # only blobs the last accepted frame's voxels filled may explain a ray: not a limb the views lost
         covers = self.colour.active if self.colour is not None else None
         ghost = ghost_voxels(obs.points, seen, obs.camera_centres.to(obs.points), prior.mean, prior.cov,
-                             cfg.ghost_inside_scale, cfg.ghost_cover_scale, covers)
+                             cfg.ghost_inside_scale, cfg.ghost_cover_scale, covers,
+                             self_scale=cfg.ghost_self_scale)
         return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
 
     def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True) -> FrameResult:
