@@ -101,18 +101,21 @@ def test_a_limb_that_moved_past_its_prediction_is_not_explained_away_by_itself()
     """An arm raised faster than predicted, seen by 4 cameras 5 m up that look down on it: the voxels just
     beyond the predicted arm's tip have every view's ray through the predicted arm itself, so without
     ``self_scale`` they are ghosts and the arm cannot follow them; inside its ellipsoid grown by ``self_scale``
-    the arm does not explain them."""
+    the arm does not explain them. A hand-sized ball just above the tip, whose own shell does not hold the tip,
+    still explains it in every view."""
     az = np.arange(4) * np.pi / 2 + np.pi / 4
     centres = np.stack([2.5 * np.cos(az), 2.5 * np.sin(az), np.full(4, 5.0)], 1)
-    mean = np.array([[0.0, 0.0, 1.6]])  # a vertical arm, semi-axes 4, 4, 30 cm: its tip at 1.9 m
-    cov = np.diag([0.04 ** 2, 0.04 ** 2, 0.3 ** 2])[None] / 5
-    tip = np.array([[0.0, 0.0, 1.6 + 0.3 * 1.18]])  # outside it grown by 1.15, inside it grown by 1.3
+    tip_z = 1.6 + 0.3 * 1.18  # outside the arm grown by 1.15, inside it grown by 1.3
+    arm = (np.array([0.0, 0.0, 1.6]), np.diag([0.04 ** 2, 0.04 ** 2, 0.3 ** 2]) / 5)  # semi-axes 4, 4, 30 cm
+    ball = (np.array([0.0, 0.0, tip_z + 0.097]), np.eye(3) * 0.07 ** 2 / 5)  # 7 cm, 1.39x its radius away
+    tip = np.array([[0.0, 0.0, tip_z]])
     seen = np.ones((1, 4), bool)
-    args = [torch.tensor(a) for a in (tip, seen, centres, mean, cov)]
-    assert _reference(tip, seen, centres, mean, cov, 1.15, 1.2)[0]  # every ray passes through the arm
-    assert bool(ghost_voxels(*args)[0])
-    assert not _reference(tip, seen, centres, mean, cov, 1.15, 1.2, self_scale=1.3)[0]
-    assert not bool(ghost_voxels(*args, self_scale=1.3)[0])
+    for blobs, self_scale, ghost in (([arm], 0.0, True), ([arm], 1.3, False), ([arm, ball], 1.3, True),
+                                     ([ball], 1.3, True)):
+        mean, cov = np.stack([b[0] for b in blobs]), np.stack([b[1] for b in blobs])
+        assert _reference(tip, seen, centres, mean, cov, 1.15, 1.2, self_scale=self_scale)[0] == ghost
+        got = ghost_voxels(*[torch.tensor(a) for a in (tip, seen, centres, mean, cov)], self_scale=self_scale)
+        assert bool(got[0]) == ghost, (len(blobs), self_scale)
 
 
 def test_ghost_voxels_in_float32_far_from_the_world_origin_with_thin_blobs():
@@ -190,6 +193,12 @@ def test_the_ghost_legs_of_four_cameras_are_explained_away_and_the_legs_kept(sel
                          torch.tensor(mean), torch.tensor(cov), self_scale=self_scale).numpy()
     assert not ghost[on_leg].any()
     assert ghost[~on_leg].mean() > 0.9, ghost[~on_leg].mean()
+    # the voxels between the legs grown by 1.15 and by 1.3: ghosts unless the shell keeps them
+    rel = occupied[:, None] - mean[None]
+    m2 = np.einsum("nki,kij,nkj->nk", rel, np.linalg.inv(cov), rel).min(1)
+    shell = (m2 > 5 * 1.15 ** 2) & (m2 <= 5 * 1.3 ** 2)
+    assert shell.sum() >= 4
+    assert ghost[shell].all() if self_scale == 0 else not ghost[shell].any()
     # predicted: the first leg only. Voxels of the second leg are not explained in the views that see them
     # clear of the first leg, and stay
     one = ghost_voxels(torch.tensor(occupied), seen, torch.tensor(centres, dtype=torch.float64),

@@ -274,7 +274,9 @@ def test_floor_contact_brings_a_lifted_foot_down_when_the_voxels_cannot(skel):
     start[skel.dof_names.index("r_knee_flex")] += 0.8
 
     def run(contact):
-        tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact, floor_z_m=0.0))
+        # the held feet off: they would keep the wrong start's unseen feet where it put them (floor contact then
+        # only lowers them)
+        tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact, floor_z_m=0.0, hold_lost_feet=0.0))
         tracker.initialize_from_pose(skel.clamp(start), 1.80)
         err = []
         for t in range(1, T.shape[0]):
@@ -292,6 +294,48 @@ def test_floor_contact_brings_a_lifted_foot_down_when_the_voxels_cannot(skel):
     assert abs(sole) < 0.02
     err_off, _ = run(False)
     assert err_off[-5:].min() > 0.2, err_off  # the feet stay up
+
+
+def test_a_planted_foot_no_view_shows_is_held_where_it_was_last_seen(skel):
+    """The subject rolls the pelvis 15 deg over its planted right leg (the hip's abduction taking the roll up)
+    while no view shows that leg (every voxel in its thigh, shank and foot ellipsoids gone, as a stance leg
+    learnt into the background). With ``hold_lost_feet`` the right ankle stays near the ground truth's; without
+    it the unseen leg turns with the pelvis and the ankle swings off."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    base = procedural_motion(subj, "arm_raise", 0.6, 30, starfish_s=0.0)
+    roll, abd = skel.dof_names.index("root_rx"), skel.dof_names.index("r_hip_abd")
+    ankle = LANDMARKS.index("r_ankle")
+    T = base.clone()
+    candidates = torch.linspace(-0.5, 0.5, 201)
+    for t in range(T.shape[0]):  # the abduction that keeps the right ankle nearest its first position
+        T[t, roll] += 0.26 * t / (T.shape[0] - 1)
+        trial = T[t].repeat(len(candidates), 1)
+        trial[:, abd] += candidates
+        d = (subj.forward(trial).landmarks[:, ankle] - _landmarks(subj, base[0])[ankle]).norm(dim=-1)
+        T[t, abd] = trial[int(d.argmin()), abd]
+    hidden = [blobs.names.index(n) for n in ("r_thigh", "r_shank", "r_foot")]
+
+    def run(hold):
+        tracker = MarkerlessTracker(skel, TrackerConfig(hold_lost_feet=hold))
+        tracker.initialize_from_pose(T[0], 1.80)
+        err = []
+        for t in range(1, T.shape[0]):
+            obs = _observation(subj, blobs, T[t])
+            centres, R = blobs.ellipsoids(subj.forward(T[t][None].double()).bone_frames)
+            gone = inside_ellipsoids(obs.points.double(), centres[0, hidden], R[0, hidden],
+                                     blobs.semi_axes[hidden].double())
+            r = tracker.step(VoxelObservation(obs.points[~gone], obs.sizes[~gone], obs.weights[~gone],
+                                              obs.colours[~gone], obs.cameras_valid))
+            assert r.valid
+            err.append(float((r.output_points[ankle] - _landmarks(subj, T[t])[ankle]).norm()))
+        return np.array(err)
+
+    moved = (subj.forward(T).landmarks[:, ankle] - _landmarks(subj, T[0])[ankle]).norm(dim=-1)
+    err, err_off = run(2.0), run(0.0)
+    assert float(moved.max()) < 0.05  # the true foot stays (nearly) planted
+    assert err.max() < 0.05, err
+    assert err_off[-3:].min() > 0.1, err_off
 
 
 def test_the_floor_is_the_initial_poses_lower_sole_or_the_configured_height(skel):

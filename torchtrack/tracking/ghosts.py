@@ -23,7 +23,8 @@ Limits. The test trusts the prediction: a prediction that sits on the ghosts exp
 and confirms itself (the tracker's re-acquisition, after its divergence test, searches without it). Each voxel
 is tested at its centre, so a hull's coarse interior cube or a merged cell is kept or lowered whole. The inside
 margin is relative, so thin limbs get a few millimetres of it. Visibility is not modelled: a view "sees" every
-voxel inside its image.
+voxel inside its image. The shell (``self_scale``) trades the other way: a shell too wide keeps a limb's own
+ghosts, which then pull it (1.4 and 1.5 lost the 4-camera walk's right wrist).
 
 This is this project's extension to de Bem's and Caillette's EM, not part of either paper: both tracked from
 enough cameras that ghosts were small.
@@ -52,7 +53,8 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         inside_scale: a voxel inside any blob's ellipsoid grown by this is never a ghost.
         cover_scale: a ray through any blob's ellipsoid grown by this is explained by the body.
         covers: (K,) bool, the blobs that may explain a ray (default: all); every blob counts for "inside".
-        self_scale: a blob does not explain a ray for a voxel inside its ellipsoid grown by this (0: it does).
+        self_scale: a blob does not explain a ray for a voxel inside its ellipsoid grown by this (0: it does;
+            only values above ``inside_scale`` act, since voxels inside that are never ghosts).
         chunk: voxels per batch (bounds the (chunk, 2 K C) and (chunk, K, C) temporaries).
 
     Returns:

@@ -51,7 +51,8 @@ log = logging.getLogger(__name__)
 #: 131_01 45.6 -> 27.9 mm, 131_02 45.2 -> 23.2 (7/7 motions within target, 5/7 with one scale), at the cost of the
 #: procedural motions, which have the template's own proportions (walk 9.8 -> 11.8, squat 12.8 -> 16.6); 4
 #: cameras, Bayesian grid 2/7 -> 4/7; the hull 5/7 either way with 8 cameras (its legs come out short on CMU:
-#: 131_02 69.7 -> 53.2 mm) and 1/7 with 4.
+#: 131_02 69.7 -> 53.2 mm) and 1/7 with 4 (measured on the host before 2026-11-24, and before ghost suppression
+#: for 4 cameras; the README's table has the current figures).
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
@@ -114,8 +115,16 @@ class TrackerConfig:
             and the test takes more real voxels (at the seams between blobs) than ghosts. ghost_inside_scale,
             ghost_cover_scale: its ellipsoid scales (a voxel inside the predicted blobs grown by the first is
             never a ghost; a ray through them grown by the second is explained). ghost_self_scale: a blob does
-            not explain the rays of voxels inside its own ellipsoid grown by this (0: it does), so that a limb
-            that moved past its prediction, seen from cameras that look down along it, can follow its voxels.
+            not explain the rays of voxels inside its own ellipsoid grown by this (0: it does; it acts only
+            above ``ghost_inside_scale``), so that a limb that moved past its prediction, seen from cameras
+            that look down along it, can follow its voxels.
+        hold_lost_feet: IK weight of the goals that hold a foot where it was last observed while no view shows
+            it (0: off): the ankle and toe whose goals' confidence falls under ``hold_min_confidence`` and that
+            moved less than ``hold_max_step_m`` between their last two observed frames (a planted foot, not a
+            swinging one) keep their last observed positions as goals. The residual and the confidences stay
+            the observation's. On the Pose2Sim demo, whose stance leg the background holds, 106.6 -> 97.7 mm.
+            The initial pose counts as observed, so a foot it puts wrong that no view shows stays wrong (with
+            ``floor_contact`` the support foot's held goals are then lowered onto the floor).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -139,6 +148,9 @@ class TrackerConfig:
     ghost_inside_scale: float = 1.15
     ghost_cover_scale: float = 1.2
     ghost_self_scale: float = 1.3
+    hold_lost_feet: float = 2.0
+    hold_min_confidence: float = 0.3
+    hold_max_step_m: float = 0.02
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
@@ -150,8 +162,16 @@ class TrackerConfig:
         for name in ("ghost_inside_scale", "ghost_cover_scale"):
             if not getattr(self, name) > 0:
                 raise InputError(f"TrackerConfig.{name} must be > 0, got {getattr(self, name)}")
-        if not self.ghost_self_scale >= 0:
-            raise InputError(f"TrackerConfig.ghost_self_scale must be >= 0 (0: off), got {self.ghost_self_scale}")
+        if not (self.ghost_self_scale >= 0 and math.isfinite(self.ghost_self_scale)):
+            raise InputError(f"TrackerConfig.ghost_self_scale must be >= 0 and finite (0: off), got "
+                             f"{self.ghost_self_scale}")
+        if not (self.hold_lost_feet >= 0 and math.isfinite(self.hold_lost_feet)):
+            raise InputError(f"TrackerConfig.hold_lost_feet must be >= 0 and finite (0: off), got "
+                             f"{self.hold_lost_feet}")
+        if not 0.0 <= self.hold_min_confidence <= 1.0:
+            raise InputError(f"TrackerConfig.hold_min_confidence must be in [0, 1], got {self.hold_min_confidence}")
+        if not self.hold_max_step_m > 0:
+            raise InputError(f"TrackerConfig.hold_max_step_m must be > 0, got {self.hold_max_step_m}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
 
@@ -263,6 +283,10 @@ class MarkerlessTracker:
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
         self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
+        # hold_lost_feet: each foot's ankle and toe where last observed, and whether they were still then
+        self.feet_seen: torch.Tensor | None = None  # (2, 2, 3)
+        self.feet_still: torch.Tensor | None = None  # (2, 2) bool
+        self._feet_now: tuple[torch.Tensor, torch.Tensor] | None = None  # the last _track's, for step()
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -292,10 +316,9 @@ class MarkerlessTracker:
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
+        self._remember_feet()
         if floor_z_m is None:
-            sub = self.subject
-            feet = sub.skeleton.forward(angles[None]).joints[0, sub.feet]  # (2, 2, 3)
-            floor_z_m = float(sole_heights(feet, sub.ankle_height).min())
+            floor_z_m = float(sole_heights(self.feet_seen, self.subject.ankle_height).min())
         self._set_floor(floor_z_m)
 
     def _set_floor(self, soles_z: float) -> None:
@@ -315,11 +338,14 @@ class MarkerlessTracker:
             uninitialised, as before the call).
         """
         try:
-            return self._initialize(obs)
+            res = self._initialize(obs)
         except InputError:
             self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
+            self.feet_seen = self.feet_still = None
             self.lost = 0
             raise
+        self._remember_feet()
+        return res
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         pts, w = obs.points, obs.weights
@@ -528,6 +554,32 @@ class MarkerlessTracker:
         return fitted_skel.to(angles.device), change
 
     # ------------------------------------------------------------------------------------------ tracking
+    def _remember_feet(self) -> None:
+        """The feet of the current pose as last observed and still (at initialisation)."""
+        sub = self.subject
+        self.feet_seen = sub.skeleton.forward(self.angles[None]).joints[0, sub.feet]  # (2, 2, 3)
+        self.feet_still = torch.ones(self.feet_seen.shape[:2], dtype=torch.bool, device=self.feet_seen.device)
+        self._feet_now = None
+
+    def _feet_unobserved(self, goal_w: torch.Tensor) -> torch.Tensor:
+        """(B, 2, 2) whether each foot's ankle and toe goal has a confidence (its weight over its blobs' count)
+        under ``hold_min_confidence``."""
+        sub = self.subject
+        blobs = sub.goals.attached.sum(0).clamp(min=1).to(goal_w)[sub.feet]  # (2, 2)
+        return goal_w[:, sub.feet] < self.config.hold_min_confidence * blobs
+
+    def _hold_feet(self, goals: torch.Tensor, weights: torch.Tensor, goal_w: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """IK goals with each unobserved foot that was still when last observed held there (weight
+        ``hold_lost_feet``): a planted foot stays planted while no view shows it (new tensors)."""
+        feet = self.subject.feet
+        hold = self._feet_unobserved(goal_w) & self.feet_still[None]  # (B, 2, 2)
+        goals, weights = goals.clone(), weights.clone()
+        goals[:, feet] = torch.where(hold[..., None], self.feet_seen[None].to(goals), goals[:, feet])
+        weights[:, feet] = torch.where(hold, torch.full_like(weights[:, feet], self.config.hold_lost_feet),
+                                       weights[:, feet])
+        return goals, weights
+
     def _regenerate(self, angles: torch.Tensor) -> tuple[FKResult, Blobs]:
         """The prior blobs at ``angles (D,)`` with the colour model, and the forward kinematics they came from."""
         sub = self.subject
@@ -579,14 +631,17 @@ class MarkerlessTracker:
                 fk = sub.skeleton.forward(state)
             goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
             ik_goals, ik_w = goals, goal_w  # the residual and confidences below are the observation's
+            if cfg.hold_lost_feet > 0 and self.feet_seen is not None:  # then the floor contact moves them too
+                ik_goals, ik_w = self._hold_feet(ik_goals, ik_w, goal_w)
             if cfg.floor_contact and self.floor_z is not None:
-                ik_goals, ik_w = floor_contact(goals, goal_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
+                ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
             state = sub.goals.fit_root(state, fk.joints, ik_goals, ik_w, max_rotation=max_rot)
             rz = sub.skeleton.dof_names.index("root_rz")
             state[:, rz] = _unwrap(state[:, rz], a[rz])
             idx = sub.ccd_goal_index
             state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
         fk = sub.skeleton.forward(state)
+        self._feet_now = (fk.joints[0, sub.feet], ~self._feet_unobserved(goal_w)[0])
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
         # of all the voxels' weight, ghosts included: the divergence test must not grow blind with the ghost test
@@ -639,6 +694,11 @@ class MarkerlessTracker:
         self.lost = 0
         self.previous, self.angles = self.angles, res.angles
         self.colour = res.blobs  # the colour model follows accepted frames only
+        if self.feet_seen is not None and self._feet_now is not None:
+            pos, seen = self._feet_now
+            step = (pos - self.feet_seen).norm(dim=-1)  # (2, 2)
+            self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
+            self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
         return res
 
     @staticmethod
