@@ -53,6 +53,9 @@ log = logging.getLogger(__name__)
 #: cameras, Bayesian grid 2/7 -> 4/7; the hull 5/7 either way with 8 cameras (its legs come out short on CMU:
 #: 131_02 69.7 -> 53.2 mm) and 1/7 with 4 (measured on the host before 2026-11-24, and before ghost suppression
 #: for 4 cameras; the README's table has the current figures).
+#: hold_lost_feet: after a re-acquisition, a remembered foot farther than this from the re-acquired pose's is no
+#: longer held (the subject may have moved on while it was lost).
+REACQUIRED_FOOT_M = 0.1
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
@@ -121,10 +124,13 @@ class TrackerConfig:
         hold_lost_feet: IK weight of the goals that hold a foot where it was last observed while no view shows
             it (0: off): the ankle and toe whose goals' confidence falls under ``hold_min_confidence`` and that
             moved less than ``hold_max_step_m`` between their last two observed frames (a planted foot, not a
-            swinging one) keep their last observed positions as goals. The residual and the confidences stay
-            the observation's. On the Pose2Sim demo, whose stance leg the background holds, 106.6 -> 97.7 mm.
-            The initial pose counts as observed, so a foot it puts wrong that no view shows stays wrong (with
-            ``floor_contact`` the support foot's held goals are then lowered onto the floor).
+            swinging one: 2 cm a frame is 0.6 m/s at 30 fps; a foot seen again elsewhere after a gap is not
+            held until it is seen still) keep their last observed positions as goals. The residual and the
+            confidences stay the observation's. On the Pose2Sim demo, whose stance leg the background holds,
+            106.6 -> 99.0 mm. The initial pose counts as observed, so a foot it puts wrong that no view shows
+            stays wrong (with ``floor_contact`` the support foot's held goals are then lowered onto the floor).
+            Nothing is held during initialisation's or re-acquisition's search, and after a re-acquisition a
+            remembered foot farther than ``REACQUIRED_FOOT_M`` from the new pose's is let go.
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -221,6 +227,8 @@ class FrameResult:
         residual_m: mean goal-to-joint distance after IK. explained: fraction of voxel weight in blobs.
         reinitialised: the tracker re-initialised on this frame. blobs: the fitted blobs (None if invalid).
         bone_frames: (nb, 4, 4) of the solved pose.
+        feet: the solved pose's ankle and toe positions (2, 2, 3) and whether the observation gave them goals
+            (2, 2) bool, for the held feet (``TrackerConfig.hold_lost_feet``); None on invalid frames.
     """
 
     angles: torch.Tensor
@@ -232,6 +240,7 @@ class FrameResult:
     reinitialised: bool
     blobs: Blobs | None
     bone_frames: torch.Tensor
+    feet: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
 class _Subject:
@@ -286,7 +295,6 @@ class MarkerlessTracker:
         # hold_lost_feet: each foot's ankle and toe where last observed, and whether they were still then
         self.feet_seen: torch.Tensor | None = None  # (2, 2, 3)
         self.feet_still: torch.Tensor | None = None  # (2, 2) bool
-        self._feet_now: tuple[torch.Tensor, torch.Tensor] | None = None  # the last _track's, for step()
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -337,11 +345,11 @@ class MarkerlessTracker:
             InputError: the voxels do not look like a person in the starfish pose (the tracker is then left
             uninitialised, as before the call).
         """
+        self.feet_seen = self.feet_still = None  # nothing held while the start is searched
         try:
             res = self._initialize(obs)
         except InputError:
             self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
-            self.feet_seen = self.feet_still = None
             self.lost = 0
             raise
         self._remember_feet()
@@ -559,7 +567,17 @@ class MarkerlessTracker:
         sub = self.subject
         self.feet_seen = sub.skeleton.forward(self.angles[None]).joints[0, sub.feet]  # (2, 2, 3)
         self.feet_still = torch.ones(self.feet_seen.shape[:2], dtype=torch.bool, device=self.feet_seen.device)
-        self._feet_now = None
+
+    def _update_feet(self, res: FrameResult) -> None:
+        """After an accepted frame: each foot joint the observation gave a goal is remembered where the solved
+        pose put it, and counts as still when it moved under ``hold_max_step_m`` since it was last seen, however
+        many frames ago (a foot that comes back elsewhere after a gap is not held until it is seen still)."""
+        if self.feet_seen is None or res.feet is None:
+            return
+        pos, seen = res.feet
+        step = (pos - self.feet_seen).norm(dim=-1)  # (2, 2) m since it was last seen, however long ago
+        self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
+        self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
 
     def _feet_unobserved(self, goal_w: torch.Tensor) -> torch.Tensor:
         """(B, 2, 2) whether each foot's ankle and toe goal has a confidence (its weight over its blobs' count)
@@ -612,9 +630,11 @@ class MarkerlessTracker:
                              self_scale=cfg.ghost_self_scale)
         return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
 
-    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True) -> FrameResult:
+    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True,
+               hold: bool = True) -> FrameResult:
         """One frame from the predicted pose; ``ghosts``: explain ghost voxels away against the prediction (off
-        where the prediction is only a guess: the heading search of initialisation and re-acquisition)."""
+        where the prediction is only a guess: the heading search of initialisation and re-acquisition); ``hold``:
+        hold unseen planted feet where they were last seen (off in re-acquisition's search)."""
         sub, cfg = self.subject, self.config
         a = self.angles + cfg.velocity * (self.angles - self.previous)
         a = sub.skeleton.clamp(a)
@@ -631,7 +651,7 @@ class MarkerlessTracker:
                 fk = sub.skeleton.forward(state)
             goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
             ik_goals, ik_w = goals, goal_w  # the residual and confidences below are the observation's
-            if cfg.hold_lost_feet > 0 and self.feet_seen is not None:  # then the floor contact moves them too
+            if hold and cfg.hold_lost_feet > 0 and self.feet_seen is not None:  # the floor contact moves them too
                 ik_goals, ik_w = self._hold_feet(ik_goals, ik_w, goal_w)
             if cfg.floor_contact and self.floor_z is not None:
                 ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
@@ -641,7 +661,6 @@ class MarkerlessTracker:
             idx = sub.ccd_goal_index
             state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
         fk = sub.skeleton.forward(state)
-        self._feet_now = (fk.joints[0, sub.feet], ~self._feet_unobserved(goal_w)[0])
         wsum = goal_w.sum().clamp(min=1e-12)
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
         # of all the voxels' weight, ghosts included: the divergence test must not grow blind with the ghost test
@@ -650,7 +669,7 @@ class MarkerlessTracker:
         oj = sub.output_joint
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
         return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
-                           fk.bone_frames[0])
+                           fk.bone_frames[0], (fk.joints[0, sub.feet], ~self._feet_unobserved(goal_w)[0]))
 
     def _invalid(self) -> FrameResult:
         sub = self.subject
@@ -694,11 +713,7 @@ class MarkerlessTracker:
         self.lost = 0
         self.previous, self.angles = self.angles, res.angles
         self.colour = res.blobs  # the colour model follows accepted frames only
-        if self.feet_seen is not None and self._feet_now is not None:
-            pos, seen = self._feet_now
-            step = (pos - self.feet_seen).norm(dim=-1)  # (2, 2)
-            self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
-            self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
+        self._update_feet(res)
         return res
 
     @staticmethod
@@ -726,7 +741,7 @@ class MarkerlessTracker:
             self.angles = self.previous = a
             res = None
             for _ in range(max(2, self.config.init_passes // 2)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False)
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False, hold=False)
                 self.angles = self.previous = res.angles
             if best is None or self._fit_cost(res) < self._fit_cost(best):
                 best = res
@@ -736,4 +751,7 @@ class MarkerlessTracker:
             return replace(best, valid=False, reinitialised=True)
         self.angles = self.previous = best.angles
         self.lost = 0
+        if self.feet_seen is not None and best.feet is not None:  # a held foot the new pose left is let go
+            far = (best.feet[0] - self.feet_seen).norm(dim=-1) > REACQUIRED_FOOT_M
+            self.feet_still = self.feet_still & ~far
         return replace(best, reinitialised=True)
