@@ -24,6 +24,7 @@ background an estimator that knew where the subject is would find in this clip.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
        [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes | --reference-background]
+       [--reference-fit]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
@@ -140,9 +141,10 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
 
 def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.ndarray
                      ) -> tuple[torch.Tensor, float]:
-    """A state vector and height that put the skeleton's output points on ``points (L, 3)`` (named ``names``):
-    height from the median length ratio of :data:`SCALE_SEGMENTS` (a span such as head top to ankles shortens
-    with the pose), root by Kabsch on the trunk, limbs by CCD."""
+    """State vectors and a height that put the skeleton's output points on ``points (L, 3)`` or ``(T, L, 3)``
+    (named ``names``; T frames fitted at once): the height from the median length ratio of :data:`SCALE_SEGMENTS`
+    over the frames (a span such as head top to ankles shortens with the pose), the root by Kabsch on the trunk,
+    the limbs by CCD. Returns (D,) or (T, D) angles and the height."""
     from torchtrack.skeleton.ik import CCDConfig, CCDSolver
     from torchtrack.skeleton.model import EXTRA_OUTPUT_FRAMES, JOINT_FRAMES, LANDMARK_FRAMES
     from torchtrack.tracking.goals import GoalModel
@@ -150,24 +152,45 @@ def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.nd
     generic = tracker.generic
     rest = generic.forward(generic.rest_angles()[None]).output_points[0]
     out = list(generic.output_names)
-    ratios = [np.linalg.norm(points[names.index(a)] - points[names.index(b)])
+    single = points.ndim == 2
+    points = points[None] if single else points  # (T, L, 3)
+    ratios = [np.linalg.norm(points[:, names.index(a)] - points[:, names.index(b)], axis=-1)
               / float(torch.linalg.vector_norm(rest[out.index(a)] - rest[out.index(b)])) for a, b in SCALE_SEGMENTS]
-    height = generic.height() * float(np.median(ratios))
+    height = generic.height() * float(np.median(np.concatenate(ratios)))
     skel = generic.scaled_to_height(height)
-    goals = torch.zeros(1, len(JOINT_FRAMES), 3)
-    weights = torch.zeros(1, len(JOINT_FRAMES))
-    for n, p in zip(names, points):
+    T = points.shape[0]
+    goals = torch.zeros(T, len(JOINT_FRAMES), 3)
+    weights = torch.zeros(T, len(JOINT_FRAMES))
+    for i, n in enumerate(names):
         j = JOINT_FRAMES.index({**LANDMARK_FRAMES, **EXTRA_OUTPUT_FRAMES}[n])
-        goals[0, j], weights[0, j] = torch.as_tensor(p, dtype=torch.float32), 1.0
+        goals[:, j], weights[:, j] = torch.as_tensor(points[:, i], dtype=torch.float32), 1.0
     from torchtrack.blobs import BlobModel
 
     gm = GoalModel(skel, BlobModel.from_config(skel))
-    angles = skel.rest_angles()[None]
+    angles = skel.rest_angles()[None].repeat(T, 1)
     for _ in range(5):
         angles = gm.fit_root(angles, skel.forward(angles).joints, goals, weights, max_rotation=3.2)
     ccd = CCDSolver(skel, JOINT_FRAMES[1:], CCDConfig(damping=0.5, sweeps=40))
     angles = ccd(angles, goals[:, 1:], weights[:, 1:])
-    return angles[0], height
+    return (angles[0] if single else angles), height
+
+
+def reference_fit(demo: Path) -> None:
+    """``--reference-fit``: how close our skeleton can come to the reference at all. The template, scaled to one
+    height from all frames' segment lengths, fitted to every reference frame at once (:func:`fit_to_landmarks`,
+    batched over frames) and scored on the same landmarks as the tracking."""
+    names, ref = reference_landmarks(demo)
+    tracker = MarkerlessTracker(Skeleton.from_urdf())
+    angles, height = fit_to_landmarks(tracker, names, ref)  # (T, D)
+    out = list(tracker.generic.output_names)
+    j3d = tracker.generic.scaled_to_height(height).forward(angles).output_points.numpy()
+    fps = 30.0  # the evaluation does not use it
+    fitted = Poses(fps=fps, frame_index=np.arange(len(ref)), joint_names=out, joints3d=j3d, dof_names=[],
+                   angles=np.zeros((len(ref), 0), np.float32), valid=np.ones(len(ref), bool),
+                   confidence=np.ones((len(ref), len(out)), np.float32))
+    print(f"the template scaled to {height:.2f} m, fitted to each of the {len(ref)} reference frames (the model's "
+          "floor for this comparison)")
+    print(evaluate(fitted, reference_poses(names, ref, fps, out), landmarks=names).format())
 
 
 def picture(path: Path, folder: SequenceFolder, poses: Poses, t: int, scale: float) -> None:
@@ -206,6 +229,9 @@ def main() -> None:
     ap.add_argument("--reference-background", action="store_true",
                     help="diagnostic: estimate each pixel's background from the frames the silhouettes drawn from "
                          "the reference keypoints leave free")
+    ap.add_argument("--reference-fit", action="store_true",
+                    help="print only the model's floor: the skeleton (the template scaled to the subject) fitted "
+                         "to every reference frame at once, against the reference (no video)")
     ap.add_argument("--refine-passes", type=int, default=None,
                     help="background re-estimations from the track, each followed by a new track (default: the "
                          "config's background_refinement.passes; 0 with the reference diagnostics)")
@@ -221,6 +247,9 @@ def main() -> None:
     if not (args.demo / "videos").is_dir():
         raise SystemExit(f"{args.demo}: the Pose2Sim demo is not there")
     config = load_config("markerless.yaml")
+    if args.reference_fit:
+        reference_fit(args.demo)
+        return
     with tempfile.TemporaryDirectory() as tmp:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])

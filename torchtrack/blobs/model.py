@@ -26,6 +26,9 @@ from torchtrack.resources import config_path
 from torchtrack.skeleton import Skeleton
 
 DEFAULT_BLOBS = "blobs.yaml"
+#: A uniform solid ellipsoid's covariance is diag(semi_axes^2 / 5) in its axes: its surface lies at this squared
+#: Mahalanobis distance from its centre.
+SURFACE_MAHALANOBIS2 = 5.0
 _FIELDS = ("name", "bone", "offset", "along", "depth", "width", "colour")
 
 
@@ -142,7 +145,7 @@ class BlobModel(nn.Module):
     def gaussians(self, bone_frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, nb, 4, 4) -> means (B, K, 3), covariances (B, K, 3, 3) (eq. 17-18)."""
         centres, R = self.ellipsoids(bone_frames)
-        var = (self.semi_axes.to(R) / math.sqrt(5.0)) ** 2  # (K, 3)
+        var = (self.semi_axes.to(R) / math.sqrt(SURFACE_MAHALANOBIS2)) ** 2  # (K, 3)
         cov = R @ torch.diag_embed(var) @ R.transpose(-1, -2)
         return centres, cov
 

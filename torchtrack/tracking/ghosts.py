@@ -35,10 +35,8 @@ from __future__ import annotations
 import torch
 
 from torchtrack.blobs.em import mahalanobis2
+from torchtrack.blobs.model import SURFACE_MAHALANOBIS2 as _SURFACE_M2  # the blobs are uniform solid ellipsoids
 from torchtrack.checks import InputError, check_shape
-
-#: The blobs' covariances are those of uniform solid ellipsoids: the surface lies at squared Mahalanobis 5.
-_SURFACE_M2 = 5.0
 
 
 def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch.Tensor, mean: torch.Tensor,

@@ -579,12 +579,13 @@ class MarkerlessTracker:
         self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
         self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
 
+    def _goal_confidence(self, goal_w: torch.Tensor) -> torch.Tensor:
+        """(B, G) goal weights -> each joint goal's confidence in [0, 1]: its weight over its blobs' count."""
+        return (goal_w / self.subject.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)
+
     def _feet_unobserved(self, goal_w: torch.Tensor) -> torch.Tensor:
-        """(B, 2, 2) whether each foot's ankle and toe goal has a confidence (its weight over its blobs' count)
-        under ``hold_min_confidence``."""
-        sub = self.subject
-        blobs = sub.goals.attached.sum(0).clamp(min=1).to(goal_w)[sub.feet]  # (2, 2)
-        return goal_w[:, sub.feet] < self.config.hold_min_confidence * blobs
+        """(B, 2, 2) whether each foot's ankle and toe goal's confidence is under ``hold_min_confidence``."""
+        return self._goal_confidence(goal_w)[:, self.subject.feet] < self.config.hold_min_confidence
 
     def _hold_feet(self, goals: torch.Tensor, weights: torch.Tensor, goal_w: torch.Tensor
                    ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -665,7 +666,7 @@ class MarkerlessTracker:
         residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
         # of all the voxels' weight, ghosts included: the divergence test must not grow blind with the ghost test
         explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
-        conf_joint = (goal_w[0] / sub.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)  # (G,)
+        conf_joint = self._goal_confidence(goal_w)[0]  # (G,)
         oj = sub.output_joint
         conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
         return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
