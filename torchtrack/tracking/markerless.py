@@ -6,10 +6,12 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
    (eq. 17-18): they are EM's starting point and prior;
 2. EM of the blobs on the voxels (position and colour; :mod:`torchtrack.blobs.em`); from at most
    ``ghost_max_cameras`` cameras, the ghost voxels the predicted body explains in every view are first given
-   ``ghost_weight`` (:mod:`torchtrack.tracking.ghosts`);
+   ``ghost_weight`` (:mod:`torchtrack.tracking.ghosts`); a blob whose predicted ellipsoid lies more than
+   ``MAX_OUTSIDE`` out of the observed volume gives no goals;
 3. joint goals from the blobs (Algorithm 2; :class:`~torchtrack.tracking.goals.GoalModel`), the root as the
-   bounded Kabsch fit of the trunk goals, then CCD of the limbs onto their goals (eq. 11-16); steps 3 is
-   repeated ``refinements`` times, each time from the updated bones;
+   bounded Kabsch fit of the trunk goals (the trunk held straight: ``rigid_trunk``), then CCD of the spine and
+   limbs onto their goals (eq. 11-16); step 3 is repeated ``refinements`` times, each time from the updated
+   bones;
 4. check the fit: a frame whose goals the solved skeleton misses by more than ``lost_residual_m`` on average,
    or whose blobs find little of the voxels, counts as diverging; after ``lost_frames`` of them the tracker
    re-initialises from the voxels (several heading hypotheses around the last good pose, the best EM fit wins)
@@ -84,6 +86,14 @@ START_ADVICE = ("Start the sequence with the subject standing arms and legs spre
                 "--init-pose POSES.npz (the first valid frame of a poses.npz of this subject, e.g. from an earlier "
                 "run)")
 
+#: The spine's DOFs, between the pelvis (the root) and the torso: straight (0) in the rest pose.
+SPINE_DOFS: tuple[str, ...] = ("spine_flex", "spine_abd", "spine_twist")
+
+#: A blob with more than this share of its predicted ellipsoid out of the observed volume's sides or top gives no
+#: goals (:meth:`VoxelObservation.outside`): its voxels are only the part inside, whose mean and axis pull the
+#: bone inwards (a forearm coming back into the volume folded onto its upper arm, the elbow at its limit).
+MAX_OUTSIDE = 0.25
+
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
 CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
 
@@ -131,6 +141,12 @@ class TrackerConfig:
             stays wrong (with ``floor_contact`` the support foot's held goals are then lowered onto the floor).
             Nothing is held during initialisation's or re-acquisition's search, and after a re-acquisition a
             remembered foot farther than ``REACQUIRED_FOOT_M`` from the new pose's is let go.
+        rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
+            straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
+            axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
+            upright one; fitted with the current bend, the split drifted (8 cameras, the hull's CMU 131_02:
+            pelvis pitched 40-65 deg, thighs at their extension limit, 53.1 -> 34.9 mm with the straight
+            trunk). The price: a real spine bend is taken by the pelvis and the hips (the landmarks move little).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -157,6 +173,7 @@ class TrackerConfig:
     hold_lost_feet: float = 2.0
     hold_min_confidence: float = 0.3
     hold_max_step_m: float = 0.02
+    rigid_trunk: bool = True
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
@@ -253,6 +270,7 @@ class _Subject:
         self.goals = GoalModel(skeleton, self.blobs)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
         self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
+        self.spine_dofs = skeleton.dof_index(list(SPINE_DOFS))  # rigid_trunk
         self.feet = feet_index()  # (2, 2) ankle and toe site of each foot (JOINT_FRAMES indices)
         rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
         self.ankle_height = rest[self.feet[:, 0], 2] - rest[self.feet[:, 1], 2]  # (2,) ankle above the sole
@@ -264,7 +282,7 @@ class _Subject:
     def to(self, device: torch.device) -> _Subject:
         for m in (self.skeleton, self.blobs, self.goals, self.ccd):
             m.to(device)
-        self.output_joint = self.output_joint.to(device)
+        self.output_joint, self.spine_dofs = self.output_joint.to(device), self.spine_dofs.to(device)
         self.feet, self.ankle_height = self.feet.to(device), self.ankle_height.to(device)
         return self
 
@@ -643,7 +661,9 @@ class MarkerlessTracker:
         weights = self._ghost_weights(obs, prior) if ghosts else obs.weights
         blobs, assign = fit_blobs(obs.points, weights, obs.sizes, obs.colours, prior, cfg.em,
                                   learn_colour=learn_colour)
-        weight = (blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
+        # a blob the volume's boundary cuts shows only its inside part: no goals from it
+        seen = blobs.active & (obs.outside(prior.mean, prior.cov) <= MAX_OUTSIDE)
+        weight = (seen.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
         residual = torch.zeros((), dtype=a.dtype, device=a.device)
         goal_w = None
         state = a[None]
@@ -656,7 +676,11 @@ class MarkerlessTracker:
                 ik_goals, ik_w = self._hold_feet(ik_goals, ik_w, goal_w)
             if cfg.floor_contact and self.floor_z is not None:
                 ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
-            state = sub.goals.fit_root(state, fk.joints, ik_goals, ik_w, max_rotation=max_rot)
+            trunk = fk.joints
+            if cfg.rigid_trunk:  # the root fits a straight trunk, CCD bends the spine from there
+                state = state.index_fill(1, sub.spine_dofs, 0.0)
+                trunk = sub.skeleton.forward(state).joints
+            state = sub.goals.fit_root(state, trunk, ik_goals, ik_w, max_rotation=max_rot)
             rz = sub.skeleton.dof_names.index("root_rz")
             state[:, rz] = _unwrap(state[:, rz], a[rz])
             idx = sub.ccd_goal_index

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchtrack.blobs.model import SURFACE_MAHALANOBIS2
 from torchtrack.checks import InputError
 from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, grid_from_rig, hull_from_images
 
@@ -31,6 +32,9 @@ class VoxelObservation:
         observed_voxels: how many of the model's voxels were merged into these (-1: not merged).
         camera_centres: (C, 3) the cameras' centres in the world frame, or None (then the tracker cannot
             explain ghost voxels away: :mod:`torchtrack.tracking.ghosts`).
+        volume_m: the box the observation model looks in, (lower, upper) corners (m), or None (unbounded):
+            nothing outside it is observed, so a body part that reaches out of it shows only its inside part
+            (:meth:`outside`).
     """
 
     points: torch.Tensor
@@ -41,6 +45,7 @@ class VoxelObservation:
     cell_m: float = 0.0
     observed_voxels: int = -1
     camera_centres: torch.Tensor | None = None
+    volume_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
 
     @property
     def num_voxels(self) -> int:
@@ -53,6 +58,22 @@ class VoxelObservation:
 
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
+
+    def outside(self, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
+        """(K,) the share of each blob's solid ellipsoid (``mean (K, 3)``, ``cov (K, 3, 3)`` of a uniform
+        ellipsoid) that lies out of the volume's sides or top (the floor is no cut: nothing stands below it);
+        zeros when the volume is unknown.
+
+        A plane at signed distance ``d`` (in units of the ellipsoid's half width along its normal, positive
+        towards the centre) cuts off the share ``(1 - d)^2 (2 + d) / 4`` of it (a ball's cap under the affine
+        map); the caps of the five planes are summed (their overlaps at the box's edges counted twice)."""
+        K = mean.shape[0]
+        if self.volume_m is None:
+            return mean.new_zeros(K)
+        lower, upper = (mean.new_tensor(c) for c in self.volume_m)
+        half = (SURFACE_MAHALANOBIS2 * torch.diagonal(cov, dim1=-2, dim2=-1)).clamp(min=1e-12).sqrt()  # (K, 3)
+        d = torch.cat([((mean - lower) / half)[:, :2], (upper - mean) / half], -1).clamp(-1.0, 1.0)  # (K, 5)
+        return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
 
     def pooled(self, cell_m: float) -> VoxelObservation:
         """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
@@ -81,7 +102,7 @@ class VoxelObservation:
         cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
         return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed,
-                                self.camera_centres)
+                                self.camera_centres, self.volume_m)
 
 
 class Observer(nn.Module):
@@ -131,7 +152,8 @@ class Observer(nn.Module):
                 v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b],
-                                            camera_centres=cams.to(v.centres.dtype)))
+                                            camera_centres=cams.to(v.centres.dtype),
+                                            volume_m=(self.spec.lower_m, self.spec.upper_m)))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
@@ -157,5 +179,6 @@ class Observer(nn.Module):
             col = torch.where((pix >= 0)[:, None, :], col, torch.nan).permute(2, 0, 1)  # (n, C, 3)
             sizes = torch.full_like(pts[:, 0], s)
             out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b],
-                                        camera_centres=cams.to(pts.dtype)))
+                                        camera_centres=cams.to(pts.dtype),
+                                        volume_m=(self.spec.lower_m, self.spec.upper_m)))
         return out
