@@ -850,6 +850,39 @@ def test_pooled_observation_matches_a_plain_loop():
                 assert bool(torch.isnan(pooled.colours[m, c]).all())
 
 
+def test_split_observation_matches_a_plain_loop():
+    """Hull-like voxels of 1.5 to 12 cm split to at most 3 cm: every voxel over 3 cm becomes the n^3 cubes of a
+    loop over its cells, each with 1 / n^3 of its weight and its colours; the others stay; weight and volume kept."""
+    gen = torch.Generator().manual_seed(5)
+    N, C = 40, 2
+    pts = torch.rand(N, 3, generator=gen, dtype=torch.float64)
+    sizes = torch.tensor([0.015, 0.03, 0.06, 0.12], dtype=torch.float64)[torch.randint(0, 4, (N,), generator=gen)]
+    w = sizes ** 3 * torch.rand(N, generator=gen, dtype=torch.float64)
+    col = torch.rand(N, C, 3, generator=gen, dtype=torch.float64)
+    col[0, 1] = float("nan")
+    obs = VoxelObservation(pts, sizes, w, col, torch.ones(C, dtype=torch.bool))
+    out = obs.split(0.03)
+    ref = []
+    for v in range(N):
+        n = max(1, math.ceil(round(float(sizes[v]) / 0.03, 9)))
+        for i in range(n):
+            for j in range(n):
+                for k in range(n):
+                    corner = pts[v] - sizes[v] / 2
+                    ref.append((corner + (torch.tensor([i, j, k], dtype=torch.float64) + 0.5) * sizes[v] / n,
+                                float(sizes[v]) / n, float(w[v]) / n ** 3, col[v]))
+    assert out.num_voxels == len(ref) and out.num_observed == N
+    for p, size, weight, colour in ref:
+        m = int((out.points - p).norm(dim=-1).argmin())
+        assert float((out.points[m] - p).norm()) < 1e-12
+        assert abs(float(out.sizes[m]) - size) < 1e-12 and abs(float(out.weights[m]) - weight) < 1e-15
+        assert torch.equal(torch.isnan(out.colours[m]), torch.isnan(colour))
+        assert torch.allclose(torch.nan_to_num(out.colours[m]), torch.nan_to_num(colour), atol=0)
+    assert abs(float(out.weights.sum()) - float(w.sum())) < 1e-12
+    assert abs(out.volume_m3() - obs.volume_m3()) < 1e-12
+    assert obs.split(0.2) is obs  # nothing to split
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_tracker_on_cuda_matches_cpu(skel):
     """The same frames tracked on the GPU give the CPU's landmarks (float32 differences only)."""

@@ -8,7 +8,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -74,6 +74,32 @@ class VoxelObservation:
         half = (SURFACE_MAHALANOBIS2 * torch.diagonal(cov, dim1=-2, dim2=-1)).clamp(min=1e-12).sqrt()  # (K, 3)
         d = torch.cat([((mean - lower) / half)[:, :2], (upper - mean) / half], -1).clamp(-1.0, 1.0)  # (K, 5)
         return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
+
+    def split(self, max_m: float) -> VoxelObservation:
+        """Voxels larger than ``max_m`` cut into ``n^3`` equal children (``n = ceil(size / max_m)``), each with
+        ``1 / n^3`` of the weight and the parent's colours; smaller ones come back as they are. For the bone fit
+        (:meth:`MarkerlessTracker._fit_bone_lengths`): EM gives each voxel to one blob, and a hull's 12 cm
+        interior cube that spans two blobs moves the one it goes to."""
+        if not max_m > 0:
+            raise InputError(f"VoxelObservation.split: the size must be > 0, got {max_m}")
+        n = torch.ceil(self.sizes / max_m - 1e-6).clamp(min=1).long()  # within rounding of max_m: kept whole
+        if self.num_voxels == 0 or int(n.max()) <= 1:
+            return self
+        parts = []
+        for k in n.unique().tolist():
+            sel = n == k
+            pts, sizes, w, col = self.points[sel], self.sizes[sel], self.weights[sel], self.colours[sel]
+            if k > 1:
+                g = (torch.arange(k, dtype=pts.dtype, device=pts.device) + 0.5) / k - 0.5  # child centres / size
+                offsets = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(1, -1, 3)  # (1, k^3, 3)
+                pts = (pts[:, None, :] + sizes[:, None, None] * offsets).reshape(-1, 3)
+                sizes = (sizes / k).repeat_interleave(k ** 3)
+                w = (w / k ** 3).repeat_interleave(k ** 3)
+                col = col.repeat_interleave(k ** 3, dim=0)
+            parts.append((pts, sizes, w, col))
+        return replace(self, points=torch.cat([p[0] for p in parts]), sizes=torch.cat([p[1] for p in parts]),
+                       weights=torch.cat([p[2] for p in parts]), colours=torch.cat([p[3] for p in parts]),
+                       observed_voxels=self.num_observed)
 
     def pooled(self, cell_m: float) -> VoxelObservation:
         """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
