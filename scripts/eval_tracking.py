@@ -88,7 +88,7 @@ class AgainstTruth(torch.nn.Module):
             if self.margin is not None:
                 keep = self._inside(obs, t, self.margin)
                 obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
-                                       obs.cameras_valid, camera_centres=obs.camera_centres)
+                                       obs.cameras_valid, camera_centres=obs.camera_centres, volume_m=obs.volume_m)
             out.append(obs)
         return out
 
