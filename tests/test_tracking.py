@@ -939,6 +939,34 @@ def test_observer_voxels_from_a_given_probability_take_the_projected_pixels_colo
         Observer(rig, bg, "hull", voxel_size_m=0.05).from_probability(prob, yuv, torch.ones(1, len(rig)).bool())
 
 
+@pytest.mark.parametrize("model", ["bayes", "hull"])
+def test_observer_gives_the_box_its_voxels_cover(seq, model):
+    """The observation's ``volume_m`` is the box the model's voxels can fill: the tracking zone's lower corner and
+    its upper one rounded up to whole voxels (the hull's to whole level-0 cubes); every voxel lies in
+    it, and it goes on through ``pooled`` and ``split``."""
+    from torchtrack.background import BackgroundModel
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking.observation import Observer
+
+    folder = SequenceFolder(seq)
+    rig = folder.rig.float()
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    bg = BackgroundModel.from_folder(folder, size_wh=(W, H))
+    zone = ((-1.0, -1.0, 0.0), (1.0, 1.13, 2.0))
+    observer = Observer(rig, bg, model, voxel_size_m=0.05, lower_m=zone[0], upper_m=zone[1])
+    obs = observer(folder.read_frame(0, size_wh=(W, H))[None])[0]
+    lower, upper = (torch.tensor(c, dtype=torch.float64) for c in obs.volume_m)
+    assert torch.allclose(lower, torch.tensor(zone[0], dtype=torch.float64))
+    # 2.13 m along y: 43 voxels of 0.05 m; the hull's level 0 has 0.05 * 2^round(log2(2.13 / (16 * 0.05))) = 0.1 m
+    # cubes, 22 of them
+    expected = (1.0, 1.15, 2.0) if model == "bayes" else (1.0, 1.2, 2.0)
+    assert torch.allclose(upper, torch.tensor(expected, dtype=torch.float64), atol=1e-9)
+    half = obs.sizes.double()[:, None] / 2
+    pts = obs.points.double()
+    assert obs.num_voxels > 0 and bool(((pts - half >= lower - 1e-6) & (pts + half <= upper + 1e-6)).all())
+    assert obs.pooled(0.1).volume_m == obs.volume_m and obs.split(0.01).volume_m == obs.volume_m
+
+
 def _four_view_ghosts(obs, voxel=0.03, offset_deg=45.0):
     """The observation as 4 cameras 90 deg apart would carve it: the synthetic ring rig (3.5 m out, 2.2 m up,
     320x240, no distortion) turned so that its first camera stands at ``offset_deg`` azimuth, each body voxel

@@ -43,6 +43,11 @@ class GridSpec:
         return tuple(max(1, math.ceil((u - l) / self.voxel_size_m - 1e-9))
                      for l, u in zip(self.lower_m, self.upper_m))  # type: ignore[return-value]
 
+    def covered_box(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """The box the voxels cover: ``lower_m`` to ``lower_m + shape * voxel_size_m`` (``upper_m`` rounded up
+        to whole voxels)."""
+        return self.lower_m, tuple(lo + n * self.voxel_size_m for lo, n in zip(self.lower_m, self.shape))
+
     @property
     def num_voxels(self) -> int:
         nx, ny, nz = self.shape

@@ -130,6 +130,23 @@ class HullConfig:
         if failed:
             raise InputError(f"HullConfig: need {', '.join(failed)}; got {self}")
 
+    def level0(self) -> tuple[int, float, list[int]]:
+        """The hierarchy's start: the number of levels below it, its cubes' edge (m) and how many of them lie
+        along each axis (the zone rounded up to whole cubes)."""
+        if self.lower_m is None:
+            raise InputError("HullConfig.lower_m / upper_m (the zone of interest) must be set")
+        lo, up = self.lower_m, self.upper_m
+        extent = max(u - l for l, u in zip(lo, up))
+        levels = max(0, round(math.log2(extent / (self.start_resolution * self.finest_voxel_m))))
+        e0 = self.finest_voxel_m * 2 ** levels
+        return levels, e0, [max(1, math.ceil((u - l) / e0 - 1e-9)) for l, u in zip(lo, up)]
+
+    def covered_box(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """The box the hull's cubes cover: the zone's lower corner, its upper one rounded up to whole level-0
+        cubes (voxels are found up to there)."""
+        _, e0, n0 = self.level0()
+        return self.lower_m, tuple(lo + n * e0 for lo, n in zip(self.lower_m, n0))  # type: ignore[return-value]
+
 
 @dataclass
 class SparseVoxels:
@@ -212,11 +229,8 @@ class _Plan:
             raise InputError("HullConfig.lower_m / upper_m (the zone of interest) must be set")
         if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
             raise InputError(f"hierarchical_hull needs cameras of one image size, got {rig.image_size_wh.tolist()}")
-        lo, up = config.lower_m, config.upper_m
-        extent = max(u - l for l, u in zip(lo, up))
-        self.L = max(0, round(math.log2(extent / (config.start_resolution * config.finest_voxel_m))))
-        self.e0 = config.finest_voxel_m * 2 ** self.L
-        self.n0 = [max(1, math.ceil((u - l) / self.e0 - 1e-9)) for l, u in zip(lo, up)]
+        lo = config.lower_m
+        self.L, self.e0, self.n0 = config.level0()
         self.n0_t = torch.tensor(self.n0, device=rig.K.device)
         self.C = rig.num_cameras
         self.W, self.H = (int(v) for v in rig.image_size_wh[0].tolist())

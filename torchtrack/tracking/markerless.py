@@ -276,7 +276,7 @@ class _Subject:
         self.goals = GoalModel(skeleton, self.blobs)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
         self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
-        self.spine_dofs = skeleton.dof_index(list(SPINE_DOFS))  # rigid_trunk
+        self.spine_dofs = skeleton.dof_index([n for n in SPINE_DOFS if n in skeleton.dof_names])  # rigid_trunk
         self.feet = feet_index()  # (2, 2) ankle and toe site of each foot (JOINT_FRAMES indices)
         rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
         self.ankle_height = rest[self.feet[:, 0], 2] - rest[self.feet[:, 1], 2]  # (2,) ankle above the sole
@@ -428,7 +428,7 @@ class MarkerlessTracker:
             self.colour, self.lost = None, 0
             res = None
             for _ in range(self.config.init_passes):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False)
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False)
                 self.angles = self.previous = res.angles
             cost = self._fit_cost(res)
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
@@ -563,7 +563,7 @@ class MarkerlessTracker:
         eye = torch.eye(3, dtype=base.dtype, device=base.device).expand(K, 3, 3)
         A_pos = torch.cat([torch.stack(cols, -1), eye], -1).reshape(3 * K, G + 3)
         r_pos = (fitted.mean - base).reshape(3 * K)
-        w_blob = fitted.active.to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
+        w_blob = (fitted.active & self._inside_volume(obs, start)).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
         # sizes along the bone
         _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
         along = R_wb[0, :, :, 0]  # (K, 3)
@@ -635,6 +635,11 @@ class MarkerlessTracker:
                             colour_known=self.colour.colour_known)
         return fk, prior
 
+    @staticmethod
+    def _inside_volume(obs: VoxelObservation, blobs: Blobs) -> torch.Tensor:
+        """(K,) bool: the blobs with at most ``MAX_OUTSIDE`` of their ellipsoid out of the observed volume."""
+        return obs.outside(blobs.mean, blobs.cov) <= MAX_OUTSIDE
+
     def _explains_ghosts(self, obs: VoxelObservation) -> bool:
         """Whether the ghost test runs on ``obs``: ``ghost_weight`` < 1, the cameras' centres known, and at most
         ``ghost_max_cameras`` in the rig (readable in this frame or not)."""
@@ -656,20 +661,21 @@ class MarkerlessTracker:
                              self_scale=cfg.ghost_self_scale)
         return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
 
-    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, ghosts: bool = True,
+    def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, predicted: bool = True,
                hold: bool = True) -> FrameResult:
-        """One frame from the predicted pose; ``ghosts``: explain ghost voxels away against the prediction (off
-        where the prediction is only a guess: the heading search of initialisation and re-acquisition); ``hold``:
+        """One frame from the predicted pose; ``predicted``: trust the prediction, to explain ghost voxels away
+        against it and to silence the blobs it puts out of the volume (off where it is only a guess: the heading
+        search of initialisation and re-acquisition, whose hypotheses must be scored on the same goals); ``hold``:
         hold unseen planted feet where they were last seen (off in re-acquisition's search)."""
         sub, cfg = self.subject, self.config
         a = self.angles + cfg.velocity * (self.angles - self.previous)
         a = sub.skeleton.clamp(a)
         fk, prior = self._regenerate(a)
-        weights = self._ghost_weights(obs, prior) if ghosts else obs.weights
+        weights = self._ghost_weights(obs, prior) if predicted else obs.weights
         blobs, assign = fit_blobs(obs.points, weights, obs.sizes, obs.colours, prior, cfg.em,
                                   learn_colour=learn_colour)
         # a blob the volume's boundary cuts shows only its inside part: no goals from it
-        seen = blobs.active & (obs.outside(prior.mean, prior.cov) <= MAX_OUTSIDE)
+        seen = blobs.active & (self._inside_volume(obs, prior) if predicted else True)
         weight = (seen.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
         residual = torch.zeros((), dtype=a.dtype, device=a.device)
         goal_w = None
@@ -773,7 +779,7 @@ class MarkerlessTracker:
             self.angles = self.previous = a
             res = None
             for _ in range(max(2, self.config.init_passes // 2)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), ghosts=False, hold=False)
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
                 self.angles = self.previous = res.angles
             if best is None or self._fit_cost(res) < self._fit_cost(best):
                 best = res

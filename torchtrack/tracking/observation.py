@@ -99,7 +99,7 @@ class VoxelObservation:
             parts.append((pts, sizes, w, col))
         return replace(self, points=torch.cat([p[0] for p in parts]), sizes=torch.cat([p[1] for p in parts]),
                        weights=torch.cat([p[2] for p in parts]), colours=torch.cat([p[3] for p in parts]),
-                       observed_voxels=self.num_observed)
+                       cell_m=0.0, observed_voxels=self.num_observed)
 
     def pooled(self, cell_m: float) -> VoxelObservation:
         """Voxels merged per cell of a ``cell_m`` lattice (for a cheaper EM): weight-averaged centres and
@@ -179,7 +179,7 @@ class Observer(nn.Module):
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b],
                                             camera_centres=cams.to(v.centres.dtype),
-                                            volume_m=(self.spec.lower_m, self.spec.upper_m)))
+                                            volume_m=self.hull_config.covered_box()))
             return out
         log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
         prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
@@ -206,5 +206,5 @@ class Observer(nn.Module):
             sizes = torch.full_like(pts[:, 0], s)
             out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b],
                                         camera_centres=cams.to(pts.dtype),
-                                        volume_m=(self.spec.lower_m, self.spec.upper_m)))
+                                        volume_m=self.spec.covered_box()))
         return out
