@@ -10,6 +10,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --proportions
     .venv/bin/python scripts/eval_tracking.py --motions walk --tracker fit_bone_lengths=false   # one scale
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 8 --true-body    # without the fit
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --models hull --trunk  # pelvis tilt
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --outside            # the voxels' share outside the body
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --oracle-margin 0.04 # ghosts removed by the truth
 """
@@ -30,7 +31,7 @@ from torchtrack.eval import evaluate
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.metrics import inside_ellipsoids
-from torchtrack.skeleton import Skeleton
+from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 from torchtrack.tracking.cli import load_config, observer_from_config
@@ -120,6 +121,21 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     return poses, poses.num_frames / elapsed, tracker, observer
 
 
+def trunk_errors(poses, truth, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """--trunk, per valid frame: the angle (deg) between the tracked and the true pelvis' up axes (from the root's
+    rotation), and whether a tracked thigh is at its hip extension limit (within 0.5 deg)."""
+    names = list(poses.dof_names)
+    rot = [names.index(n) for n in ("root_rz", "root_ry", "root_rx")]
+    ok = poses.valid & truth.valid[:len(poses.valid)]
+    up = [root_rotation_matrix(torch.from_numpy(np.asarray(p.angles)[ok][:, rot]).double())[:, :, 2]
+          for p in (poses, truth)]
+    tilt = np.degrees(np.arccos(np.clip((up[0] * up[1]).sum(-1).numpy(), -1.0, 1.0)))
+    hips = skeleton.dof_index(["l_hip_flex", "r_hip_flex"])
+    lower = skeleton.lower[hips].double().numpy()
+    at_limit = (np.asarray(poses.angles)[ok][:, hips.numpy()] <= lower + np.radians(0.5)).any(-1)
+    return tilt, at_limit
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--motions", nargs="+", default=list(MOTIONS))
@@ -138,6 +154,9 @@ def main() -> None:
     ap.add_argument("--true-body", action="store_true",
                     help="track with the rendered body from the first ground-truth pose (no initialisation, no "
                          "bone fit): separates the fit's share of the error")
+    ap.add_argument("--trunk", action="store_true",
+                    help="also print how far the tracked pelvis tilts from the true one (mean and worst frame) and "
+                         "the share of frames with a thigh at its extension limit")
     ap.add_argument("--outside", action="store_true",
                     help=f"also print the share of the voxel weight outside the rendered body grown by "
                          f"{OUTSIDE_M * 100:g} cm (ghosts, shadows), mean over frames")
@@ -172,6 +191,11 @@ def main() -> None:
                 print(f"{motion:12s} {cams:4d} {model:6s} {rep.mpjpe_mm:7.1f} {rep.max_frame_mm:7.1f} "
                       f"{100 * pck50:5.1f}% {rep.frames_lost:5d} {fps:5.1f}  "
                       + ", ".join(f"{n} {e:.0f}" for e, n in worst) + ("" if ok else "  MISS"), flush=True)
+                if args.trunk:
+                    tilt, at_limit = trunk_errors(poses, truth, tracker.subject.skeleton)
+                    print(f"    pelvis tilt off the true one: mean {tilt.mean():.1f}, worst frame {tilt.max():.1f} "
+                          f"deg; a thigh at its extension limit in {100 * at_limit.mean():.0f}% of the frames",
+                          flush=True)
                 if args.outside:
                     print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
                           f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)

@@ -447,9 +447,10 @@ class MarkerlessTracker:
         # tall the hull's torso ran from 0.40 to 0.52 m over the rounds on CMU 131_01, against a true 0.25).
         # Going on past a worse round and keeping the best was measured worse (4 cameras: squat 69 -> 95 mm)
         best_fit = (self._fit_cost(res), self.subject.skeleton, res)
+        fit_obs = obs.split(BONE_FIT_VOXEL_M)  # the bone fit's voxels (BONE_FIT_VOXEL_M)
         for _ in range(FIT_ROUNDS if self.config.fit_bone_lengths else 3):
             if self.config.fit_bone_lengths:
-                skel_fit, change = self._fit_bone_lengths(obs, res)
+                skel_fit, change = self._fit_bone_lengths(fit_obs, res)
             else:
                 s = self._scale_from_blobs(res)
                 # within 10% of the voxels' height: the blobs refine it, they must not run away on bad voxels
@@ -536,7 +537,8 @@ class MarkerlessTracker:
         moves it and the shoulders, the shift the neck alone); and each elongated blob's semi-axis along its
         bone (sqrt(5) times the standard deviation of its voxels along it) is affine in them too (read off the
         same edited blob models). Solves for the group scales, the neck shift and a root shift, with a ridge
-        towards the current skeleton; returns the new skeleton and the largest relative change.
+        towards the current skeleton; returns the new skeleton and the largest relative change. ``obs``: the
+        frame's voxels split to ``BONE_FIT_VOXEL_M`` (the caller splits them once for all rounds).
         """
         sub = self.subject
         skel = sub.skeleton
@@ -547,7 +549,6 @@ class MarkerlessTracker:
         base, base_cov = base[0], base_cov[0]  # (K, 3), (K, 3, 3)
         raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
         start = prior_blobs(base, base_cov)
-        obs = obs.split(BONE_FIT_VOXEL_M)
         fitted, _ = fit_blobs(obs.points, self._ghost_weights(obs, start), obs.sizes, None, start, raw)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
         K, G = base.shape[0], len(BONE_GROUPS) + 1
