@@ -8,6 +8,10 @@ RHip/LHip, neck, shoulders, elbows, wrists, hips, knees, ankles (14 of our 16 la
 thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames;
 saves a picture of one tracked frame in the four views.
 
+``--init-from-reference`` starts from the pose and the body fitted to the reference's 15 points of frame 0
+(:func:`torchtrack.tracking.landmark_fit.fit_to_landmarks`: bone lengths and the neck's and shoulders' height on
+the trunk; de Bem's saved initialisation); ``--scale-only``: the template scaled to the subject's height instead.
+
 Without empty frames the background is refined from the track (``torchtrack.tracking.refine``: the config's
 ``background_refinement.passes`` re-estimations, each followed by a new track; ``--refine-passes N``).
 
@@ -23,8 +27,8 @@ usual, but each pixel's background is the median of the frames where those drawn
 background an estimator that knew where the subject is would find in this clip.
 
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
-       [--init-from-reference] [--fill-prior-log-odds 0] [--reference-silhouettes | --reference-background]
-       [--reference-fit]
+       [--init-from-reference [--scale-only]] [--fill-prior-log-odds 0]
+       [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg]
 """
@@ -52,6 +56,7 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
 from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
@@ -64,10 +69,6 @@ CAPSULES = (("RHip", "RKnee", 0.07), ("RKnee", "RAnkle", 0.05), ("RAnkle", "RBig
             ("LAnkle", "LBigToe", 0.035), ("LHeel", "LBigToe", 0.035), ("RShoulder", "RElbow", 0.045),
             ("RElbow", "RWrist", 0.035), ("LShoulder", "LElbow", 0.045), ("LElbow", "LWrist", 0.035),
             ("Neck", "Head", 0.06), ("Head", "Nose", 0.09))
-#: Segments whose lengths scale the template in :func:`fit_to_landmarks` (they do not depend on the pose).
-SCALE_SEGMENTS = (("l_hip", "l_knee"), ("l_knee", "l_ankle"), ("r_hip", "r_knee"), ("r_knee", "r_ankle"),
-                  ("l_shoulder", "l_elbow"), ("l_elbow", "l_wrist"), ("r_shoulder", "r_elbow"),
-                  ("r_elbow", "r_wrist"), ("pelvis", "neck"))
 #: The trunk: the quadrilateral of shoulders and hips, rounded by this radius (m).
 TRUNK_ROUNDING_M = 0.06
 #: ``--reference-background``: the drawn silhouettes are grown by this many pixels (at the processing size) before
@@ -139,57 +140,22 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
                  confidence=np.ones((T, len(joint_names)), np.float32))
 
 
-def fit_to_landmarks(tracker: MarkerlessTracker, names: list[str], points: np.ndarray
-                     ) -> tuple[torch.Tensor, float]:
-    """State vectors and a height that put the skeleton's output points on ``points (L, 3)`` or ``(T, L, 3)``
-    (named ``names``; T frames fitted at once): the height from the median length ratio of :data:`SCALE_SEGMENTS`
-    over the frames (a span such as head top to ankles shortens with the pose), the root by Kabsch on the trunk,
-    the limbs by CCD. Returns (D,) or (T, D) angles and the height."""
-    from torchtrack.skeleton.ik import CCDConfig, CCDSolver
-    from torchtrack.skeleton.model import EXTRA_OUTPUT_FRAMES, JOINT_FRAMES, LANDMARK_FRAMES
-    from torchtrack.tracking.goals import GoalModel
-
-    generic = tracker.generic
-    rest = generic.forward(generic.rest_angles()[None]).output_points[0]
-    out = list(generic.output_names)
-    single = points.ndim == 2
-    points = points[None] if single else points  # (T, L, 3)
-    ratios = [np.linalg.norm(points[:, names.index(a)] - points[:, names.index(b)], axis=-1)
-              / float(torch.linalg.vector_norm(rest[out.index(a)] - rest[out.index(b)])) for a, b in SCALE_SEGMENTS]
-    height = generic.height() * float(np.median(np.concatenate(ratios)))
-    skel = generic.scaled_to_height(height)
-    T = points.shape[0]
-    goals = torch.zeros(T, len(JOINT_FRAMES), 3)
-    weights = torch.zeros(T, len(JOINT_FRAMES))
-    for i, n in enumerate(names):
-        j = JOINT_FRAMES.index({**LANDMARK_FRAMES, **EXTRA_OUTPUT_FRAMES}[n])
-        goals[:, j], weights[:, j] = torch.as_tensor(points[:, i], dtype=torch.float32), 1.0
-    from torchtrack.blobs import BlobModel
-
-    gm = GoalModel(skel, BlobModel.from_config(skel))
-    angles = skel.rest_angles()[None].repeat(T, 1)
-    for _ in range(5):
-        angles = gm.fit_root(angles, skel.forward(angles).joints, goals, weights, max_rotation=3.2)
-    ccd = CCDSolver(skel, JOINT_FRAMES[1:], CCDConfig(damping=0.5, sweeps=40))
-    angles = ccd(angles, goals[:, 1:], weights[:, 1:])
-    return (angles[0] if single else angles), height
-
-
-def reference_fit(demo: Path) -> None:
-    """``--reference-fit``: how close our skeleton can come to the reference at all. The template, scaled to one
-    height from all frames' segment lengths, fitted to every reference frame at once (:func:`fit_to_landmarks`,
-    batched over frames) and scored on the same landmarks as the tracking."""
+def reference_fit(demo: Path, fit_bones: bool) -> None:
+    """``--reference-fit``: how close our skeleton can come to the reference at all. The body the reference start
+    uses (fitted to frame 0's points, :func:`fit_to_landmarks`), posed on every reference frame at once
+    (:func:`fit_pose`, batched over frames) and scored on the same landmarks as the tracking."""
     names, ref = reference_landmarks(demo)
-    tracker = MarkerlessTracker(Skeleton.from_urdf())
-    angles, height = fit_to_landmarks(tracker, names, ref)  # (T, D)
-    out = list(tracker.generic.output_names)
-    j3d = tracker.generic.scaled_to_height(height).forward(angles).output_points.numpy()
+    _, body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[0], fit_bones=fit_bones)
+    angles = fit_pose(body, names, torch.as_tensor(ref, dtype=torch.float32))  # (T, D)
+    out = list(body.output_names)
+    j3d = body.forward(angles).output_points.numpy()
     fps = 30.0  # the evaluation does not use it
     fitted = Poses(fps=fps, frame_index=np.arange(len(ref)), joint_names=out, joints3d=j3d, dof_names=[],
                    angles=np.zeros((len(ref), 0), np.float32), valid=np.ones(len(ref), bool),
                    confidence=np.ones((len(ref), len(out)), np.float32))
-    print(f"the template scaled to {height:.2f} m, fitted to each of the {len(ref)} reference frames (the model's "
-          "floor for this comparison)")
+    print(f"the body of the reference start ({body.height():.2f} m, "
+          f"{'bones fitted to' if fit_bones else 'the template scaled to'} frame 0's points), posed on each of the "
+          f"{len(ref)} reference frames (the model's floor for this comparison)")
     print(evaluate(fitted, reference_poses(names, ref, fps, out), landmarks=names).format())
 
 
@@ -220,6 +186,9 @@ def main() -> None:
     ap.add_argument("--init-from-reference", action="store_true",
                     help="start from the skeleton fitted (Kabsch + CCD) to the reference keypoints of frame 0, "
                          "de Bem's saved initial pose, instead of the automatic starfish initialisation")
+    ap.add_argument("--scale-only", action="store_true",
+                    help="with --init-from-reference or --reference-fit: the body is the template scaled to the "
+                         "reference's height, without fitting its bones' lengths")
     ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
                     help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
@@ -248,7 +217,7 @@ def main() -> None:
         raise SystemExit(f"{args.demo}: the Pose2Sim demo is not there")
     config = load_config("markerless.yaml")
     if args.reference_fit:
-        reference_fit(args.demo)
+        reference_fit(args.demo, not args.scale_only)
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
@@ -286,9 +255,10 @@ def main() -> None:
                                         "--tracker")
         tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
         if args.init_from_reference:
-            angles, height = fit_to_landmarks(tracker, names, ref[0])
-            tracker.initialize_from_pose(angles, height)
-            print(f"initial pose fitted to the reference of frame 0 (height {height:.2f} m)")
+            angles, body = fit_to_landmarks(tracker.generic, names, ref[0], fit_bones=not args.scale_only)
+            tracker.initialize_from_pose(angles, skeleton=body)
+            print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
+                  f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
         truth = reference_poses(names, ref, folder.fps, list(tracker.generic.output_names))
 
         def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress

@@ -724,6 +724,32 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
     assert any(t.startswith("cameras/pose") for t in acc.Tags()["images"])
 
 
+def test_track_cli_output_restarts_with_its_fitted_body(seq, tmp_path):
+    """poses.npz carries the subject's body (body_urdf); --init-pose of it starts from that body (not re-fitted,
+    so the next output carries it unchanged, here a body with longer legs than the template's), and --height
+    replaces it by the template scaled to that height."""
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses, save_poses
+
+    common = ["--scale", "1", "--voxel", "0.03", "--log-every", "0", "--stop", "3"]
+    assert main(["track", str(seq), "--out", str(tmp_path / "a"), *common]) == 0
+    first = load_poses(tmp_path / "a" / "poses.npz")
+    body = Skeleton(str(first.extra["body_urdf"]))
+    assert abs(body.height() - float(first.extra["subject_height_m"])) < 1e-6
+    length = dict(zip(body.bone_names, body.bone_lengths.tolist()))
+    legs = body.with_bone_lengths({b: 1.1 * length[b] for b in ("l_thigh", "r_thigh", "l_shank", "r_shank")})
+    first.extra["body_urdf"] = np.asarray(legs.urdf_text)
+    save_poses(first, tmp_path / "init.npz")
+    init = ["--init-pose", str(tmp_path / "init.npz")]
+    assert main(["track", str(seq), "--out", str(tmp_path / "b"), *common, *init]) == 0
+    again = Skeleton(str(load_poses(tmp_path / "b" / "poses.npz").extra["body_urdf"]))
+    np.testing.assert_allclose(again.bone_lengths.numpy(), legs.bone_lengths.numpy(), atol=1e-6)
+    assert main(["track", str(seq), "--out", str(tmp_path / "c"), *common, *init, "--height", "1.6"]) == 0
+    scaled = Skeleton(str(load_poses(tmp_path / "c" / "poses.npz").extra["body_urdf"]))
+    np.testing.assert_allclose(scaled.bone_lengths.numpy(), Skeleton.from_urdf().scaled_to_height(1.6).bone_lengths
+                               .numpy(), atol=1e-5)
+
+
 def test_track_cli_marks_a_corrupt_frame_invalid_and_goes_on(seq, tmp_path, capsys):
     import shutil
 

@@ -27,9 +27,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--voxel", type=float, default=None, help="voxel size in metres (overrides config)")
     p.add_argument("--scale", type=float, default=None, help="image scale (overrides config)")
     p.add_argument("--init-pose", type=Path, default=None,
-                   help="poses.npz whose first valid frame is the initial pose (instead of the starfish start)")
+                   help="poses.npz whose first valid frame is the initial pose (instead of the starfish start), "
+                        "with its subject's body where the file has one (body_urdf: an earlier run's output, or "
+                        "torchtrack.tracking.landmark_fit.initial_pose from 3D keypoints)")
     p.add_argument("--height", type=float, default=None,
-                   help="subject height in metres with --init-pose (default: from the file, else meta.toml)")
+                   help="subject height in metres with --init-pose: the body model scaled to it instead of the "
+                        "file's body (default: the file's body, else its height, else meta.toml's)")
     p.add_argument("--start", type=int, default=0)
     p.add_argument("--stop", type=int, default=None)
     p.add_argument("--batch", type=int, default=4, help="frames read and observed per batch")
@@ -111,21 +114,30 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
-def _initial_pose(path: Path, skeleton_dofs: tuple[str, ...]) -> tuple[Any, float | None]:
+def _initial_pose(path: Path, generic: Any) -> tuple[Any, float | None, Any]:
+    """The first valid frame's state of the poses.npz ``path``, its subject height (``subject_height_m``) and
+    its subject's body (``body_urdf``, as ``torchtrack track`` writes it), each None where the file has none."""
     import numpy as np
 
     from torchtrack.checks import InputError
     from torchtrack.io.poses import load_poses
+    from torchtrack.skeleton import Skeleton
 
     poses = load_poses(path)
-    if list(poses.dof_names) != list(skeleton_dofs):
+    if list(poses.dof_names) != list(generic.dof_names):
         raise InputError(f"{path}: dof_names do not match the body model's ({len(poses.dof_names)} vs "
-                         f"{len(skeleton_dofs)} DOFs)")
+                         f"{len(generic.dof_names)} DOFs)")
     ok = np.flatnonzero(poses.valid)
     if ok.size == 0:
         raise InputError(f"{path}: no valid frame to start from")
     height = poses.extra.get("subject_height_m")
-    return poses.angles[ok[0]], (float(height) if height is not None else None)
+    body = None
+    if "body_urdf" in poses.extra:
+        body = Skeleton(str(poses.extra["body_urdf"]), source=f"{path}: body_urdf")
+        if body.dof_names != generic.dof_names:
+            raise InputError(f"{path}: field 'body_urdf' has other DOFs than the body model "
+                             f"({len(body.dof_names)} vs {len(generic.dof_names)})")
+    return poses.angles[ok[0]], (float(height) if height is not None else None), body
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -167,9 +179,13 @@ def _run(args: argparse.Namespace) -> int:
     bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
-        angles, height = _initial_pose(args.init_pose, tracker.generic.dof_names)
-        height = args.height or height or folder.meta.subject_height_m or 1.75
-        tracker.initialize_from_pose(torch.as_tensor(angles, dtype=torch.float32, device=device), height)
+        angles, height, body = _initial_pose(args.init_pose, tracker.generic)
+        angles = torch.as_tensor(angles, dtype=torch.float32, device=device)
+        if body is not None and args.height is None:  # the file's own subject (e.g. an earlier run's fitted body)
+            tracker.initialize_from_pose(angles, skeleton=body.to(device))
+        else:
+            height = args.height or height or folder.meta.subject_height_m or 1.75
+            tracker.initialize_from_pose(angles, height)
     if not bg.from_moving_sequence and rcfg.passes:
         log.info("%s: the background is measured from its background/ frames, not refined from the track",
                  args.seq)

@@ -41,7 +41,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
 
     Returns:
         the poses (DESIGN.md schema; ``extra`` holds ``subject_height_m``, ``observation_model``,
-        ``ik_residual_m``, ``explained``, ``reinitialised``) and the seconds taken.
+        ``ik_residual_m``, ``explained``, ``reinitialised``, and ``body_urdf``, the subject's fitted body as URDF text,
+        once initialised) and the seconds taken.
     """
     from tqdm import tqdm
 
@@ -107,6 +108,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
              "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
              "reinitialised": reinit}
+    if tracker.subject is not None:  # the subject's body, for a later --init-pose (de Bem's reusable start)
+        extra["body_urdf"] = np.asarray(tracker.subject.skeleton.urdf_text)
     poses = Poses(fps=folder.fps, frame_index=np.arange(start, stop, dtype=np.int64), joint_names=list(names),
                   joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
                   confidence=confidence, extra=extra)
