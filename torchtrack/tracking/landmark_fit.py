@@ -15,8 +15,9 @@ joint centres from markers, Pose2Sim's output), :func:`fit_to_landmarks` makes o
 
 The bone fit matters on real subjects: Pose2Sim's demo subject, started from the template scaled to 1.71 m, has
 its trunk 3 cm longer and the shoulders higher on it than the template; the body fitted to the first frame's 15
-points brings that frame from 23.6 to 11.3 mm mean landmark error, and the whole clip (every frame's pose fitted
-with that body) from 27.7 to 22.5 mm (``scripts/eval_pose2sim_tracking.py --reference-fit``).
+points brings that frame from 23.6 to 11.3 mm mean landmark error, the whole clip (every frame's pose fitted
+with that body) from 27.6 to 22.5 mm (``scripts/eval_pose2sim_tracking.py --reference-fit``), and its track from
+82.4 to 71.1 mm (``--init-from-reference``; 2026-11-24).
 
 :func:`initial_pose` records the result for ``torchtrack track --init-pose`` (a poses.npz frame with the body's
 URDF in its ``body_urdf`` key, as the tracker's own output carries the body it fitted).
