@@ -184,8 +184,9 @@ def main() -> None:
     ap.add_argument("--model", choices=("bayes", "hull"), default="bayes")
     ap.add_argument("--picture", type=Path, default=None)
     ap.add_argument("--init-from-reference", action="store_true",
-                    help="start from the skeleton fitted (Kabsch + CCD) to the reference keypoints of frame 0, "
-                         "de Bem's saved initial pose, instead of the automatic starfish initialisation")
+                    help="start from the pose and body fitted to the reference keypoints of frame 0 (Kabsch + CCD "
+                         "alternated with the bones' lengths; de Bem's saved initialisation) instead of the "
+                         "automatic starfish initialisation")
     ap.add_argument("--scale-only", action="store_true",
                     help="with --init-from-reference or --reference-fit: the body is the template scaled to the "
                          "reference's height, without fitting its bones' lengths")
@@ -209,6 +210,8 @@ def main() -> None:
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     args = ap.parse_args()
+    if args.scale_only and not (args.init_from_reference or args.reference_fit):
+        raise SystemExit("--scale-only changes the body of --init-from-reference or --reference-fit: give one")
     if args.reference_silhouettes and args.reference_background:
         raise SystemExit("--reference-silhouettes replaces the background: give one of the two")
     logging.basicConfig(level=logging.WARNING)

@@ -16,7 +16,8 @@ from torchtrack.tracking.landmark_fit import fit_to_landmarks, initial_pose
 #: The points a keypoint tool gives: the 16 landmarks and the head's top.
 NAMES = ("pelvis", "spine", "neck", "head", "l_shoulder", "l_elbow", "l_wrist", "r_shoulder", "r_elbow", "r_wrist",
          "l_hip", "l_knee", "l_ankle", "r_hip", "r_knee", "r_ankle", "head_top")
-BONES = ("torso", "head", "l_upperarm", "r_forearm", "l_thigh", "r_shank")
+#: One bone of each fitted group.
+BONES = ("pelvis", "torso", "head", "l_upperarm", "r_forearm", "l_thigh", "r_shank")
 
 
 @pytest.fixture(scope="module")
@@ -96,9 +97,31 @@ def test_bad_landmarks_get_clear_errors(skel, subject):
         fit_to_landmarks(skel, NAMES, truth[:5])
     with pytest.raises(InputError, match="every landmark is NaN"):
         fit_to_landmarks(skel, NAMES, torch.full_like(truth, float("nan")))
-    with pytest.raises(InputError, match="no limb segment"):  # nothing to tell the subject's size
+    with pytest.raises(InputError, match="no segment to scale"):  # nothing to tell the subject's size
         keep = [NAMES.index(n) for n in ("pelvis", "l_shoulder", "r_shoulder", "l_hip", "r_hip")]
         fit_to_landmarks(skel, [NAMES[i] for i in keep], truth[keep])
+    # a frame whose trunk is lost cannot place its root, and would spoil the body the frames share
+    frames = torch.stack([truth, truth, truth]).clone()
+    frames[1, [NAMES.index(n) for n in ("pelvis", "spine", "l_shoulder", "r_shoulder", "l_hip")]] = float("nan")
+    with pytest.raises(InputError, match=r"frame \[1\] of 3 has fewer than 3 trunk points"):
+        fit_to_landmarks(skel, NAMES, frames)
+
+
+def test_points_on_any_device_and_with_grad_are_taken(skel, subject):
+    truth = _points(subject, procedural_motion(subject, "walk", 0.2, 30, starfish_s=0.0)[2:3])[0]
+    a, body = fit_to_landmarks(skel, NAMES, truth.clone().requires_grad_(True), rounds=2)
+    assert not a.requires_grad and float((_points(body, a[None])[0] - truth).norm(dim=-1).mean()) < 0.01
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_fit_matches_cpu(skel, subject):
+    truth = _points(subject, procedural_motion(subject, "walk", 0.2, 30, starfish_s=0.0)[2:3])[0]
+    a_cpu, b_cpu = fit_to_landmarks(skel, NAMES, truth, rounds=2)
+    a_gpu, b_gpu = fit_to_landmarks(skel.to(torch.device("cuda")), NAMES, truth.cuda(), rounds=2)
+    assert a_gpu.is_cuda
+    np.testing.assert_allclose(b_gpu.bone_lengths.cpu().numpy(), b_cpu.bone_lengths.numpy(), atol=1e-3)
+    np.testing.assert_allclose(_points(b_gpu.cpu(), a_gpu.cpu()[None]).numpy(),
+                               _points(b_cpu, a_cpu[None]).numpy(), atol=2e-3)
 
 
 def test_initial_pose_file_carries_the_body_to_the_cli(tmp_path, skel, subject):

@@ -105,8 +105,8 @@ class BlobModel(nn.Module):
         if unknown:
             raise InputError(f"blob bones {unknown} are not bones of the skeleton {bones}")
         bone_idx = torch.tensor([bones.index(s.bone) for s in specs])
-        length = skeleton.bone_lengths[bone_idx]  # (K,)
-        d = skeleton.bone_dirs_local[bone_idx]  # (K, 3)
+        length = skeleton.bone_lengths.cpu()[bone_idx]  # (K,) built on the CPU, moved to the skeleton's device
+        d = skeleton.bone_dirs_local.cpu()[bone_idx]  # (K, 3)
         scale = skeleton.height() / reference_height_m
         along = torch.tensor([s.along for s in specs]) * length
         cross = torch.tensor([[s.depth, s.width] for s in specs]) * scale
@@ -116,6 +116,7 @@ class BlobModel(nn.Module):
         self.register_buffer("R_bone_blob", _aligned_frames(d), persistent=False)
         self.register_buffer("semi_axes", torch.cat([along[:, None], cross], dim=1), persistent=False)
         self.register_buffer("colour", torch.tensor([s.colour for s in specs]), persistent=False)
+        self.to(skeleton.lower.device)
 
     @classmethod
     def from_config(cls, skeleton: Skeleton, path: str | Path | None = None) -> BlobModel:

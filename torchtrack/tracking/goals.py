@@ -93,7 +93,7 @@ class GoalModel(nn.Module):
         gen = torch.Generator().manual_seed(0)
         poses = [skeleton.rest_angles().double()]
         for _ in range(3):
-            r = torch.rand(skeleton.num_dofs, generator=gen, dtype=torch.float64)
+            r = torch.rand(skeleton.num_dofs, generator=gen, dtype=torch.float64).to(skeleton.lower.device)
             poses.append(skeleton.lower.double() + r * (skeleton.upper.double() - skeleton.lower.double()))
         poses[1:] = [torch.nan_to_num(p, posinf=0.0, neginf=0.0) for p in poses[1:]]
         fk = skeleton.forward(torch.stack(poses))

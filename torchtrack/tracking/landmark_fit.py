@@ -4,14 +4,20 @@ de Bem's tracker can start from a saved initialisation instead of the starfish p
 first frame's pose. Where 3D keypoints of the first frames are at hand (another tool's triangulated keypoints,
 joint centres from markers, Pose2Sim's output), :func:`fit_to_landmarks` makes one:
 
-1. the body model scaled to the subject's height, from the median ratio of :data:`SCALE_SEGMENTS` lengths (limb
-   segments whose length does not depend on the pose) to the template's;
+1. the body model scaled to the subject's height, from the median ratio of :data:`SCALE_SEGMENTS` lengths (the
+   limbs' segments, whose lengths do not depend on the pose, and pelvis to neck, which the spine's bend shortens a
+   little) to the template's;
 2. the pose by least squares: the root by weighted Kabsch on the trunk's points, the limbs by CCD;
 3. with ``fit_bones``, alternated with 2: each bone group's length (:data:`FIT_BONE_GROUPS`) and the neck's and
    shoulders' height on the trunk (:data:`FIT_HEIGHT_JOINTS`) by linear least squares. At fixed joint angles
    every output point is affine in the bones' lengths and in those joints' offsets (forward kinematics is linear
    in the links' offsets), so each group's effect is one exact finite difference; a small ridge keeps groups no
-   landmark constrains at their current length.
+   landmark constrains at their current length, and each frame's root may shift.
+
+What the points do not pin, the template's proportions decide: without the ``spine`` and ``lumbar`` landmarks
+(Pose2Sim gives neither) the torso's length is told by the shoulders' width as much as by their height (its
+length scales the shoulders' offsets, left-right too, and the shoulders' height shift takes up the rest), and the
+pelvis' by the hips' width.
 
 The bone fit matters on real subjects: Pose2Sim's demo subject, started from the template scaled to 1.71 m, has
 its trunk 3 cm longer and the shoulders higher on it than the template; the body fitted to the first frame's 15
@@ -38,7 +44,7 @@ from torchtrack.checks import InputError, check_shape
 from torchtrack.io.poses import Poses
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import EXTRA_OUTPUT_FRAMES, JOINT_FRAMES, LANDMARK_FRAMES, Skeleton
-from torchtrack.tracking.goals import GoalModel
+from torchtrack.tracking.goals import TRUNK_JOINTS, GoalModel
 
 #: Segments whose lengths give the subject's scale (they do not depend on the pose).
 SCALE_SEGMENTS: tuple[tuple[str, str], ...] = (
@@ -78,19 +84,37 @@ def fit_pose(skeleton: Skeleton, names: Sequence[str], points: torch.Tensor, sta
              root_passes: int = 5, sweeps: int = 40) -> torch.Tensor:
     """(T, D) states that put ``skeleton``'s output points named ``names`` on ``points (T, L, 3)``: the root by
     weighted Kabsch on the trunk's points (``root_passes`` times, any rotation), then the limbs by CCD. ``start``:
-    (T, D) states to start from (default: the rest pose)."""
+    (T, D) states to start from (default: the rest pose). Every frame needs 3 trunk points
+    (:func:`check_trunk_points`)."""
+    points = points.to(skeleton.lower)
+    check_trunk_points(names, points)
     goals, weights = _goals(names, points)
     gm = GoalModel(skeleton, BlobModel.from_config(skeleton))
     T = points.shape[0]
-    angles = skeleton.rest_angles()[None].repeat(T, 1).to(points) if start is None else start.clone()
+    angles = skeleton.rest_angles()[None].repeat(T, 1).to(points) if start is None else start.to(points).clone()
     for _ in range(root_passes):
         angles = gm.fit_root(angles, skeleton.forward(angles).joints, goals, weights, max_rotation=3.2)
     ccd = CCDSolver(skeleton, JOINT_FRAMES[1:], CCDConfig(damping=0.5, sweeps=sweeps))
     return ccd(angles, goals[:, 1:], weights[:, 1:])
 
 
+def check_trunk_points(names: Sequence[str], points: torch.Tensor) -> None:
+    """Raise InputError naming the frames of ``points (T, L, 3)`` with fewer than 3 finite trunk points (the
+    root's fit needs them: the pelvis, hips, lumbar, spine or shoulders, ``goals.TRUNK_JOINTS``)."""
+    frames = {**LANDMARK_FRAMES, **EXTRA_OUTPUT_FRAMES}
+    trunk = [i for i, n in enumerate(names) if frames[n] in TRUNK_JOINTS]
+    count = torch.isfinite(points[:, trunk]).all(-1).sum(-1) if trunk else points.new_zeros(points.shape[0])
+    bad = (count < 3).nonzero()[:, 0].tolist()
+    if bad:
+        trunk_names = [n for n, f in frames.items() if f in TRUNK_JOINTS]
+        raise InputError(f"fit_to_landmarks: frame{'s' if len(bad) > 1 else ''} {bad[:10]}"
+                         f"{' ...' if len(bad) > 10 else ''} of {points.shape[0]} ha{'ve' if len(bad) > 1 else 's'} "
+                         f"fewer than 3 trunk points ({trunk_names}) to place the root; leave such frames out")
+
+
 def scale_to_landmarks(generic: Skeleton, names: Sequence[str], points: torch.Tensor) -> Skeleton:
     """``generic`` scaled to the subject's height: the median ratio of the :data:`SCALE_SEGMENTS` both have."""
+    points = points.to(generic.lower)
     rest = generic.forward(generic.rest_angles()[None]).output_points[0]
     out = list(generic.output_names)
     ratios = []
@@ -100,8 +124,8 @@ def scale_to_landmarks(generic: Skeleton, names: Sequence[str], points: torch.Te
             ratios.append(seg[torch.isfinite(seg)] / (rest[out.index(a)] - rest[out.index(b)]).norm())
     ratios = torch.cat(ratios) if ratios else points.new_zeros(0)
     if ratios.numel() == 0:
-        raise InputError(f"fit_to_landmarks: no limb segment to scale the body from: give both ends of at least "
-                         f"one of {[f'{a}-{b}' for a, b in SCALE_SEGMENTS]} (got {list(names)})")
+        raise InputError(f"fit_to_landmarks: no segment to scale the body from: give both ends, finite in some "
+                         f"frame, of at least one of {[f'{a}-{b}' for a, b in SCALE_SEGMENTS]} (got {list(names)})")
     return generic.scaled_to_height(generic.height() * float(ratios.median()))
 
 
@@ -118,11 +142,16 @@ def _fit_bones_once(skeleton: Skeleton, angles: torch.Tensor, idx: list[int], po
     cols = torch.stack([e.to(angles.device).forward(angles).output_points[:, idx].double() - P0 for e in edited],
                        -1)  # (T, L, 3, G): each group's step
     G, NB = cols.shape[-1], len(FIT_BONE_GROUPS)
-    eye = torch.eye(3, dtype=cols.dtype, device=cols.device).expand(*ok.shape, 3, 3)  # a root shift
-    A = torch.cat([cols, eye], -1)[ok].reshape(-1, G + 3)
-    r = (points.double() - P0)[ok].reshape(-1)
-    reg = torch.diag(torch.cat([torch.full((G,), RIDGE), torch.zeros(3)])).to(A)
-    x = torch.linalg.solve(A.T @ A + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device), A.T @ r)
+    r = torch.where(ok[..., None], points.double() - P0, 0.0)  # (T, L, 3)
+    # each frame's root may shift: the best shift is the frame's mean misfit, so the problem without it is the
+    # one of the columns and residuals centred on each frame's mean over its finite points (per axis)
+    m = ok.to(r.dtype)[..., None]  # (T, L, 1)
+    n = m.sum(1, keepdim=True).clamp(min=1.0)  # (T, 1, 1)
+    r = r - (m * r).sum(1, keepdim=True) / n
+    cols = cols - (m[..., None] * cols).sum(1, keepdim=True) / n[..., None]
+    A, r = cols[ok].reshape(-1, G), r[ok].reshape(-1)  # (3 n, G), (3 n,) over the n finite points
+    reg = RIDGE * torch.eye(G, dtype=A.dtype, device=A.device)
+    x = torch.linalg.solve(A.T @ A + reg, A.T @ r)
     scale = (1.0 + x[:NB]).clamp(0.6, 1.6)
     fitted = skeleton.with_bone_lengths({b: lengths[b] * float(s) for group, s in zip(FIT_BONE_GROUPS, scale)
                                          for b in group})
@@ -141,16 +170,18 @@ def fit_to_landmarks(generic: Skeleton, names: Sequence[str], points: torch.Tens
     Args:
         generic: the body model (its proportions are the start).
         names: (L,) output point names of ``points`` (``Skeleton.output_names``: the 16 landmarks, ``head_top``,
-            ...); at least the trunk's (hips, shoulders, pelvis or neck) for the root.
-        points: (L, 3) or (T, L, 3) world positions (m); NaN where a landmark is missing. The T frames share
-            one body.
+            ...).
+        points: (L, 3) or (T, L, 3) world positions (m), an array or a tensor on any device (the fit runs on
+            ``generic``'s); NaN where a landmark is missing, but every frame needs 3 trunk points (pelvis, hips,
+            lumbar, spine, shoulders) for its root. The T frames share one body.
         fit_bones: fit the bone groups' lengths (else one scale for the body).
         rounds: alternations of the pose fit and the bone fit.
 
     Returns:
         (D,) or (T, D) states and the fitted skeleton.
     """
-    points = torch.as_tensor(np.asarray(points), dtype=torch.float32, device=generic.lower.device)
+    points = torch.as_tensor(points.detach() if isinstance(points, torch.Tensor) else np.asarray(points),
+                             dtype=torch.float32, device=generic.lower.device)
     single = points.ndim == 2
     points = points[None] if single else points
     if points.ndim != 3 or points.shape[1:] != (len(names), 3):
@@ -162,7 +193,7 @@ def fit_to_landmarks(generic: Skeleton, names: Sequence[str], points: torch.Tens
         raise InputError(f"fit_to_landmarks: unknown landmarks {unknown}; known: {out}")
     if not bool(torch.isfinite(points).all(-1).any()):
         raise InputError("fit_to_landmarks: every landmark is NaN")
-    skel = scale_to_landmarks(generic, names, points)
+    skel = scale_to_landmarks(generic, names, points).to(points.device)
     idx = [out.index(n) for n in names]
     angles = fit_pose(skel, names, points)
     for _ in range(rounds if fit_bones else 0):
