@@ -526,6 +526,38 @@ def test_initial_pose_with_the_subjects_skeleton_tracks_its_proportions(skel):
     assert err_generic.mean() > 2 * err_own.mean(), (err_generic, err_own)
 
 
+def test_the_bone_fit_pulls_what_the_voxels_do_not_tell_back_to_its_start(skel):
+    """The bone fit's ridge is towards the body the fit started from, not each round's: with voxels of the legs
+    only, a round that starts from a body with a longer torso and a shorter head than the start gives them back
+    the start's lengths (towards the round's own body they would stay, and rounds could walk along what the voxels
+    hardly tell apart), while the legs follow their voxels."""
+    from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult
+
+    subj = skel.scaled_to_height(1.80)
+    length = dict(zip(subj.bone_names, subj.bone_lengths.tolist()))
+    subj = subj.with_bone_lengths({b: 1.1 * length[b] for b in ("l_thigh", "r_thigh", "l_shank", "r_shank")})
+    a = subj.starfish_angles()
+    hip_z = float(subj.forward(a[None]).output_points[0, list(subj.output_names).index("l_hip"), 2])
+    obs = _observation(subj, BlobModel.from_config(subj), a, voxel=0.02)
+    legs = obs.points[:, 2] < hip_z - 0.1
+    obs = VoxelObservation(obs.points[legs], obs.sizes[legs], obs.weights[legs], obs.colours[legs],
+                           obs.cameras_valid)
+    tracker = MarkerlessTracker(skel)
+    tracker._setup(1.80, torch.device("cpu"))
+    start = tracker.subject.skeleton
+    start_len = dict(zip(start.bone_names, start.bone_lengths.tolist()))
+    tracker._use(start.with_bone_lengths({"torso": 1.2 * start_len["torso"], "head": 0.8 * start_len["head"]}))
+    res = FrameResult(a, None, None, True, 0.0, 1.0, False, None, None)
+    fitted, _ = tracker._fit_bone_lengths(obs.split(BONE_FIT_VOXEL_M), res, start)
+    got = dict(zip(fitted.bone_names, fitted.bone_lengths.tolist()))
+    assert got["torso"] == pytest.approx(start_len["torso"], rel=0.02), (got["torso"], start_len["torso"])
+    assert got["head"] == pytest.approx(start_len["head"], rel=0.02), (got["head"], start_len["head"])
+    assert abs(got["l_thigh"] - 1.1 * length["l_thigh"]) < 0.5 * abs(start_len["l_thigh"] - 1.1 * length["l_thigh"])
+    # towards the round's own body, the torso would keep most of its 20 %
+    own, _ = tracker._fit_bone_lengths(obs.split(BONE_FIT_VOXEL_M), res, tracker.subject.skeleton)
+    assert dict(zip(own.bone_names, own.bone_lengths.tolist()))["torso"] > 1.15 * start_len["torso"]
+
+
 def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
     """Feedback between the bone fit and the pose can run away (the hull's torso grew round after round on
     CMU 131_01): the first round whose body fits the voxels worse than the one before is undone and ends the fit.
@@ -533,8 +565,8 @@ def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
     real = MarkerlessTracker._fit_bone_lengths
     calls = []
 
-    def running_away(self, obs, res):
-        skel_fit, change = real(self, obs, res)
+    def running_away(self, obs, res, start):
+        skel_fit, change = real(self, obs, res, start)
         calls.append(skel_fit)
         if len(calls) == 1:
             return skel_fit, change

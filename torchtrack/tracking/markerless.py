@@ -66,6 +66,17 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 #: together): subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
+#: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to
+#: the voxels' height), and on the neck's shift in NECK_STEP_M. Towards the start, not towards each round's
+#: body: rounds towards their own last body could walk along what the voxels hardly tell apart (the torso's
+#: length against the head's and the neck's height: on the 4-camera hull's CMU 131_02 starfish, at the true pose,
+#: the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10, true 0.25 and 0.27; anchored, 0.40
+#: and 0.18, stopping). scripts/eval_tracking.py, three runs at velocity 0.5 / 0.47 / 0.53, towards each round's
+#: body -> towards the start: 4 cameras, Bayesian grid mean 30.3 / 31.0 / 30.5 -> 29.4 / 29.6 / 29.5, hull
+#: 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8 cameras 16.5 -> 16.1-16.2 and
+#: 19.6 -> 19.5-19.8 (the same sequences within target but the 4-camera hull's squat in one run of three).
+BONE_FIT_RIDGE = 0.02
+
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
 #: change, or at a round that fits worse). Three left the CMU bodies' torsos halfway (measured before that guard:
 #: 8 cameras, Bayesian grid, CMU 131_02 26.6 mm with 3 rounds, 20.6 with 8).
@@ -448,9 +459,10 @@ class MarkerlessTracker:
         # Going on past a worse round and keeping the best was measured worse (4 cameras: squat 69 -> 95 mm)
         best_fit = (self._fit_cost(res), self.subject.skeleton, res)
         fit_obs = obs.split(BONE_FIT_VOXEL_M)  # the bone fit's voxels (BONE_FIT_VOXEL_M)
+        start_body = self.subject.skeleton  # scaled to the voxels' height: the fit's ridge pulls towards it
         for _ in range(FIT_ROUNDS if self.config.fit_bone_lengths else 3):
             if self.config.fit_bone_lengths:
-                skel_fit, change = self._fit_bone_lengths(fit_obs, res)
+                skel_fit, change = self._fit_bone_lengths(fit_obs, res, start_body)
             else:
                 s = self._scale_from_blobs(res)
                 # within 10% of the voxels' height: the blobs refine it, they must not run away on bad voxels
@@ -527,8 +539,8 @@ class MarkerlessTracker:
         cm, cf = (w * m).sum(0) / w.sum(), (w * f).sum(0) / w.sum()
         return float((w * (f - cf) * (m - cm)).sum() / (w * (m - cm) ** 2).sum().clamp(min=1e-12))
 
-    def _fit_bone_lengths(self, obs: VoxelObservation, res: FrameResult, ridge: float = 0.02
-                          ) -> tuple[Skeleton, float]:
+    def _fit_bone_lengths(self, obs: VoxelObservation, res: FrameResult, start_body: Skeleton,
+                          ridge: float = BONE_FIT_RIDGE) -> tuple[Skeleton, float]:
         """Bone lengths from the blobs of a frame fitted without priors, by linear least squares.
 
         At fixed joint angles every blob mean is affine in the bones' scale factors (a bone's length scales its
@@ -537,7 +549,8 @@ class MarkerlessTracker:
         moves it and the shoulders, the shift the neck alone); and each elongated blob's semi-axis along its
         bone (sqrt(5) times the standard deviation of its voxels along it) is affine in them too (read off the
         same edited blob models). Solves for the group scales, the neck shift and a root shift, with a ridge
-        towards the current skeleton; returns the new skeleton and the largest relative change. ``obs``: the
+        towards the ``start_body`` skeleton's lengths and neck (the fit's first body; BONE_FIT_RIDGE); returns the new
+        skeleton and the largest relative change. ``obs``: the
         frame's voxels split to ``BONE_FIT_VOXEL_M`` (the caller splits them once for all rounds).
         """
         sub = self.subject
@@ -574,9 +587,18 @@ class MarkerlessTracker:
         A = torch.cat([A_pos, A_size]).double()
         r = torch.cat([r_pos, semi_fit - semi_now]).double()
         w = torch.cat([w_blob.repeat_interleave(3), w_size]).double()
-        reg = torch.diag(torch.cat([torch.full((G,), ridge), torch.zeros(3)])).to(A)
+        # the ridge: ridge * (c_g (1 + x_g) - 1)^2 per group, c_g its current length over the start's (a relative
+        # change from the start), and ridge * (x_neck - the shift back to the start's neck on this torso)^2
+        start_len = dict(zip(start_body.bone_names, start_body.bone_lengths.tolist()))
+        c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=A.dtype)
+        start_neck_z = start_body.joint_origin(NECK_JOINT)[2] * float(c[BONE_GROUPS.index(("torso",))])
+        ridge_w = ridge * torch.cat([c * c, c.new_ones(1), c.new_zeros(3)]).to(A)  # (G + 3,) the root: none
+        target = torch.cat([1.0 / c - 1.0, c.new_tensor([(start_neck_z - neck[2]) / NECK_STEP_M]),
+                            c.new_zeros(3)]).to(A)
+        reg = torch.diag(ridge_w)
+        rhs = A.T @ (w * r) + ridge_w * target
         x = torch.linalg.solve(A.T @ (w[:, None] * A) + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device),
-                               A.T @ (w * r))
+                               rhs)
         scale = (1.0 + x[:G - 1]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
         fitted_skel = skel.with_bone_lengths(new)
