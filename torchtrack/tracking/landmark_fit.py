@@ -23,7 +23,7 @@ The bone fit matters on real subjects: Pose2Sim's demo subject, started from the
 its trunk 3 cm longer and the shoulders higher on it than the template; the body fitted to the first frame's 15
 points brings that frame from 23.6 to 11.3 mm mean landmark error, the whole clip (every frame's pose fitted
 with that body) from 27.6 to 22.5 mm (``scripts/eval_pose2sim_tracking.py --reference-fit``), and its track from
-82.4 to 71.1 mm (``--init-from-reference``; 2026-11-24).
+82.4 to 69.9 mm (``--init-from-reference``; median of five runs at other ``velocity`` settings 86.3 -> 73.1 mm).
 
 :func:`initial_pose` records the result for ``torchtrack track --init-pose`` (a poses.npz frame with the body's
 URDF in its ``body_urdf`` key, as the tracker's own output carries the body it fitted).
