@@ -528,9 +528,9 @@ def test_initial_pose_with_the_subjects_skeleton_tracks_its_proportions(skel):
 
 def test_the_bone_fit_pulls_what_the_voxels_do_not_tell_back_to_its_start(skel):
     """The bone fit's ridge is towards the body the fit started from, not each round's: with voxels of the legs
-    only, a round that starts from a body with a longer torso and a shorter head than the start gives them back
-    the start's lengths (towards the round's own body they would stay, and rounds could walk along what the voxels
-    hardly tell apart), while the legs follow their voxels."""
+    only, a round that starts from a body with a longer torso (the neck's height on it) and a shorter head gives
+    them back the start's lengths (towards the round's own body they would stay, and rounds could walk along what
+    the voxels hardly tell apart), while the legs follow their voxels."""
     from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult
 
     subj = skel.scaled_to_height(1.80)
@@ -547,7 +547,8 @@ def test_the_bone_fit_pulls_what_the_voxels_do_not_tell_back_to_its_start(skel):
     start = tracker.subject.skeleton
     start_len = dict(zip(start.bone_names, start.bone_lengths.tolist()))
     tracker._use(start.with_bone_lengths({"torso": 1.2 * start_len["torso"], "head": 0.8 * start_len["head"]}))
-    res = FrameResult(a, None, None, True, 0.0, 1.0, False, None, None)
+    res = FrameResult(angles=a, output_points=None, confidence=None, valid=True, residual_m=0.0, explained=1.0,
+                      reinitialised=False, blobs=None, bone_frames=None)
     fitted, _ = tracker._fit_bone_lengths(obs.split(BONE_FIT_VOXEL_M), res, start)
     got = dict(zip(fitted.bone_names, fitted.bone_lengths.tolist()))
     assert got["torso"] == pytest.approx(start_len["torso"], rel=0.02), (got["torso"], start_len["torso"])

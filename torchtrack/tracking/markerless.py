@@ -67,14 +67,20 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
 #: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to
-#: the voxels' height), and on the neck's shift in NECK_STEP_M. Towards the start, not towards each round's
-#: body: rounds towards their own last body could walk along what the voxels hardly tell apart (the torso's
-#: length against the head's and the neck's height: on the 4-camera hull's CMU 131_02 starfish, at the true pose,
-#: the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10, true 0.25 and 0.27; anchored, 0.40
-#: and 0.18, stopping). scripts/eval_tracking.py, three runs at velocity 0.5 / 0.47 / 0.53, towards each round's
-#: body -> towards the start: 4 cameras, Bayesian grid mean 30.3 / 31.0 / 30.5 -> 29.4 / 29.6 / 29.5, hull
-#: 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8 cameras 16.5 -> 16.1-16.2 and
-#: 19.6 -> 19.5-19.8 (the same sequences within target but the 4-camera hull's squat in one run of three).
+#: the voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
+#: NECK_STEP_M (towards each round's body; with the torso's length held, it moves the shoulders). Towards the
+#: start, not towards each round's body: rounds towards their own last body could walk along what the voxels
+#: hardly tell apart (the torso's length against the head's and the neck's height: on the 4-camera hull's CMU
+#: 131_02 starfish, at the true pose, the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10,
+#: true 0.25 and 0.27; anchored, 0.40 and 0.18, stopping). scripts/eval_tracking.py, three runs at velocity
+#: 0.5 / 0.47 / 0.53, towards each round's body -> towards the start: 4 cameras, Bayesian grid mean 30.3 / 31.0 /
+#: 30.5 -> 29.4 / 29.6 / 29.5, hull 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8
+#: cameras 16.5 -> 16.1-16.2 and 19.6 -> 19.5-19.8 (the same sequences within target, and the 4-camera hull's
+#: squat in one run of three). Holding the shoulders' height too (the torso's scale measured on them, the neck's
+#: shift towards the start's neck) held the CMU bodies to the template's neck and shoulders: 8 cameras, CMU
+#: 131_01 / 131_02, Bayesian grid 32.4 / 33.0 mm, hull 38.6 / 36.2 (their necks 78-91 mm off); the torso's scale
+#: on the shoulders with the neck's shift free: 27.9 / 26.9 and 31.9 / 26.1 (4 cameras, Bayesian grid 40.8 / 33.2
+#: against 35.8 / 33.8).
 BONE_FIT_RIDGE = 0.02
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
@@ -588,7 +594,9 @@ class MarkerlessTracker:
         r = torch.cat([r_pos, semi_fit - semi_now]).double()
         w = torch.cat([w_blob.repeat_interleave(3), w_size]).double()
         # the ridge: ridge * (c_g (1 + x_g) - 1)^2 per group, c_g its current length over the start's (a relative
-        # change from the start), and ridge * (x_neck - the shift back to the start's neck on this torso)^2
+        # change from the start). The torso's length is the neck's height on it, which the neck's shifts move too:
+        # so the neck's height is what is pulled back, and the neck's shift then has nothing to pull back to (its
+        # target is 0, a damping towards this round's body), which leaves the shoulders' height to the voxels
         start_len = dict(zip(start_body.bone_names, start_body.bone_lengths.tolist()))
         c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=A.dtype)
         start_neck_z = start_body.joint_origin(NECK_JOINT)[2] * float(c[BONE_GROUPS.index(("torso",))])
