@@ -145,9 +145,12 @@ def reference_fit(demo: Path, fit_bones: bool) -> None:
     uses (fitted to frame 0's points, :func:`fit_to_landmarks`), posed on every reference frame at once
     (:func:`fit_pose`, batched over frames) and scored on the same landmarks as the tracking."""
     names, ref = reference_landmarks(demo)
-    _, body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[0], fit_bones=fit_bones)
-    angles = fit_pose(body, names, torch.as_tensor(ref, dtype=torch.float32))  # (T, D)
+    a0, body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[0], fit_bones=fit_bones)
     out = list(body.output_names)
+    p0 = body.forward(a0[None]).output_points[0, [out.index(n) for n in names]].numpy()
+    err0 = 1e3 * np.linalg.norm(p0 - ref[0], axis=-1).mean()
+    print(f"frame 0, the start the body is fitted to: mean point error {err0:.1f} mm")
+    angles = fit_pose(body, names, torch.as_tensor(ref, dtype=torch.float32))  # (T, D)
     j3d = body.forward(angles).output_points.numpy()
     fps = 30.0  # the evaluation does not use it
     fitted = Poses(fps=fps, frame_index=np.arange(len(ref)), joint_names=out, joints3d=j3d, dof_names=[],

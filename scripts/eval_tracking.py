@@ -13,6 +13,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --models hull --trunk  # pelvis tilt
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --outside            # the voxels' share outside the body
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --oracle-margin 0.04 # ghosts removed by the truth
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 4 --models hull --fit-rounds 10
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 from torchtrack.tracking.cli import load_config, observer_from_config
-from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult, MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 from torchtrack.tracking.run import track_sequence
 
@@ -43,6 +44,8 @@ CMU = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" /
 MOTIONS = ("walk", "turn", "arm_raise", "squat", "kick", "cmu:131_01", "cmu:131_02")
 
 
+#: Printed by --fit-rounds.
+FIT_PROPORTIONS = ("torso", "neck_above_shoulders", "head", "l_upperarm", "l_thigh")
 #: Printed by --proportions (Skeleton.proportions keys).
 PROPORTIONS = ("height", "torso", "neck_above_shoulders", "head", "l_upperarm", "l_forearm", "l_thigh", "l_shank")
 
@@ -121,6 +124,39 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     return poses, poses.num_frames / elapsed, tracker, observer
 
 
+def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: BackgroundConfig = BackgroundConfig()
+               ) -> None:
+    """--fit-rounds: the bone fit alone, round after round, on the observation of the first frame at its true
+    pose, from the template scaled to the true height: its ridge towards that start (the tracker's) and towards
+    each round's own body (as before 2026-11-24). Prints the fitted proportions after each round."""
+    folder = SequenceFolder(seq)
+    ocfg = config["observation"]
+    scale = float(ocfg.get("scale", 1.0))
+    W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
+    rig = folder.rig.resized(W, H).float()
+    bg = BackgroundModel.from_folder(folder, background, size_wh=(W, H))
+    observer = observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
+    fb = next(iter(folder.iter_batches(1, 0, 1, size_wh=(W, H))))
+    obs = observer(fb.images, fb.valid)[0].split(BONE_FIT_VOXEL_M)
+    body = Skeleton.from_urdf(seq / "body.urdf")
+    res = FrameResult(angles=torch.from_numpy(load_poses(seq / "gt.npz").angles[0]).float(), output_points=None,
+                      confidence=None, valid=True, residual_m=0.0, explained=1.0, reinitialised=False, blobs=None,
+                      bone_frames=None)
+    true = body.proportions()
+    print("    true: " + ", ".join(f"{k} {true[k]:.3f}" for k in FIT_PROPORTIONS))
+    for anchored in (True, False):
+        tracker_config = TrackerConfig.from_dict(config["tracker"], config["source"])
+        tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
+        tracker._setup(body.height(), torch.device("cpu"))
+        start = tracker.subject.skeleton
+        for r in range(rounds):
+            fitted, change = tracker._fit_bone_lengths(obs, res, start if anchored else tracker.subject.skeleton)
+            tracker._use(fitted)
+            p = fitted.proportions()
+            print(f"    ridge towards {'the start' if anchored else 'each round'}, round {r + 1}: "
+                  + ", ".join(f"{k} {p[k]:.3f}" for k in FIT_PROPORTIONS) + f" (change {change:.3f})", flush=True)
+
+
 def trunk_errors(poses, truth, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
     """--trunk, per valid frame: the angle (deg) between the tracked and the true pelvis' up axes (from the root's
     rotation), and whether a tracked thigh is at its hip extension limit (within 0.5 deg)."""
@@ -163,6 +199,9 @@ def main() -> None:
     ap.add_argument("--oracle-margin", type=float, default=None, metavar="M",
                     help="diagnostic: leave out the voxels outside the rendered body grown by M metres (tracking "
                          "without ghosts)")
+    ap.add_argument("--fit-rounds", type=int, default=0, metavar="N",
+                    help="diagnostic, instead of tracking: N rounds of the bone fit on the first frame's voxels at "
+                         "the true pose, its ridge towards the start and towards each round's body")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
     config = load_config(args.config)
@@ -180,6 +219,10 @@ def main() -> None:
             seq = sequence(args.work, motion, cams, args.duration, args.format)
             truth = load_poses(seq / "gt.npz")
             for model in args.models:
+                if args.fit_rounds:
+                    print(f"{motion} {cams} cameras {model}: the bone fit at the true pose", flush=True)
+                    fit_rounds(seq, model, config, args.fit_rounds, background)
+                    continue
                 poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
                                                   args.oracle_margin)
                 rep = evaluate(poses, truth)

@@ -139,6 +139,23 @@ def test_proportions(skel):
     assert low["torso"] == pytest.approx(0.39, abs=1e-6) and low["l_thigh"] == pytest.approx(0.42, abs=1e-6)
 
 
+def test_joints_raised_move_what_they_carry_along_the_parents_axis(skel):
+    """Raising the neck 4 cm on the torso, in a bent pose: the head's landmarks move 4 cm along the torso's own
+    z axis (its frame from forward kinematics), the shoulders and everything off the neck do not move."""
+    angles = _random_angles(skel, 3).float()
+    fk = skel.forward(angles)
+    moved = skel.with_joints_raised({"neck_flex": 0.04}).forward(angles)
+    torso_z = fk.bone_frames[:, list(skel.bone_names).index("torso"), :3, 2]  # (B, 3)
+    out = list(skel.output_names)
+    for name in ("neck", "head", "head_top"):
+        i = out.index(name)
+        torch.testing.assert_close(moved.output_points[:, i] - fk.output_points[:, i], 0.04 * torso_z,
+                                   atol=1e-5, rtol=0)
+    for name in ("l_shoulder", "r_wrist", "spine", "l_ankle"):
+        i = out.index(name)
+        torch.testing.assert_close(moved.output_points[:, i], fk.output_points[:, i], atol=1e-6, rtol=0)
+
+
 def test_limits_clamp(skel):
     angles = _random_angles(skel, 10) * 3.0
     clamped = skel.clamp(angles)

@@ -216,6 +216,12 @@ class Skeleton(nn.Module):
         return type(self)(ET.tostring(root, encoding="unicode"), source=f"{self.source} (edited)").to(
             self.lower.device)
 
+    def with_joints_raised(self, dz_m: Mapping[str, float]) -> Skeleton:
+        """Each named joint's origin moved by ``dz_m[name]`` metres along its parent link's z axis (e.g. the
+        neck's or the shoulders' height on the torso), the rest of the body unchanged."""
+        return self.with_joint_origins({name: (*self.joint_origin(name)[:2], self.joint_origin(name)[2] + float(dz))
+                                        for name, dz in dz_m.items()})
+
     def joint_origin(self, name: str) -> tuple[float, float, float]:
         """The origin (m) of URDF joint ``name`` in its parent link."""
         for j in self._urdf_joints():

@@ -135,10 +135,8 @@ def _fit_bones_once(skeleton: Skeleton, angles: torch.Tensor, idx: list[int], po
     ok = torch.isfinite(points).all(-1)  # (T, L)
     P0 = skeleton.forward(angles).output_points[:, idx].double()  # (T, L, 3)
     lengths = dict(zip(skeleton.bone_names, skeleton.bone_lengths.tolist()))
-    origins = {j: skeleton.joint_origin(j) for group in FIT_HEIGHT_JOINTS for j in group}
     edited = [skeleton.with_bone_lengths({b: 2.0 * lengths[b] for b in group}) for group in FIT_BONE_GROUPS] + [
-        skeleton.with_joint_origins({j: (*origins[j][:2], origins[j][2] + HEIGHT_STEP_M) for j in group})
-        for group in FIT_HEIGHT_JOINTS]
+        skeleton.with_joints_raised({j: HEIGHT_STEP_M for j in group}) for group in FIT_HEIGHT_JOINTS]
     cols = torch.stack([e.to(angles.device).forward(angles).output_points[:, idx].double() - P0 for e in edited],
                        -1)  # (T, L, 3, G): each group's step
     G, NB = cols.shape[-1], len(FIT_BONE_GROUPS)
@@ -155,11 +153,9 @@ def _fit_bones_once(skeleton: Skeleton, angles: torch.Tensor, idx: list[int], po
     scale = (1.0 + x[:NB]).clamp(0.6, 1.6)
     fitted = skeleton.with_bone_lengths({b: lengths[b] * float(s) for group, s in zip(FIT_BONE_GROUPS, scale)
                                          for b in group})
-    torso = float(scale[FIT_BONE_GROUPS.index(("torso",))])
     shifts = x[NB:G].clamp(-1.0, 1.0) * HEIGHT_STEP_M
-    # the torso's length moves its joints too; each group's shift on top
-    return fitted.with_joint_origins({j: (origins[j][0] * torso, origins[j][1] * torso, origins[j][2] * torso
-                                          + float(dz)) for group, dz in zip(FIT_HEIGHT_JOINTS, shifts)
+    # each group's shift on top of where the torso's length moved its joints
+    return fitted.with_joints_raised({j: float(dz) for group, dz in zip(FIT_HEIGHT_JOINTS, shifts)
                                       for j in group}).to(angles.device)
 
 

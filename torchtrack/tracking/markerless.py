@@ -66,21 +66,21 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 #: together): subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
-#: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to
-#: the voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
-#: NECK_STEP_M (towards each round's body; with the torso's length held, it moves the shoulders). Towards the
-#: start, not towards each round's body: rounds towards their own last body could walk along what the voxels
-#: hardly tell apart (the torso's length against the head's and the neck's height: on the 4-camera hull's CMU
-#: 131_02 starfish, at the true pose, the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10,
-#: true 0.25 and 0.27; anchored, 0.40 and 0.18, stopping). scripts/eval_tracking.py, three runs at velocity
-#: 0.5 / 0.47 / 0.53, towards each round's body -> towards the start: 4 cameras, Bayesian grid mean 30.3 / 31.0 /
-#: 30.5 -> 29.4 / 29.6 / 29.5, hull 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8
-#: cameras 16.5 -> 16.1-16.2 and 19.6 -> 19.5-19.8 (the same sequences within target, and the 4-camera hull's
-#: squat in one run of three). Holding the shoulders' height too (the torso's scale measured on them, the neck's
-#: shift towards the start's neck) held the CMU bodies to the template's neck and shoulders: 8 cameras, CMU
-#: 131_01 / 131_02, Bayesian grid 32.4 / 33.0 mm, hull 38.6 / 36.2 (their necks 78-91 mm off); the torso's scale
-#: on the shoulders with the neck's shift free: 27.9 / 26.9 and 31.9 / 26.1 (4 cameras, Bayesian grid 40.8 / 33.2
-#: against 35.8 / 33.8).
+#: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to the
+#: voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
+#: NECK_STEP_M (towards each round's body; with the torso's length held, it moves the shoulders). Towards the start,
+#: not towards each round's body: rounds towards their own last body could walk along what the voxels hardly tell
+#: apart (the torso's length against the head's and the neck's height: on the 4-camera hull's CMU 131_02 starfish, at
+#: the true pose, the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10, true 0.25 and 0.27;
+#: anchored, 0.40 and 0.18, settling; eval_tracking.py --fit-rounds). scripts/eval_tracking.py, three runs at
+#: velocity 0.5 / 0.47 / 0.53, towards each round's body -> towards the start: 4 cameras, Bayesian grid mean 30.3 /
+#: 31.0 / 30.5 -> 29.4 / 29.6 / 29.5, hull 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8
+#: cameras 16.5 -> 16.1-16.2 and 19.6 -> 19.5-19.8 (the same sequences within target, and the 4-camera hull's squat
+#: in one run of three). Holding the shoulders' height too (the torso's scale measured on them, the neck's shift
+#: towards the start's neck) held the CMU bodies to the template's neck and shoulders: 8 cameras, CMU 131_01 /
+#: 131_02, Bayesian grid 32.4 / 33.0 mm, hull 38.6 / 36.2 (their necks 78-91 mm off); the torso's scale on the
+#: shoulders with the neck's shift free: 27.9 / 26.9 and 31.9 / 26.1 (4 cameras, Bayesian grid 40.8 / 33.2 against
+#: 35.8 / 33.8).
 BONE_FIT_RIDGE = 0.02
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
@@ -575,7 +575,7 @@ class MarkerlessTracker:
         semi_now = sub.blobs.semi_axes[:, 0].to(base)  # (K,) each blob's semi-axis along its bone
         cols, size_cols = [], []
         for edited in [skel.with_bone_lengths({b: 2.0 * lengths[b] for b in group}) for group in BONE_GROUPS] + [
-                skel.with_joint_origins({NECK_JOINT: (neck[0], neck[1], neck[2] + NECK_STEP_M)})]:
+                skel.with_joints_raised({NECK_JOINT: NECK_STEP_M})]:
             edited = edited.to(angles.device)
             blobs2 = BlobModel(edited, specs, ref).to(angles.device)
             cols.append(blobs2.gaussians(edited.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per step
@@ -610,10 +610,8 @@ class MarkerlessTracker:
         scale = (1.0 + x[:G - 1]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
         fitted_skel = skel.with_bone_lengths(new)
-        torso = float(scale[BONE_GROUPS.index(("torso",))])
         shift = float(x[G - 1].clamp(-1.0, 1.0)) * NECK_STEP_M
-        neck_z = neck[2] * torso + shift  # the torso's scale moves the neck too
-        fitted_skel = fitted_skel.with_joint_origins({NECK_JOINT: (neck[0] * torso, neck[1] * torso, neck_z)})
+        fitted_skel = fitted_skel.with_joints_raised({NECK_JOINT: shift})  # on the neck the torso's scale moved
         change = max(float((scale - 1).abs().max()), abs(shift) / max(neck[2], 1e-6))
         return fitted_skel.to(angles.device), change
 
