@@ -14,8 +14,12 @@ voxel, so where only three cameras see, the operator (in cam_02) crossed with th
 two other views makes a human-sized phantom (1.2 m across with ``--min-views 3``), while every reference
 keypoint of every frame projects into all four images.
 
+``--background-from-track POSES`` takes the background from the frames each pixel is clearest of a track's body
+instead (:func:`torchtrack.tracking.refine.background_from_track`; a track of the demo with its body, e.g.
+``eval_pose2sim_tracking.py --init-from-reference --save-poses POSES``).
+
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.25] [--voxel 0.02] [--min-views 4]
-       [--picture PNG] [--no-fill] [--fill-prior-log-odds 0]
+       [--picture PNG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES]
 """
 
 from __future__ import annotations
@@ -33,8 +37,10 @@ from scipy.spatial import cKDTree
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.cameras import load_calibration
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints
+from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import BayesConfig, BayesianGrid, grid_from_rig
+from torchtrack.tracking.refine import background_from_track
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -101,6 +107,9 @@ def main() -> None:
     ap.add_argument("--min-views", type=int, default=4, help="voxels seen by fewer cameras are unobserved")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
+    ap.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
+                    help="re-estimate the background from the frames clearest of this track's body (a poses.npz of "
+                         "the demo with its body, e.g. from eval_pose2sim_tracking.py --save-poses)")
     ap.add_argument("--picture", type=Path, default=Path("docs/images/pose2sim_occupancy.jpg"))
     args = ap.parse_args()
     torch.set_grad_enabled(False)
@@ -113,9 +122,14 @@ def main() -> None:
         folder = SequenceFolder(seq, full)
         t0 = time.perf_counter()
         frames = torch.cat([b.images for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
-        bg = BackgroundModel.from_sequence(frames, BackgroundConfig(fill_static_subject=not args.no_fill,
-                                                                      fill_prior_log_odds=args.fill_prior_log_odds),
-                                         camera_names=rig.names)
+        bg_config = BackgroundConfig(fill_static_subject=not args.no_fill,
+                                     fill_prior_log_odds=args.fill_prior_log_odds)
+        if args.background_from_track is not None:
+            track = load_poses(args.background_from_track)
+            bg = background_from_track(folder, track, bg_config, size_wh=(W, H), source=str(args.background_from_track))
+            print(f"background re-estimated from the frames clearest of the track {args.background_from_track}")
+        else:
+            bg = BackgroundModel.from_sequence(frames, bg_config, camera_names=rig.names)
         spec = grid_from_rig(rig, args.voxel, min_views=3)
         grid = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views))
         centres = spec.centres()

@@ -30,7 +30,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--init-from-reference [--scale-only]] [--fill-prior-log-odds 0]
        [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
-       [--picture docs/images/pose2sim_tracking.jpg]
+       [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz]
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from torchtrack.checks import InputError, with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
-from torchtrack.io.poses import Poses
+from torchtrack.io.poses import Poses, save_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
@@ -212,6 +212,9 @@ def main() -> None:
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
+    ap.add_argument("--save-poses", type=Path, default=None,
+                    help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
+                         "eval_pose2sim_occupancy.py --background-from-track")
     args = ap.parse_args()
     if args.scale_only and not (args.init_from_reference or args.reference_fit):
         raise SystemExit("--scale-only changes the body of --init-from-reference or --reference-fit: give one")
@@ -288,6 +291,9 @@ def main() -> None:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                   "(a body is about 0.07)")
         print(rep.format())
+        if args.save_poses is not None:
+            save_poses(poses, args.save_poses)
+            print(f"wrote {args.save_poses}")
         if args.picture is not None:
             ok = np.flatnonzero(poses.valid)
             if ok.size:

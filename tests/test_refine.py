@@ -236,3 +236,125 @@ def test_a_first_pass_that_tracks_nothing_is_returned_with_a_warning(monkeypatch
         refine.track_with_background_refinement(
             folder, "first background", lambda b: observer, MarkerlessTracker(skel, TrackerConfig()),
             RefineConfig(passes=2), BackgroundConfig(), start=4)
+
+
+@pytest.fixture(scope="module")
+def standing_then_walking(tmp_path_factory):
+    """A rendered sequence whose subject holds the starfish pose for 16 of its 31 frames, then walks away: the
+    temporal median keeps the starfish as a ghost. Its background/ frames are the truth; the copy without them
+    is what ``background_from_track`` is for."""
+    import dataclasses
+
+    from torchtrack.synth.scene import SceneConfig
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+
+    cfg = SynthConfig(motion="walk", duration_s=3.0, starfish_s=3.2, fps=5, background_frames=5,
+                      video_format="png", rig=RigConfig(num_cameras=4, width=160, height=120),
+                      scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))
+    root = tmp_path_factory.mktemp("standing")
+    seq = write_sequence(cfg, root / "seq", progress=False)
+    bare = root / "bare"
+    shutil.copytree(seq, bare, ignore=shutil.ignore_patterns("background"))
+    return seq, bare
+
+
+def _track_file(seq, path, first: int = 0, **extra):
+    """The ground truth of ``seq`` from frame ``first`` on as a track's poses.npz, with ``extra`` fields (the
+    body: ``body_urdf=...``)."""
+    import dataclasses
+
+    from torchtrack.io.poses import load_poses, save_poses
+
+    gt = load_poses(seq / "gt.npz")
+    keep = slice(first, None)
+    track = dataclasses.replace(gt, frame_index=gt.frame_index[keep], joints3d=gt.joints3d[keep],
+                                angles=gt.angles[keep], valid=gt.valid[keep], confidence=gt.confidence[keep],
+                                markers3d=None, marker_names=None,
+                                extra={k: np.asarray(v) for k, v in extra.items()})
+    save_poses(track, path)
+    return path
+
+
+def test_background_from_a_track_file_is_the_room_where_the_subject_stood(standing_then_walking, tmp_path):
+    """Against the background measured from the empty frames: where the subject stood for most of the clip the
+    plain estimate is the subject; from the track (its frames 2 on, with its body) it is the room."""
+    from torchtrack.io.poses import load_poses
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking.refine import background_from_track
+
+    seq, bare = standing_then_walking
+    body = (seq / "body.urdf").read_text()
+    truth = BackgroundModel.from_folder(SequenceFolder(seq))
+    folder = SequenceFolder(bare)
+    gt = load_poses(seq / "gt.npz")
+    skeleton = Skeleton(body)
+    angles = torch.as_tensor(gt.angles, dtype=torch.float32)
+    covered = body_masks(folder.rig.float(), skeleton, angles)  # (T, C, H, W)
+    grown = body_masks(folder.rig.float(), skeleton, angles, blob_scale=1.5)
+    # covered in most frames (the median is the subject), yet well clear of the body in enough frames to see the
+    # room (the fewest a pixel's background is estimated from, and a margin)
+    ghost = (covered.float().mean(0) > 0.5) & ((~grown[2:]).sum(0) >= 7)
+    assert ghost.sum() > 300
+
+    def error(bg):  # mean |mean - room| in YUV over the ghost pixels
+        return float((bg.mean_yuv - truth.mean_yuv).abs().sum(1)[ghost].mean())
+
+    plain = BackgroundModel.from_folder(folder)
+    track = load_poses(_track_file(seq, tmp_path / "track.npz", first=2, body_urdf=body))
+    refined = background_from_track(folder, track)
+    print(f"ghost pixels {int(ghost.sum())}, error plain {error(plain):.4f}")
+    assert error(plain) > 0.15, error(plain)
+    assert error(refined) < 0.02, (error(refined), error(plain))
+    # the template scaled to the track's height draws nearly the same body
+    scaled = background_from_track(folder, load_poses(_track_file(seq, tmp_path / "h.npz", first=2,
+                                                                  subject_height_m=skeleton.height())))
+    print(f"error refined {error(refined):.4f}, scaled body {error(scaled):.4f}")
+    assert error(scaled) < 0.05, error(scaled)
+
+
+def test_background_from_a_track_names_what_is_missing(standing_then_walking, tmp_path):
+    from torchtrack.io.poses import load_poses
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking.refine import background_from_track
+
+    seq, bare = standing_then_walking
+    folder = SequenceFolder(bare)
+    nobody = load_poses(_track_file(seq, tmp_path / "nobody.npz"))
+    with pytest.raises(InputError, match="nobody.npz: no subject body .field 'body_urdf'"):
+        background_from_track(folder, nobody, source=str(tmp_path / "nobody.npz"))
+    late = load_poses(_track_file(seq, tmp_path / "late.npz", first=folder.num_frames - 3, subject_height_m=1.7))
+    with pytest.raises(InputError, match="spans 3 frames"):
+        background_from_track(folder, late)
+    import dataclasses
+
+    elsewhere = dataclasses.replace(late, frame_index=late.frame_index + 100)
+    with pytest.raises(InputError, match="are not frames of"):
+        background_from_track(folder, elsewhere)
+
+
+def test_observe_cli_with_the_background_from_a_track(standing_then_walking, tmp_path, capsys):
+    """`torchtrack observe --background-from-track`: in the frames where the subject stands, the voxels are
+    those of the background measured from empty frames, not of the ghost-ridden estimate."""
+    from torchtrack.cli import main
+
+    seq, bare = standing_then_walking
+    track = _track_file(seq, tmp_path / "track.npz", body_urdf=(seq / "body.urdf").read_text())
+    voxels = {}  # per standing frame, the set of occupied voxels (their centres in voxel units)
+    for name, folder, extra in (("truth", seq, []), ("plain", bare, []),
+                                ("track", bare, ["--background-from-track", str(track)])):
+        out = tmp_path / name
+        assert main(["observe", str(folder), "--out", str(out), "--voxel", "0.04", "--log-every", "0",
+                     *extra]) == 0
+        occ = np.load(out / "occupancy.npz")
+        offsets, keys = occ["frame_offsets"], np.floor(occ["centres"] / 0.04).astype(int)
+        voxels[name] = [set(map(tuple, keys[offsets[t]:offsets[t + 1]].tolist())) for t in range(16)]
+
+    def iou(name):
+        return np.mean([len(a & b) / len(a | b) for a, b in zip(voxels[name], voxels["truth"])])
+
+    assert min(len(v) for v in voxels["truth"]) > 500
+    assert iou("plain") < 0.5, iou("plain")  # the standing subject is the background
+    assert iou("track") > 0.97, iou("track")
+    bad = _track_file(seq, tmp_path / "bad.npz")
+    assert main(["observe", str(bare), "--out", str(tmp_path / "bad"), "--background-from-track", str(bad)]) == 2
+    assert "bad.npz: no subject body" in capsys.readouterr().err

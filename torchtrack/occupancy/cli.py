@@ -30,6 +30,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--fill-static-subject", action="store_true",
                    help="without background/ frames: paint the parts of the subject that never move out of the "
                         "estimated background (a subject balancing in place)")
+    p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
+                   help="estimate the background from the frames each pixel is clearest of a tracked body: the "
+                        "poses.npz of a `torchtrack track` run on this sequence (for a sequence without "
+                        "background/ frames whose subject hardly moves; see torchtrack.tracking.refine)")
     p.set_defaults(func=run)
 
 
@@ -57,8 +61,15 @@ def _run(args: argparse.Namespace) -> int:
     full = folder.rig
     W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
     rig = full.resized(W, H).float().to(device)
-    bg = BackgroundModel.from_folder(folder, BackgroundConfig(fill_static_subject=args.fill_static_subject),
-                                     size_wh=(W, H), device=device)
+    bg_config = BackgroundConfig(fill_static_subject=args.fill_static_subject)
+    if args.background_from_track is not None:
+        from torchtrack.io.poses import load_poses
+        from torchtrack.tracking.refine import background_from_track
+
+        bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, size_wh=(W, H),
+                                   device=device, source=str(args.background_from_track))
+    else:
+        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
     spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)
     if args.model == "bayes":
         model = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views)).to(device)

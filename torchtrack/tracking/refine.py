@@ -18,11 +18,14 @@ where the body is in every frame, even when it is imperfect, and that is what ea
 
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
 limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them. On the
-Pose2Sim demo (Bayesian grid, 3 cm, from a pose fitted to the reference's frame 0) three passes take the track
-from 412 mm with 38 lost frames to 124.8 mm with none
-(``scripts/eval_pose2sim_tracking.py --init-from-reference``); the background from the frames the reference
-keypoints leave free gives 104.2 mm. In a prototype, trusting the grown masks as they are oscillated between
-160 and 260 mm.
+Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) three passes take
+the track from 422.8 mm with 32 lost frames to 69.9 mm with none
+(``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24); the background from the frames the
+reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown masks as they are oscillated
+between 160 and 260 mm.
+
+:func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
+the sequence again with it (``torchtrack observe SEQ --background-from-track OUT/poses.npz``).
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import logging
 import time
 import warnings
 from dataclasses import dataclass, fields
+from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -51,8 +55,8 @@ from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
 
-__all__ = ["RefineConfig", "body_masks", "clearance_px", "clear_frame_masks", "refined_background",
-           "track_with_background_refinement"]
+__all__ = ["RefineConfig", "background_from_track", "body_masks", "clearance_px", "clear_frame_masks",
+           "refined_background", "track_with_background_refinement"]
 
 log = logging.getLogger(__name__)
 
@@ -206,6 +210,73 @@ def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRi
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
 
 
+def tracked_body(poses: Poses, source: str = "poses") -> Skeleton:
+    """The subject's body of a track: its ``body_urdf`` (as ``torchtrack track`` writes it), else the body model
+    scaled to its ``subject_height_m``.
+
+    Raises:
+        InputError: neither field, or a body or a state vector with other DOFs than the body model (named).
+    """
+    generic = Skeleton.from_urdf()
+    if "body_urdf" in poses.extra:
+        body = Skeleton(str(poses.extra["body_urdf"]), source=f"{source}: body_urdf")
+    elif "subject_height_m" in poses.extra:
+        body = generic.scaled_to_height(float(poses.extra["subject_height_m"]))
+    else:
+        raise InputError(f"{source}: no subject body (field 'body_urdf') and no height (field 'subject_height_m') "
+                         "to draw the tracked body with")
+    if body.dof_names != generic.dof_names or list(poses.dof_names) != list(generic.dof_names):
+        raise InputError(f"{source}: field 'body_urdf' or 'dof_names' has other DOFs than the body model "
+                         f"({len(poses.dof_names)} vs {len(generic.dof_names)})")
+    return body
+
+
+def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: BackgroundConfig = BackgroundConfig(),
+                          config: RefineConfig = RefineConfig(), size_wh: tuple[int, int] | None = None,
+                          device: torch.device | str | None = None, source: str = "poses",
+                          blob_specs: str | Path | None = None) -> BackgroundModel:
+    """The background of ``folder`` re-estimated from the frames clearest of a track's body (a finished
+    ``torchtrack track`` run, its ``poses.npz``): what :func:`track_with_background_refinement` does between
+    passes, for observing a sequence without empty frames again once it has been tracked.
+
+    The background is estimated from ``bg_config.max_frames`` evenly spaced frames of the track's span of frames.
+    A sampled frame the track does not hold, or holds without a state (NaN), is drawn as covering every pixel
+    (the body may be anywhere) and so gives no pixel its background; a frame the track lost is drawn at the
+    pose the tracker held for it, as between passes.
+
+    Args:
+        poses: the track (``frame_index`` into the folder's frames); its body: :func:`tracked_body`.
+        size_wh: (W, H) to read and estimate at (default: the calibration's size).
+        source: the track's file name, for errors.
+        blob_specs: the blob specification the track used (``TrackerConfig.blobs``; default: blobs.yaml).
+
+    Raises:
+        InputError: the track holds no frame of the folder, or no body (:func:`tracked_body`); as
+            :meth:`BackgroundModel.from_sequence`.
+    """
+    skeleton = tracked_body(poses, source)
+    index = np.asarray(poses.frame_index, np.int64)
+    inside = (index >= 0) & (index < folder.num_frames)
+    if not inside.any():
+        raise InputError(f"{source}: its frames {int(index.min())}-{int(index.max())} are not frames of "
+                         f"{folder.root} ({folder.num_frames} frames)")
+    start, stop = int(index[inside].min()), int(index[inside].max()) + 1
+    if stop - start < MIN_SEQUENCE_FRAMES:
+        raise InputError(f"{source}: the track spans {stop - start} frames of {folder.root}; estimating a background "
+                         f"needs at least {MIN_SEQUENCE_FRAMES}")
+    rig = folder.rig if size_wh is None else folder.rig.resized(*size_wh)
+    rig = rig.float().to(device if device is not None else "cpu")
+    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device, size_wh=(W, H))
+    row = {int(t): i for i, t in enumerate(index.tolist())}
+    angles = torch.full((len(indices), skeleton.num_dofs), float("nan"))
+    for k, t in enumerate(indices):
+        if t in row:
+            angles[k] = torch.as_tensor(poses.angles[row[t]], dtype=torch.float32)
+    return refined_background(frames, angles, rig, skeleton, bg_config, config, folder.camera_names,
+                              BlobModel.from_config(skeleton, blob_specs))
+
+
 def track_with_background_refinement(
         folder: SequenceFolder, background: BackgroundModel, make_observer: Callable[[BackgroundModel], Observer],
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
@@ -222,9 +293,9 @@ def track_with_background_refinement(
     the body from that pose). The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
     of ``[start, stop)``, read once (the first background may come from the whole clip). A frame a pass lost
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
-    was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes: the first pass loses
-    38 of its 100 frames). Frames never tracked (before the first initialisation) are left out. Only the last
-    pass is logged. A first pass that tracks no frame ends the refinement with a warning and its poses.
+    was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes, before the ghost test:
+    the first pass lost 38 of its 100 frames). Frames never tracked (before the first initialisation) are left
+    out. Only the last pass is logged. A first pass that tracks no frame ends the refinement with a warning and its poses.
 
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
