@@ -264,8 +264,9 @@ def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: Backg
     if stop - start < MIN_SEQUENCE_FRAMES:
         raise InputError(f"{source}: the track spans {stop - start} frames of {folder.root}; estimating a background "
                          f"needs at least {MIN_SEQUENCE_FRAMES}")
-    rig = folder.rig if size_wh is None else folder.rig.resized(*size_wh)
-    rig = rig.float().to(device if device is not None else "cpu")
+    rig = (folder.rig if size_wh is None else folder.rig.resized(*size_wh)).float()
+    if device is not None:
+        rig = rig.to(device)
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device, size_wh=(W, H))
     row = {int(t): i for i, t in enumerate(index.tolist())}
