@@ -47,6 +47,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--refine-passes", type=int, default=None,
                    help="without background/ frames: re-estimate the background from the track and track again "
                         "this many times (overrides the config's background_refinement.passes; 0: off)")
+    p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
+                   help="start from the background re-estimated from an earlier track of this sequence (its "
+                        "poses.npz; with --init-pose of the same file and --refine-passes 0, one more refinement "
+                        "pass of that run)")
     p.set_defaults(func=run)
 
 
@@ -176,7 +180,14 @@ def _run(args: argparse.Namespace) -> int:
     rig = folder.rig.resized(W, H).float().to(device)
     fill = bool(args.fill_static_subject or ocfg.get("fill_static_subject", False))
     bg_config = BackgroundConfig(fill_static_subject=fill)
-    bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
+    if args.background_from_track is not None:
+        from torchtrack.io.poses import load_poses
+        from torchtrack.tracking.refine import background_from_track
+
+        bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, rcfg, (W, H), device,
+                                   source=str(args.background_from_track), blob_specs=tcfg.blobs)
+    else:
+        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
         angles, height, body = _initial_pose(args.init_pose, tracker.generic)
