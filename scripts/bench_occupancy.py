@@ -436,7 +436,7 @@ def bench_open3d(o3d, scenes: dict[int, Scene], runs: int, device: torch.device)
                   f"{verdict(speed_bayes, TARGET_SPEEDUP, below=False)})")
             agreement.append((n, C, o3d_occ, ours, rule, bayes, unseen))
         del dense
-    print(f"\nagreement on frame 0 (voxel counts; IoU):")
+    print("\nagreement on frame 0 (voxel counts; IoU):")
     print(f"{'grid':>6} {'cams':>4} {'open3d':>7} {'carve':>7} {'o3d-only':>8} {'carve-only':>10} "
           f"{'IoU o3d/carve':>13} {'IoU o3d/o3d-rule':>16} {'IoU o3d/bayes':>13} {'not seen by all':>15}")
     for n, C, o3d_occ, ours, rule, bayes, unseen in agreement:

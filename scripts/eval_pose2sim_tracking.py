@@ -59,7 +59,7 @@ from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
-from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
+from torchtrack.tracking.refine import RefineConfig, track_change_m, track_with_background_refinement
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -270,11 +270,16 @@ def main() -> None:
                   f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
         truth = reference_poses(names, ref, folder.fps, list(tracker.generic.output_names))
 
+        passes: list[Poses] = []
+
         def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
             if refine.passes:
                 r = evaluate(poses, truth, landmarks=names)
-                print(f"pass {p + 1} of {refine.passes + 1}: MPJPE {r.mpjpe_mm:.1f} mm, "
-                      f"{int((~poses.valid).sum())} lost", flush=True)
+                moved = (f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before"
+                         if passes else "")
+                print(f"pass {p + 1} (of at most {refine.passes + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
+                      f"{int((~poses.valid).sum())} lost{moved}", flush=True)
+                passes.append(poses)
 
         try:
             poses, elapsed, _ = track_with_background_refinement(
@@ -285,7 +290,7 @@ def main() -> None:
             raise SystemExit(f"tracking failed: {e}") from None
         rep = evaluate(poses, truth, landmarks=names)
         print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
-              f"{refine.passes} times, {poses.num_frames * (refine.passes + 1) / elapsed:.1f} frames/s, "
+              f"{max(len(passes) - 1, 0)} times, {poses.num_frames * max(len(passes), 1) / elapsed:.1f} frames/s, "
               f"subject height {float(poses.extra['subject_height_m']):.2f} m")
         if args.reference_silhouettes:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "

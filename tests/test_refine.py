@@ -386,3 +386,74 @@ def test_track_cli_starts_from_the_background_of_an_earlier_track(standing_then_
     assert main(["track", str(bare), "--out", str(tmp_path / "bad"), "--init-pose", str(track),
                  "--background-from-track", str(tmp_path / "missing.npz")]) == 2
     assert "missing.npz" in capsys.readouterr().err
+
+
+def _poses_at(landmarks: np.ndarray, valid: np.ndarray, skel):
+    """A track whose 16 landmarks are ``landmarks (T, 16, 3)``."""
+    from torchtrack.conventions import LANDMARKS
+    from torchtrack.io.poses import Poses
+
+    T = landmarks.shape[0]
+    return Poses(fps=10.0, frame_index=np.arange(T), joint_names=list(LANDMARKS), joints3d=landmarks,
+                 dof_names=list(skel.dof_names), angles=np.zeros((T, skel.num_dofs), np.float32), valid=valid,
+                 confidence=np.ones((T, len(LANDMARKS)), np.float32))
+
+
+def test_track_change_is_the_mean_landmark_distance_over_frames_both_tracked(skel):
+    from torchtrack.tracking.refine import track_change_m
+
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=(2, 6, 16, 3))
+    va, vb = np.array([1, 1, 0, 1, 1, 0], bool), np.array([1, 0, 1, 1, 1, 0], bool)
+    total, count = 0.0, 0
+    for t in range(6):  # the plain loop
+        if va[t] and vb[t]:
+            total += sum(math.dist(a[t, j], b[t, j]) for j in range(16)) / 16
+            count += 1
+    got = track_change_m(_poses_at(a, va, skel), _poses_at(b, vb, skel))
+    assert got == pytest.approx(total / count)
+    assert math.isnan(track_change_m(_poses_at(a, va, skel), _poses_at(b, ~va, skel)))
+    shorter = _poses_at(a[:5], va[:5], skel)
+    with pytest.raises(InputError, match="different frames"):
+        track_change_m(shorter, _poses_at(b, vb, skel))
+
+
+def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
+    """Passes whose tracks move 40, 20, 10, 5 mm ...: with ``min_change_m`` 0.015, the fourth pass (10 mm from
+    the third) is the first under it, and one more pass, on the background from it, is the last (logged)."""
+    from types import SimpleNamespace
+
+    from torchtrack.tracking import refine
+
+    T = 8
+    base = np.zeros((T, 16, 3))
+    calls = []
+
+    def fake_track(*args, **kwargs):
+        p = len(calls)
+        calls.append(kwargs.get("logger"))
+        offset = sum(0.04 / 2 ** k for k in range(p))  # pass p is 40 / 2^(p-1) mm from pass p - 1
+        moved = base.copy()
+        moved[..., 0] += offset
+        return _poses_at(moved, np.ones(T, bool), skel), 1.0
+
+    monkeypatch.setattr(refine, "track_sequence", fake_track)
+    monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
+    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+                             sample_frames=lambda *a, **k: (list(range(T)), None))
+    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0,
+                              subject=SimpleNamespace(skeleton=skel, blobs=None),
+                              initialize_from_pose=lambda *a, **k: None)
+    observer = SimpleNamespace(rig=_rig())
+    logger = object()
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015),
+        BackgroundConfig(), logger=logger)
+    assert len(calls) == 5 and calls[-1] is logger and all(c is None for c in calls[:-1])
+    assert bg == "refined" and poses.joints3d[0, 0, 0] == pytest.approx(0.04 + 0.02 + 0.01 + 0.005)
+    calls.clear()
+    refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker, RefineConfig(passes=3),
+                                            BackgroundConfig(), logger=logger)
+    assert len(calls) == 4 and calls[-1] is logger  # min_change_m 0: every pass
+    with pytest.raises(InputError, match="min_change_m"):
+        RefineConfig(min_change_m=-1.0)

@@ -206,7 +206,7 @@ class BackgroundModel(nn.Module):
         demo, masks drawn around the reference keypoints leave that many frames at 93 % of the pixels the
         subject ever covers, and the track from that background is 64.9 mm from the reference against 422.8 mm
         from passes 1-3 (``scripts/eval_pose2sim_tracking.py --init-from-reference --reference-background``;
-        2026-11-24). :mod:`torchtrack.tracking.refine` derives such masks from the track itself (69.9 mm there).
+        2026-11-24). :mod:`torchtrack.tracking.refine` derives such masks from the track itself (66.4 mm there).
 
         Args:
             frames: (N, C, 3, H, W) RGB in [0, 1] (float16 storage is fine), N >= 5; at most ``max_frames`` are

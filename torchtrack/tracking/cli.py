@@ -204,14 +204,15 @@ def _run(args: argparse.Namespace) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     with RunLogger(args.out / "tb") as tb:
+        passes: list[int] = []  # the passes run (the refinement may stop early)
         poses, elapsed, _ = track_with_background_refinement(
             folder, bg, lambda b: observer_from_config(rig, b, ocfg, model, voxel).to(device), tracker, rcfg,
             bg_config, args.start, args.stop, args.batch, device, logger=tb, log_every=args.log_every,
-            workers=workers)
+            workers=workers, on_pass=lambda p, _: passes.append(p))
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
-    rate = f"{T * (rcfg.passes + 1) / elapsed:.1f} frames/s" + (f" over {rcfg.passes + 1} passes" if rcfg.passes
-                                                                  else "")
+    n = len(passes)
+    rate = f"{T * n / elapsed:.1f} frames/s" + (f" over {n} passes" if n > 1 else "")
     print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
           f"{reinit.sum()} (re)initialisations), {rate}; TensorBoard logs in {args.out / 'tb'}")
     return 0

@@ -18,10 +18,10 @@ where the body is in every frame, even when it is imperfect, and that is what ea
 
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
 limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them. On the
-Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) three passes take
-the track from 422.8 mm with 32 lost frames to 69.9 mm with none
-(``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24); the background from the frames the
-reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown masks as they are oscillated
+Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) the passes take
+the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four tracks, and to 66.4 mm after seven,
+where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
+background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown masks as they are oscillated
 between 160 and 260 mm.
 
 :func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
@@ -56,7 +56,7 @@ from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
 
 __all__ = ["RefineConfig", "background_from_track", "body_masks", "clearance_px", "clear_frame_masks",
-           "refined_background", "track_with_background_refinement"]
+           "refined_background", "track_change_m", "track_with_background_refinement"]
 
 log = logging.getLogger(__name__)
 
@@ -66,22 +66,25 @@ class RefineConfig:
     """Background refinement settings (the ``background_refinement`` section of a tracking config).
 
     Attributes:
-        passes: re-estimations of the background, each followed by a new track (0: track once).
+        passes: re-estimations of the background at most, each followed by a new track (0: track once).
         blob_scale: the blobs' ellipsoids are grown by this factor before they are rendered.
         clear_frames: k: each pixel's background comes from its k clearest frames (ties included) or from more
             (see ``clear_fraction``), never from a frame where the rendered body covers it: where fewer than
             ``MIN_CLEAN_FRAMES`` frames leave a pixel, the sequence estimate (passes 1-3) is kept there.
         clear_fraction: frames at least this fraction of the image's larger side clear of the body all count.
+        min_change_m: the passes stop early once a pass's track moved less than this from the one before
+            (:func:`track_change_m`; 0: all ``passes`` are run).
     """
 
-    passes: int = 3
+    passes: int = 8
     blob_scale: float = 1.3
     clear_frames: int = 10
     clear_fraction: float = 0.04
+    min_change_m: float = 0.01
 
     def __post_init__(self) -> None:
         for name, kind in (("passes", int), ("clear_frames", int), ("blob_scale", float),
-                           ("clear_fraction", float)):
+                           ("clear_fraction", float), ("min_change_m", float)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
                 raise InputError(f"background_refinement.{name} must be a number{' (whole)' * (kind is int)}, "
@@ -95,6 +98,9 @@ class RefineConfig:
                              f"frames a pixel's background is estimated from), got {self.clear_frames}")
         if not 0.0 < self.clear_fraction < 1.0:
             raise InputError(f"background_refinement.clear_fraction must be in (0, 1), got {self.clear_fraction}")
+        if not (self.min_change_m >= 0 and np.isfinite(self.min_change_m)):
+            raise InputError(f"background_refinement.min_change_m must be >= 0 and finite (0: off), got "
+                             f"{self.min_change_m}")
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str = "<config>") -> RefineConfig:
@@ -110,6 +116,21 @@ class RefineConfig:
             raise InputError(f"{source}: unknown background_refinement settings {sorted(unknown)}; "
                              f"known: {sorted(known)}")
         return cls(**doc)
+
+
+def track_change_m(poses: Poses, before: Poses) -> float:
+    """How far a track moved from an earlier one of the same frames: the mean over the frames both tracked of
+    the mean distance (m) between their 16 landmarks (NaN when no frame is tracked in both).
+
+    Raises:
+        InputError: the two hold different frames.
+    """
+    if not np.array_equal(poses.frame_index, before.frame_index):
+        raise InputError("track_change_m: the two tracks hold different frames")
+    both = np.asarray(poses.valid) & np.asarray(before.valid)
+    if not both.any():
+        return float("nan")
+    return float(np.linalg.norm(poses.landmarks()[both] - before.landmarks()[both], axis=-1).mean())
 
 
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
@@ -285,7 +306,9 @@ def track_with_background_refinement(
         log_every: int = 10, progress: bool = True,
         on_pass: Callable[[int, Poses], None] | None = None, workers: int = 0
 ) -> tuple[Poses, float, BackgroundModel]:
-    """Track, then ``config.passes`` times re-estimate the background from the track and track again.
+    """Track, then ``config.passes`` times re-estimate the background from the track and track again; with
+    ``config.min_change_m``, the pass after the first whose track moved less than that from the one before
+    (:func:`track_change_m`) is the last.
 
     Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
     else the first pass's first tracked frame with the subject's skeleton as the first pass fitted it (the
@@ -296,7 +319,8 @@ def track_with_background_refinement(
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
     was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes, before the ghost test:
     the first pass lost 38 of its 100 frames). Frames never tracked (before the first initialisation) are left
-    out. Only the last pass is logged. A first pass that tracks no frame ends the refinement with a warning and its poses.
+    out. Only the last pass is logged. A first pass that tracks no frame ends the refinement with a warning and
+    its poses.
 
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
@@ -321,8 +345,9 @@ def track_with_background_refinement(
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     indices, frames, poses = None, None, None
+    final = config.passes  # the pass that is logged and returned: the last, or the one after convergence
     for p in range(config.passes + 1):
-        last = p == config.passes
+        last = p == final
         if p > 0:
             if not poses.valid.any():
                 warnings.warn(f"{folder.root}: the first pass tracked no frame; the background is not refined",
@@ -342,10 +367,19 @@ def track_with_background_refinement(
             observer = make_observer(background)
             tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
+        before = poses
         poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
                                   logger=logger if last else None, log_every=log_every, progress=progress,
                                   desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track",
                                   workers=workers)
         if on_pass is not None:
             on_pass(p, poses)
+        if last:
+            break
+        if p > 0 and config.min_change_m > 0:
+            change = track_change_m(poses, before)
+            log.info("background refinement: pass %d moved the track %.1f mm", p + 1, 1e3 * change)
+            if change < config.min_change_m:  # converged: one more pass, on the newest background, is the last
+                final = p + 1
+                log.info("background refinement: converged; pass %d is the last", p + 2)
     return poses, time.perf_counter() - t0, background
