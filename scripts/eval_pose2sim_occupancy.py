@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.cameras import load_calibration
+from torchtrack.checks import InputError
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
@@ -125,8 +126,11 @@ def main() -> None:
         bg_config = BackgroundConfig(fill_static_subject=not args.no_fill,
                                      fill_prior_log_odds=args.fill_prior_log_odds)
         if args.background_from_track is not None:
-            track = load_poses(args.background_from_track)
-            bg = background_from_track(folder, track, bg_config, size_wh=(W, H), source=str(args.background_from_track))
+            try:
+                bg = background_from_track(folder, load_poses(args.background_from_track), bg_config,
+                                           size_wh=(W, H), source=str(args.background_from_track))
+            except InputError as e:
+                raise SystemExit(str(e)) from None
             print(f"background re-estimated from the frames clearest of the track {args.background_from_track}")
         else:
             bg = BackgroundModel.from_sequence(frames, bg_config, camera_names=rig.names)

@@ -220,6 +220,8 @@ def main() -> None:
         raise SystemExit("--scale-only changes the body of --init-from-reference or --reference-fit: give one")
     if args.reference_silhouettes and args.reference_background:
         raise SystemExit("--reference-silhouettes replaces the background: give one of the two")
+    if args.save_poses is not None and not args.save_poses.parent.is_dir():  # before minutes of tracking
+        raise SystemExit(f"--save-poses {args.save_poses}: the folder {args.save_poses.parent} does not exist")
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
     if not (args.demo / "videos").is_dir():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 
@@ -176,7 +177,6 @@ def test_initial_pose_needs_one_of_height_and_skeleton(skel):
 def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
     """A synthetic sequence without background/ frames, from frame 2: the CLI tracks it twice (one refinement),
     writes complete poses and logs the last pass only."""
-    import dataclasses
 
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -243,7 +243,6 @@ def standing_then_walking(tmp_path_factory):
     """A rendered sequence whose subject holds the starfish pose for 16 of its 31 frames, then walks away: the
     temporal median keeps the starfish as a ghost. Its background/ frames are the truth; the copy without them
     is what ``background_from_track`` is for."""
-    import dataclasses
 
     from torchtrack.synth.scene import SceneConfig
     from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
@@ -261,7 +260,6 @@ def standing_then_walking(tmp_path_factory):
 def _track_file(seq, path, first: int = 0, **extra):
     """The ground truth of ``seq`` from frame ``first`` on as a track's poses.npz, with ``extra`` fields (the
     body: ``body_urdf=...``)."""
-    import dataclasses
 
     from torchtrack.io.poses import load_poses, save_poses
 
@@ -322,14 +320,45 @@ def test_background_from_a_track_names_what_is_missing(standing_then_walking, tm
     nobody = load_poses(_track_file(seq, tmp_path / "nobody.npz"))
     with pytest.raises(InputError, match="nobody.npz: no subject body .field 'body_urdf'"):
         background_from_track(folder, nobody, source=str(tmp_path / "nobody.npz"))
+    unfitted = load_poses(_track_file(seq, tmp_path / "unfitted.npz", subject_height_m=float("nan")))
+    with pytest.raises(InputError, match="unfitted.npz: no subject body .* 'subject_height_m': nan"):
+        background_from_track(folder, unfitted, source=str(tmp_path / "unfitted.npz"))
     late = load_poses(_track_file(seq, tmp_path / "late.npz", first=folder.num_frames - 3, subject_height_m=1.7))
     with pytest.raises(InputError, match="spans 3 frames"):
         background_from_track(folder, late)
-    import dataclasses
 
     elsewhere = dataclasses.replace(late, frame_index=late.frame_index + 100)
     with pytest.raises(InputError, match="are not frames of"):
         background_from_track(folder, elsewhere)
+    with pytest.raises(InputError, match="holds no frame"):
+        background_from_track(folder, dataclasses.replace(late, frame_index=late.frame_index[:0]))
+
+
+def test_background_from_a_track_draws_each_sampled_frame_at_its_own_pose(standing_then_walking, tmp_path,
+                                                                          monkeypatch):
+    """A track of frames 2-30 with frames 20-23 missing: each sampled frame is drawn at the track's pose of that
+    frame (looked up by frame number, not by row), and a frame the track lacks at NaN (covering every pixel)."""
+    from torchtrack.io.poses import load_poses
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking import refine
+
+    seq, bare = standing_then_walking
+    gt = load_poses(seq / "gt.npz")
+    track = load_poses(_track_file(seq, tmp_path / "track.npz", first=2, subject_height_m=1.75))
+    keep = ~np.isin(track.frame_index, [20, 21, 22, 23])
+    track = dataclasses.replace(track, frame_index=track.frame_index[keep], joints3d=track.joints3d[keep],
+                                angles=track.angles[keep], valid=track.valid[keep], confidence=track.confidence[keep])
+    seen = {}
+    monkeypatch.setattr(refine, "refined_background", lambda frames, angles, *a, **k: seen.setdefault("a", angles))
+    refine.background_from_track(SequenceFolder(bare), track)
+    angles = seen["a"].numpy()
+    frames = list(range(2, gt.num_frames))  # the track's span, all sampled (fewer than max_frames)
+    assert angles.shape == (len(frames), gt.angles.shape[1])
+    for k, t in enumerate(frames):
+        if 20 <= t <= 23:
+            assert np.isnan(angles[k]).all(), t
+        else:
+            np.testing.assert_allclose(angles[k], gt.angles[t], atol=1e-6)
 
 
 def test_observe_cli_with_the_background_from_a_track(standing_then_walking, tmp_path, capsys):
@@ -427,7 +456,7 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
 
     T = 8
     base = np.zeros((T, 16, 3))
-    calls = []
+    calls, lose_at = [], []
 
     def fake_track(*args, **kwargs):
         p = len(calls)
@@ -435,7 +464,9 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
         offset = sum(0.04 / 2 ** k for k in range(p))  # pass p is 40 / 2^(p-1) mm from pass p - 1
         moved = base.copy()
         moved[..., 0] += offset
-        return _poses_at(moved, np.ones(T, bool), skel), 1.0
+        valid = np.ones(T, bool)
+        valid[0] = p not in lose_at  # lose_at: the passes that lose frame 0
+        return _poses_at(moved, valid, skel), 1.0
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
@@ -452,8 +483,16 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     assert len(calls) == 5 and calls[-1] is logger and all(c is None for c in calls[:-1])
     assert bg == "refined" and poses.joints3d[0, 0, 0] == pytest.approx(0.04 + 0.02 + 0.01 + 0.005)
     calls.clear()
-    refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker, RefineConfig(passes=3),
-                                            BackgroundConfig(), logger=logger)
-    assert len(calls) == 4 and calls[-1] is logger  # min_change_m 0: every pass
+    refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker,
+                                            RefineConfig(passes=8, min_change_m=0.0), BackgroundConfig(),
+                                            logger=logger)
+    assert len(calls) == 9 and calls[-1] is logger  # min_change_m 0: every pass
+    # a pass that settles where both tracked but loses a frame the one before tracked has not settled
+    calls.clear()
+    lose_at.append(3)
+    refine.track_with_background_refinement(
+        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015), BackgroundConfig(),
+        logger=logger)
+    assert len(calls) == 6 and calls[-1] is logger
     with pytest.raises(InputError, match="min_change_m"):
         RefineConfig(min_change_m=-1.0)

@@ -45,12 +45,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="without background/ frames: paint the parts of the subject that never move out of the "
                         "estimated background (a subject balancing in place; overrides config)")
     p.add_argument("--refine-passes", type=int, default=None,
-                   help="without background/ frames: re-estimate the background from the track and track again "
-                        "this many times (overrides the config's background_refinement.passes; 0: off)")
+                   help="without background/ frames: re-estimate the background from the track and track again, "
+                        "at most this many times (stopping once the track settles: background_refinement."
+                        "min_change_m; overrides the config's background_refinement.passes; 0: off)")
     p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                    help="start from the background re-estimated from an earlier track of this sequence (its "
-                        "poses.npz; with --init-pose of the same file and --refine-passes 0, one more refinement "
-                        "pass of that run)")
+                        "poses.npz; with --init-pose of the same file and --refine-passes 0, nearly one more "
+                        "refinement pass of that run: it starts from that track's first frame)")
     p.set_defaults(func=run)
 
 
@@ -183,6 +184,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.background_from_track is not None:
         from torchtrack.io.poses import load_poses
         from torchtrack.tracking.refine import background_from_track
+
+        if (folder.root / "background").is_dir():
+            log.warning("%s: has background/ frames; --background-from-track estimates it from the video instead",
+                        args.seq)
 
         bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, rcfg, (W, H), device,
                                    source=str(args.background_from_track), blob_specs=tcfg.blobs)

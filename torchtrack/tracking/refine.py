@@ -21,8 +21,8 @@ limb the track misplaces is still nearer the pixels it covers in the frames the 
 Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) the passes take
 the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four tracks, and to 66.4 mm after seven,
 where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
-background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown masks as they are oscillated
-between 160 and 260 mm.
+background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown
+masks as they are oscillated between 160 and 260 mm.
 
 :func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
 the sequence again with it (``torchtrack observe SEQ --background-from-track OUT/poses.npz``).
@@ -73,7 +73,8 @@ class RefineConfig:
             ``MIN_CLEAN_FRAMES`` frames leave a pixel, the sequence estimate (passes 1-3) is kept there.
         clear_fraction: frames at least this fraction of the image's larger side clear of the body all count.
         min_change_m: the passes stop early once a pass's track moved less than this from the one before
-            (:func:`track_change_m`; 0: all ``passes`` are run).
+            (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then the last (0:
+            all ``passes`` are run).
     """
 
     passes: int = 8
@@ -239,17 +240,20 @@ def tracked_body(poses: Poses, source: str = "poses") -> Skeleton:
         InputError: neither field, or a body or a state vector with other DOFs than the body model (named).
     """
     generic = Skeleton.from_urdf()
+    if list(poses.dof_names) != list(generic.dof_names):
+        raise InputError(f"{source}: field 'dof_names' has other DOFs than the body model ({len(poses.dof_names)} "
+                         f"vs {len(generic.dof_names)})")
     if "body_urdf" in poses.extra:
         body = Skeleton(str(poses.extra["body_urdf"]), source=f"{source}: body_urdf")
-    elif "subject_height_m" in poses.extra:
-        body = generic.scaled_to_height(float(poses.extra["subject_height_m"]))
-    else:
-        raise InputError(f"{source}: no subject body (field 'body_urdf') and no height (field 'subject_height_m') "
-                         "to draw the tracked body with")
-    if body.dof_names != generic.dof_names or list(poses.dof_names) != list(generic.dof_names):
-        raise InputError(f"{source}: field 'body_urdf' or 'dof_names' has other DOFs than the body model "
-                         f"({len(poses.dof_names)} vs {len(generic.dof_names)})")
-    return body
+        if body.dof_names != generic.dof_names:
+            raise InputError(f"{source}: field 'body_urdf' has other DOFs than the body model "
+                             f"({len(body.dof_names)} vs {len(generic.dof_names)})")
+        return body
+    height = float(poses.extra.get("subject_height_m", float("nan")))
+    if not 0.5 <= height <= 2.5:  # NaN too: a run that fitted no subject
+        raise InputError(f"{source}: no subject body (field 'body_urdf') and no usable height (field "
+                         f"'subject_height_m': {height}) to draw the tracked body with")
+    return generic.scaled_to_height(height)
 
 
 def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: BackgroundConfig = BackgroundConfig(),
@@ -277,6 +281,8 @@ def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: Backg
     """
     skeleton = tracked_body(poses, source)
     index = np.asarray(poses.frame_index, np.int64)
+    if index.size == 0:
+        raise InputError(f"{source}: the track holds no frame")
     inside = (index >= 0) & (index < folder.num_frames)
     if not inside.any():
         raise InputError(f"{source}: its frames {int(index.min())}-{int(index.max())} are not frames of "
@@ -308,7 +314,7 @@ def track_with_background_refinement(
 ) -> tuple[Poses, float, BackgroundModel]:
     """Track, then ``config.passes`` times re-estimate the background from the track and track again; with
     ``config.min_change_m``, the pass after the first whose track moved less than that from the one before
-    (:func:`track_change_m`) is the last.
+    (:func:`track_change_m`), and tracked as many frames, is the last.
 
     Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
     else the first pass's first tracked frame with the subject's skeleton as the first pass fitted it (the
@@ -379,7 +385,9 @@ def track_with_background_refinement(
         if p > 0 and config.min_change_m > 0:
             change = track_change_m(poses, before)
             log.info("background refinement: pass %d moved the track %.1f mm", p + 1, 1e3 * change)
-            if change < config.min_change_m:  # converged: one more pass, on the newest background, is the last
+            # settled: it moved little where both passes tracked, and lost no frame the pass before tracked
+            if change < config.min_change_m and int(poses.valid.sum()) >= int(before.valid.sum()):
+                # one more pass, on the newest background, is the last
                 final = p + 1
                 log.info("background refinement: converged; pass %d is the last", p + 2)
     return poses, time.perf_counter() - t0, background
