@@ -30,7 +30,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--init-from-reference [--scale-only]] [--fill-prior-log-odds 0]
        [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
-       [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz]
+       [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ from torchtrack.checks import InputError, with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
-from torchtrack.io.poses import Poses, save_poses
+from torchtrack.io.poses import Poses, load_poses, save_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
@@ -59,7 +59,8 @@ from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
-from torchtrack.tracking.refine import RefineConfig, track_change_m, track_with_background_refinement
+from torchtrack.tracking.refine import (RefineConfig, background_from_track, track_change_m, tracked_body,
+                                       track_with_background_refinement)
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -162,6 +163,31 @@ def reference_fit(demo: Path, fit_bones: bool) -> None:
     print(evaluate(fitted, reference_poses(names, ref, fps, out), landmarks=names).format())
 
 
+def print_bias(poses: Poses, names: list[str], ref: np.ndarray, demo: Path) -> None:
+    """--bias: each compared landmark's mean signed offset (track - reference) over the frames both have, in mm
+    along the reference's forward, left and up (left: from the right hip to the left, level; up: world z), and
+    the reference's own Neck against its shoulders' midpoint in the same axes."""
+    ref = ref[:poses.num_frames]
+    idx = [list(poses.joint_names).index(n) for n in names]
+    ok = poses.valid & np.isfinite(ref).all((1, 2))
+    left = ref[:, names.index("l_hip")] - ref[:, names.index("r_hip")]
+    left[:, 2] = 0.0
+    left /= np.linalg.norm(left, axis=-1, keepdims=True)
+    up = np.broadcast_to([0.0, 0.0, 1.0], left.shape)
+    axes = np.stack([np.cross(left, up), left, up], 1)  # (T, 3, 3) rows: forward, left, up
+    d = np.einsum("tij,tlj->tli", axes, poses.joints3d[:, idx] - ref)[ok]  # (n, L, 3)
+    print("mean offset from the reference (mm): forward, left, up")
+    for n, (f, lft, u) in zip(names, 1e3 * d.mean(0)):
+        print(f"  {n:12s} {f:7.1f} {lft:7.1f} {u:7.1f}")
+    kp_names, kp = reference_keypoints(demo)
+    kp = kp[:poses.num_frames]
+    shoulders = 0.5 * (kp[:, kp_names.index("LShoulder")] + kp[:, kp_names.index("RShoulder")])
+    neck = kp[:, kp_names.index("Neck")] - shoulders
+    off = 1e3 * np.einsum("tij,tj->ti", axes, neck)[ok]  # (n, 3)
+    print(f"  the reference's Neck from its shoulders' midpoint: forward {off[:, 0].mean():.1f} "
+          f"({np.percentile(off[:, 0], 5):.1f} to {np.percentile(off[:, 0], 95):.1f}), up {off[:, 2].mean():.1f} mm")
+
+
 def picture(path: Path, folder: SequenceFolder, poses: Poses, t: int, scale: float) -> None:
     import cv2
 
@@ -212,6 +238,12 @@ def main() -> None:
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
+    ap.add_argument("--continue-from", type=Path, default=None, metavar="POSES",
+                    help="start from a saved track of the demo (--save-poses): its first pose and body, and the "
+                         "background re-estimated from it (with --refine-passes 0: one more pass of that run)")
+    ap.add_argument("--bias", action="store_true",
+                    help="also print each landmark's mean signed offset from the reference (forward, left, up of "
+                         "the reference's hips) and where the reference's Neck sits against its shoulders")
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
@@ -220,6 +252,10 @@ def main() -> None:
         raise SystemExit("--scale-only changes the body of --init-from-reference or --reference-fit: give one")
     if args.reference_silhouettes and args.reference_background:
         raise SystemExit("--reference-silhouettes replaces the background: give one of the two")
+    if args.continue_from is not None and (args.init_from_reference or args.reference_silhouettes
+                                           or args.reference_background):
+        raise SystemExit("--continue-from gives the start and the background: drop --init-from-reference and the "
+                         "reference diagnostics")
     if args.save_poses is not None and not args.save_poses.parent.is_dir():  # before minutes of tracking
         raise SystemExit(f"--save-poses {args.save_poses}: the folder {args.save_poses.parent} does not exist")
     logging.basicConfig(level=logging.WARNING)
@@ -265,6 +301,18 @@ def main() -> None:
         tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
                                         "--tracker")
         tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
+        if args.continue_from is not None:
+            try:
+                before = load_poses(args.continue_from)
+                bg = background_from_track(folder, before, bg_config, refine, (W, H), source=str(args.continue_from))
+                body = tracked_body(before, str(args.continue_from))
+            except InputError as e:
+                raise SystemExit(str(e)) from None
+            observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
+            first = int(np.flatnonzero(before.valid)[0])
+            tracker.initialize_from_pose(torch.as_tensor(before.angles[first]), skeleton=body)
+            print(f"continuing {args.continue_from}: its frame {int(before.frame_index[first])} and body, the "
+                  "background re-estimated from its track")
         if args.init_from_reference:
             angles, body = fit_to_landmarks(tracker.generic, names, ref[0], fit_bones=not args.scale_only)
             tracker.initialize_from_pose(angles, skeleton=body)
@@ -298,6 +346,8 @@ def main() -> None:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                   "(a body is about 0.07)")
         print(rep.format())
+        if args.bias:
+            print_bias(poses, names, ref, args.demo)
         if args.save_poses is not None:
             save_poses(poses, args.save_poses)
             print(f"wrote {args.save_poses}")

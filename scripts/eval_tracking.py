@@ -97,19 +97,24 @@ class AgainstTruth(torch.nn.Module):
         return out
 
 
-def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
-          tracker_overrides: Sequence[str] = (), true_body: bool = False, oracle_margin: float | None = None
-          ) -> tuple[object, float, MarkerlessTracker, AgainstTruth]:
-    """Track ``seq``; with ``true_body`` on the rendered body (its body.urdf) from the first ground-truth pose,
-    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error.
-    The observer is wrapped in :class:`AgainstTruth` (``oracle_margin``: its margin)."""
+def _observer(seq: Path, model: str, config: dict, background: BackgroundConfig) -> tuple[SequenceFolder, object]:
+    """The sequence folder and the observer the config's ``observation`` section makes for it."""
     folder = SequenceFolder(seq)
     ocfg = config["observation"]
     scale = float(ocfg.get("scale", 1.0))
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float()
     bg = BackgroundModel.from_folder(folder, background, size_wh=(W, H))
-    observer = observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
+    return folder, observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
+
+
+def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
+          tracker_overrides: Sequence[str] = (), true_body: bool = False, oracle_margin: float | None = None
+          ) -> tuple[object, float, MarkerlessTracker, AgainstTruth]:
+    """Track ``seq``; with ``true_body`` on the rendered body (its body.urdf) from the first ground-truth pose,
+    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error.
+    The observer is wrapped in :class:`AgainstTruth` (``oracle_margin``: its margin)."""
+    folder, observer = _observer(seq, model, config, background)
     observer = AgainstTruth(observer, dict(np.load(seq / "gt.npz")), oracle_margin)
     tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), tracker_overrides,
                                     "--tracker")
@@ -129,13 +134,8 @@ def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: Bac
     """--fit-rounds: the bone fit alone, round after round, on the observation of the first frame at its true
     pose, from the template scaled to the true height: its ridge towards that start (the tracker's) and towards
     each round's own body (as before 2026-11-24). Prints the fitted proportions after each round."""
-    folder = SequenceFolder(seq)
-    ocfg = config["observation"]
-    scale = float(ocfg.get("scale", 1.0))
-    W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
-    rig = folder.rig.resized(W, H).float()
-    bg = BackgroundModel.from_folder(folder, background, size_wh=(W, H))
-    observer = observer_from_config(rig, bg, ocfg, model, float(ocfg.get("voxel_m", 0.03)))
+    folder, observer = _observer(seq, model, config, background)
+    W, H = (int(v) for v in observer.rig.image_size_wh[0].tolist())
     fb = next(iter(folder.iter_batches(1, 0, 1, size_wh=(W, H))))
     obs = observer(fb.images, fb.valid)[0].split(BONE_FIT_VOXEL_M)
     body = Skeleton.from_urdf(seq / "body.urdf")

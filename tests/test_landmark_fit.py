@@ -134,7 +134,7 @@ def test_initial_pose_file_carries_the_body_to_the_cli(tmp_path, skel, subject):
     save_poses(initial_pose(subject, a), tmp_path / "init.npz")
     poses = load_poses(tmp_path / "init.npz")
     np.testing.assert_allclose(poses.landmarks()[0], subject.landmarks(a[None])[0].numpy(), atol=1e-6)
-    angles, height, body = _initial_pose(tmp_path / "init.npz", skel)
+    angles, height, body = _initial_pose(tmp_path / "init.npz")
     np.testing.assert_allclose(angles, a.numpy(), atol=1e-6)
     assert height == pytest.approx(subject.height(), abs=1e-6)
     np.testing.assert_allclose(body.bone_lengths.numpy(), subject.bone_lengths.numpy(), atol=1e-6)
@@ -157,4 +157,4 @@ def test_a_body_of_other_dofs_in_an_initial_pose_file_is_refused(tmp_path, skel,
     rec.extra["body_urdf"] = np.asarray(text.replace(joint, joint.replace('type="revolute"', 'type="fixed"')))
     save_poses(rec, tmp_path / "init.npz")
     with pytest.raises(InputError, match="body_urdf.*other DOFs"):
-        _initial_pose(tmp_path / "init.npz", skel)
+        _initial_pose(tmp_path / "init.npz")

@@ -300,23 +300,28 @@ def test_background_from_a_track_file_is_the_room_where_the_subject_stood(standi
     plain = BackgroundModel.from_folder(folder)
     track = load_poses(_track_file(seq, tmp_path / "track.npz", first=2, body_urdf=body))
     refined = background_from_track(folder, track)
-    print(f"ghost pixels {int(ghost.sum())}, error plain {error(plain):.4f}")
     assert error(plain) > 0.15, error(plain)
     assert error(refined) < 0.02, (error(refined), error(plain))
     # the template scaled to the track's height draws nearly the same body
     scaled = background_from_track(folder, load_poses(_track_file(seq, tmp_path / "h.npz", first=2,
                                                                   subject_height_m=skeleton.height())))
-    print(f"error refined {error(refined):.4f}, scaled body {error(scaled):.4f}")
     assert error(scaled) < 0.05, error(scaled)
 
 
-def test_background_from_a_track_names_what_is_missing(standing_then_walking, tmp_path):
+def test_background_from_a_track_names_what_is_missing(standing_then_walking, tmp_path, caplog):
+    import logging
+
     from torchtrack.io.poses import load_poses
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.tracking.refine import background_from_track
 
     seq, bare = standing_then_walking
     folder = SequenceFolder(bare)
+    # a sequence with background/ frames: the estimate from the track replaces them, with a warning
+    short = load_poses(_track_file(seq, tmp_path / "short.npz", subject_height_m=1.75))
+    with caplog.at_level(logging.WARNING, logger="torchtrack.tracking.refine"):
+        background_from_track(SequenceFolder(seq), short)
+    assert "has background/ frames" in caplog.text
     nobody = load_poses(_track_file(seq, tmp_path / "nobody.npz"))
     with pytest.raises(InputError, match="nobody.npz: no subject body .field 'body_urdf'"):
         background_from_track(folder, nobody, source=str(tmp_path / "nobody.npz"))

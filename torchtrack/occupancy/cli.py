@@ -66,10 +66,6 @@ def _run(args: argparse.Namespace) -> int:
         from torchtrack.io.poses import load_poses
         from torchtrack.tracking.refine import background_from_track
 
-        if (folder.root / "background").is_dir():
-            log.warning("%s: has background/ frames; --background-from-track estimates it from the video instead",
-                        args.seq)
-
         bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, size_wh=(W, H),
                                    device=device, source=str(args.background_from_track))
     else:

@@ -119,29 +119,22 @@ def run(args: argparse.Namespace) -> int:
         return _run(args)
 
 
-def _initial_pose(path: Path, generic: Any) -> tuple[Any, float | None, Any]:
+def _initial_pose(path: Path) -> tuple[Any, float | None, Any]:
     """The first valid frame's state of the poses.npz ``path``, its subject height (``subject_height_m``) and
-    its subject's body (``body_urdf``, as ``torchtrack track`` writes it), each None where the file has none."""
+    its subject's body (``body_urdf``: :func:`~torchtrack.tracking.refine.track_body`), each None where the file
+    has none."""
     import numpy as np
 
     from torchtrack.checks import InputError
     from torchtrack.io.poses import load_poses
-    from torchtrack.skeleton import Skeleton
+    from torchtrack.tracking.refine import track_body
 
     poses = load_poses(path)
-    if list(poses.dof_names) != list(generic.dof_names):
-        raise InputError(f"{path}: dof_names do not match the body model's ({len(poses.dof_names)} vs "
-                         f"{len(generic.dof_names)} DOFs)")
+    body = track_body(poses, str(path))  # checks the DOFs of both
     ok = np.flatnonzero(poses.valid)
     if ok.size == 0:
         raise InputError(f"{path}: no valid frame to start from")
     height = poses.extra.get("subject_height_m")
-    body = None
-    if "body_urdf" in poses.extra:
-        body = Skeleton(str(poses.extra["body_urdf"]), source=f"{path}: body_urdf")
-        if body.dof_names != generic.dof_names:
-            raise InputError(f"{path}: field 'body_urdf' has other DOFs than the body model "
-                             f"({len(body.dof_names)} vs {len(generic.dof_names)})")
     return poses.angles[ok[0]], (float(height) if height is not None else None), body
 
 
@@ -185,17 +178,13 @@ def _run(args: argparse.Namespace) -> int:
         from torchtrack.io.poses import load_poses
         from torchtrack.tracking.refine import background_from_track
 
-        if (folder.root / "background").is_dir():
-            log.warning("%s: has background/ frames; --background-from-track estimates it from the video instead",
-                        args.seq)
-
         bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, rcfg, (W, H), device,
                                    source=str(args.background_from_track), blob_specs=tcfg.blobs)
     else:
         bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
-        angles, height, body = _initial_pose(args.init_pose, tracker.generic)
+        angles, height, body = _initial_pose(args.init_pose)
         angles = torch.as_tensor(angles, dtype=torch.float32, device=device)
         if body is not None and args.height is None:  # the file's own subject (e.g. an earlier run's fitted body)
             tracker.initialize_from_pose(angles, skeleton=body.to(device))

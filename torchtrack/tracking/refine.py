@@ -56,7 +56,8 @@ from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
 
 __all__ = ["RefineConfig", "background_from_track", "body_masks", "clearance_px", "clear_frame_masks",
-           "refined_background", "track_change_m", "track_with_background_refinement"]
+           "refined_background", "track_body", "track_change_m", "track_with_background_refinement",
+           "tracked_body"]
 
 log = logging.getLogger(__name__)
 
@@ -232,28 +233,40 @@ def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRi
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
 
 
-def tracked_body(poses: Poses, source: str = "poses") -> Skeleton:
-    """The subject's body of a track: its ``body_urdf`` (as ``torchtrack track`` writes it), else the body model
-    scaled to its ``subject_height_m``.
+def track_body(poses: Poses, source: str = "poses") -> Skeleton | None:
+    """The subject's body a track carries (``body_urdf``, as ``torchtrack track`` writes it), None where it has
+    none.
 
     Raises:
-        InputError: neither field, or a body or a state vector with other DOFs than the body model (named).
+        InputError: the track's state vectors (``dof_names``) or its body have other DOFs than the body model.
     """
     generic = Skeleton.from_urdf()
     if list(poses.dof_names) != list(generic.dof_names):
         raise InputError(f"{source}: field 'dof_names' has other DOFs than the body model ({len(poses.dof_names)} "
                          f"vs {len(generic.dof_names)})")
-    if "body_urdf" in poses.extra:
-        body = Skeleton(str(poses.extra["body_urdf"]), source=f"{source}: body_urdf")
-        if body.dof_names != generic.dof_names:
-            raise InputError(f"{source}: field 'body_urdf' has other DOFs than the body model "
-                             f"({len(body.dof_names)} vs {len(generic.dof_names)})")
+    if "body_urdf" not in poses.extra:
+        return None
+    body = Skeleton(str(poses.extra["body_urdf"]), source=f"{source}: body_urdf")
+    if body.dof_names != generic.dof_names:
+        raise InputError(f"{source}: field 'body_urdf' has other DOFs than the body model "
+                         f"({len(body.dof_names)} vs {len(generic.dof_names)})")
+    return body
+
+
+def tracked_body(poses: Poses, source: str = "poses") -> Skeleton:
+    """The subject's body of a track: :func:`track_body`, else the body model scaled to its ``subject_height_m``.
+
+    Raises:
+        InputError: neither field (or a NaN height: a run that fitted no subject), or other DOFs (named).
+    """
+    body = track_body(poses, source)
+    if body is not None:
         return body
     height = float(poses.extra.get("subject_height_m", float("nan")))
-    if not 0.5 <= height <= 2.5:  # NaN too: a run that fitted no subject
+    if not 0.5 <= height <= 2.5:
         raise InputError(f"{source}: no subject body (field 'body_urdf') and no usable height (field "
                          f"'subject_height_m': {height}) to draw the tracked body with")
-    return generic.scaled_to_height(height)
+    return Skeleton.from_urdf().scaled_to_height(height)
 
 
 def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: BackgroundConfig = BackgroundConfig(),
@@ -280,6 +293,9 @@ def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: Backg
             :meth:`BackgroundModel.from_sequence`.
     """
     skeleton = tracked_body(poses, source)
+    if (folder.root / "background").is_dir():
+        log.warning("%s: has background/ frames; the background is estimated from the video and the track "
+                    "instead", folder.root)
     index = np.asarray(poses.frame_index, np.int64)
     if index.size == 0:
         raise InputError(f"{source}: the track holds no frame")
@@ -296,11 +312,12 @@ def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: Backg
         rig = rig.to(device)
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device, size_wh=(W, H))
-    row = {int(t): i for i, t in enumerate(index.tolist())}
-    angles = torch.full((len(indices), skeleton.num_dofs), float("nan"))
-    for k, t in enumerate(indices):
-        if t in row:
-            angles[k] = torch.as_tensor(poses.angles[row[t]], dtype=torch.float32)
+    # each sampled frame's row of the track, by frame number (a gap or another order in the track is fine)
+    order = np.argsort(index, kind="stable")
+    at = np.minimum(np.searchsorted(index[order], indices), index.size - 1)
+    row = order[at]  # (N,)
+    held = index[row] == np.asarray(indices)
+    angles = torch.from_numpy(np.where(held[:, None], np.asarray(poses.angles, np.float32)[row], np.nan))
     return refined_background(frames, angles, rig, skeleton, bg_config, config, folder.camera_names,
                               BlobModel.from_config(skeleton, blob_specs))
 
