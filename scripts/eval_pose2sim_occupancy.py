@@ -5,7 +5,13 @@ The background is estimated from the moving sequence (there are no empty frames)
 parts painted out (``BackgroundConfig.fill_static_subject``; ``--no-fill`` to leave them). For every frame: the
 share of Pose2Sim's 21 reference keypoints that lie within --radius of an occupied voxel (P > 0.5), and the
 connected components of occupied voxels that hold no keypoint (the operator standing in the background of
-cam01/cam02 must not become one of human size). Writes a picture of the voxels projected on the four views.
+cam01/cam02 must not become one of human size). Writes a picture of the voxels projected on the four views, and
+one of the keypoints missed in the frames under 90 %: each missed keypoint's surroundings in the four views, the
+occupied voxels drawn over them, so whether the reference or the voxels are off can be seen.
+
+The defaults (frames at half the videos' size, 1 cm voxels, a 1 x 1 window) keep thin parts (toes, the head's
+top) within 5 cm; the README also quotes figures at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25
+--voxel 0.02 --window 3``), where those parts are missed more often.
 
 The grid's box is the floor region three cameras see (:func:`grid_from_rig` with ``min_views=3``; its box is
 conservative, the one for four cuts the swinging foot in 12 frames), and voxels that fewer than ``--min-views``
@@ -18,8 +24,8 @@ keypoint of every frame projects into all four images.
 instead (:func:`torchtrack.tracking.refine.background_from_track`; a track of the demo with its body, e.g.
 ``eval_pose2sim_tracking.py --init-from-reference --save-poses POSES``).
 
-Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.25] [--voxel 0.02] [--min-views 4]
-       [--picture PNG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES]
+Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.5] [--voxel 0.01] [--window 1] [--min-views 4]
+       [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES]
 """
 
 from __future__ import annotations
@@ -94,13 +100,56 @@ def picture(path: Path, folder: SequenceFolder, rig, centres: torch.Tensor, t: i
     cv2.imwrite(str(path), np.concatenate(tiles, axis=1), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
+def misses_picture(path: Path, folder: SequenceFolder, rig, voxels: list[torch.Tensor], names: list[str],
+                   ref: np.ndarray, misses: list[tuple[int, list[str]]], half: int = 40, zoom: int = 3) -> None:
+    """One row per missed keypoint of each frame in ``misses`` ((frame, names)): the four views' crops of 2 * half
+    pixels square around its projection, the frame's occupied voxel centres (``voxels``, (N, 3) each) drawn in
+    green, the other reference keypoints in blue and the missed one in red, enlarged ``zoom`` times."""
+    import cv2
+
+    W, H = (int(v) for v in rig.image_size_wh[0])
+    rows = []
+    for (t, missed), centres in zip(misses, voxels):
+        img = folder.read_frame(t, size_wh=(W, H))  # (C, 3, H, W)
+        uv_vox, ok_vox = rig.project(centres)
+        uv_kp, _ = rig.project(torch.from_numpy(ref[t]).float())  # (C, 21, 2)
+        for name in missed:
+            k = names.index(name)
+            tiles = []
+            for c in range(rig.num_cameras):
+                tile = np.ascontiguousarray((img[c].permute(1, 2, 0).numpy() * 255).astype(np.uint8)[..., ::-1])
+                uv = uv_vox[c][ok_vox[c]].round().long().numpy()
+                uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)]
+                mask = np.zeros((H, W), np.uint8)
+                mask[uv[:, 1], uv[:, 0]] = 1
+                mask = cv2.dilate(mask, np.ones((3, 3), np.uint8)).astype(bool)  # voxels are ~3 px apart
+                overlay = tile.copy()
+                overlay[mask] = (40, 230, 40)
+                tile = cv2.addWeighted(overlay, 0.4, tile, 0.6, 0)
+                u, v = uv_kp[c, k].tolist()
+                u0, v0 = int(np.clip(round(u), 0, W)), int(np.clip(round(v), 0, H))  # a full crop even off the image
+                crop = cv2.copyMakeBorder(tile, half, half, half, half, cv2.BORDER_CONSTANT)
+                crop = crop[v0:v0 + 2 * half, u0:u0 + 2 * half]  # centred on the keypoint (the border pads)
+                crop = cv2.resize(crop, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+                for j in range(len(names)):
+                    x, y = ((uv_kp[c, j] - uv_kp[c, k]).numpy() + half) * zoom
+                    if 0 <= x < crop.shape[1] and 0 <= y < crop.shape[0]:
+                        cv2.circle(crop, (int(x), int(y)), 4, (0, 0, 255) if j == k else (255, 120, 0), -1)
+                label = f"frame {t} {name} {rig.names[c]}"
+                cv2.putText(crop, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+                tiles.append(crop)
+            rows.append(np.concatenate(tiles, axis=1))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0), [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--demo", type=Path, default=DEMO)
-    ap.add_argument("--scale", type=float, default=0.25, help="processing resolution relative to the videos")
-    ap.add_argument("--voxel", type=float, default=0.02)
-    ap.add_argument("--radius", type=float, default=0.05)
-    ap.add_argument("--window", type=int, default=3)
+    ap.add_argument("--scale", type=float, default=0.5, help="processing resolution relative to the videos")
+    ap.add_argument("--voxel", type=float, default=0.01, help="voxel size (m)")
+    ap.add_argument("--radius", type=float, default=0.05, help="a keypoint is covered within this of a voxel centre")
+    ap.add_argument("--window", type=int, default=1, help="BayesConfig.window: k of the k x k sampling window")
     ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
                     help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
     ap.add_argument("--body-radius", type=float, default=0.15,
@@ -111,7 +160,10 @@ def main() -> None:
     ap.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                     help="re-estimate the background from the frames clearest of this track's body (a poses.npz of "
                          "the demo with its body, e.g. from eval_pose2sim_tracking.py --save-poses)")
-    ap.add_argument("--picture", type=Path, default=Path("docs/images/pose2sim_occupancy.jpg"))
+    ap.add_argument("--picture", type=Path, default=Path("docs/images/pose2sim_occupancy.jpg"),
+                    help="the worst frame's voxels projected on the four views")
+    ap.add_argument("--misses", type=Path, default=Path("docs/images/pose2sim_occupancy_misses.jpg"),
+                    help="the keypoints missed in the frames under 90 %% (the worst four), in the four views")
     args = ap.parse_args()
     torch.set_grad_enabled(False)
     names, ref = reference_keypoints(args.demo)  # (T, 21, 3)
@@ -137,7 +189,7 @@ def main() -> None:
         spec = grid_from_rig(rig, args.voxel, min_views=3)
         grid = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views))
         centres = spec.centres()
-        shares, phantoms, hits = [], [], []  # hits: (T, 21) keypoint within the radius
+        shares, phantoms, hits, distances = [], [], [], []  # hits, distances: (T, 21) keypoint to nearest voxel
         volumes, outside = [], []  # occupied m^3 per frame; share of the occupied voxels outside the body
         seg = np.array([[names.index(p), names.index(q)] for p, q in BODY_SEGMENTS])
         for s in range(0, frames.shape[0], 10):
@@ -145,8 +197,10 @@ def main() -> None:
             for i in range(occ.shape[0]):
                 t = s + i
                 pts = centres[occ[i]].numpy()
-                near = cKDTree(pts).query(ref[t])[0] <= args.radius if len(pts) else np.zeros(len(names), bool)
+                dist = cKDTree(pts).query(ref[t])[0] if len(pts) else np.full(len(names), np.inf)
+                near = dist <= args.radius
                 hits.append(near)
+                distances.append(dist)
                 volumes.append(len(pts) * args.voxel ** 3)
                 if len(pts):
                     far = distance_to_segments(pts, ref[t][seg[:, 0]], ref[t][seg[:, 1]]) > args.body_radius
@@ -163,6 +217,9 @@ def main() -> None:
         print(f"  keypoints within {args.radius * 100:.0f} cm of an occupied voxel: mean {shares_a.mean():.3f}, "
               f"worst frame {shares_a.min():.3f} (frame {int(shares_a.argmin())}), frames with >= 90 %: "
               f"{(shares_a >= 0.9).mean():.2f}")
+        for t in np.flatnonzero(shares_a < 0.9):
+            print(f"  frame {t} misses " + ", ".join(f"{names[k]} ({distances[t][k] * 100:.1f} cm)"
+                                                     for k in np.flatnonzero(~hits[t])))
         print("  per keypoint over frames: " + ", ".join(
             f"{n} {v:.2f}" for n, v in zip(names, np.mean(hits, axis=0))))
         print(f"  largest component without a keypoint: {largest:.2f} m across")
@@ -172,6 +229,12 @@ def main() -> None:
         occ = grid(frames[t:t + 1]).occupied()[0]
         picture(args.picture, folder, rig, centres[occ], t)
         print(f"  wrote {args.picture} (frame {t})")
+        worst = [int(t) for t in np.argsort(shares_a, kind="stable")[:4] if shares_a[t] < 0.9]
+        if worst:
+            misses = [(t, [names[k] for k in np.flatnonzero(~hits[t])]) for t in sorted(worst)]
+            voxels = [centres[grid(frames[t:t + 1]).occupied()[0]] for t, _ in misses]
+            misses_picture(args.misses, folder, rig, voxels, names, ref, misses)
+            print(f"  wrote {args.misses} (frames {', '.join(str(t) for t, _ in misses)})")
 
 
 if __name__ == "__main__":
