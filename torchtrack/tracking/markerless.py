@@ -39,7 +39,8 @@ from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
-from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton
+from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
+from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact, sole_heights
 from torchtrack.tracking.observation import VoxelObservation
@@ -61,6 +62,13 @@ REACQUIRED_FOOT_M = 0.1
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
+
+#: functional_hips: the thigh blobs whose axes locate the hips, and the joints (on the pelvis) they move. A shift
+#: larger than FUNCTIONAL_HIPS_MAX_M, or that would leave the pelvis shorter than a fifth of its length, is not
+#: made (something else went wrong: logged).
+THIGH_BLOBS, HIP_JOINTS, SPINE_JOINT = ("l_thigh", "r_thigh"), ("l_hip_flex", "r_hip_flex"), "spine_flex"
+HIP_FRAMES = ("l_thigh", "r_thigh")  # the hips' positions among JOINT_FRAMES
+FUNCTIONAL_HIPS_MAX_M = 0.08
 
 #: The neck's height on the torso is fitted on top of the torso's scale (which moves the neck and the shoulders
 #: together): subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
@@ -164,6 +172,17 @@ class TrackerConfig:
             stays wrong (with ``floor_contact`` the support foot's held goals are then lowered onto the floor).
             Nothing is held during initialisation's or re-acquisition's search, and after a re-acquisition a
             remembered foot farther than ``REACQUIRED_FOOT_M`` from the new pose's is let go.
+        functional_hips: move the hips, once, to where the thighs pivot (:mod:`torchtrack.tracking.functional`)
+            when each thigh's axes have gathered this much information (the sum over frames of its blob's fill
+            times sin^2 of the axis' angle off its mean; 0: off). The pelvis' origin rises with the hips (the
+            spine's joint on it comes down as much) and the thighs lengthen as much, so that the rest of the
+            body stays where it is; the tracked state moves its root up as much. Only for a body the tracker
+            fitted (automatic initialisation, or :meth:`MarkerlessTracker.initialize_from_pose` with a height),
+            not for a given skeleton. The frames tracked before are re-stated in the moved body by
+            :func:`~torchtrack.tracking.run.track_sequence` (:meth:`MarkerlessTracker.restate`).
+            functional_hips_min_cameras: the thighs' axes are learnt only from rigs of at least this many
+            cameras: the ghost volumes of four views bend the thigh blobs' axes (the kick with 4 cameras put the
+            hips 33-42 mm low where 8 put them 7 mm high; 24.8 -> 30.5 mm, README).
         rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
             straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
             axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
@@ -197,6 +216,8 @@ class TrackerConfig:
     hold_min_confidence: float = 0.3
     hold_max_step_m: float = 0.02
     rigid_trunk: bool = True
+    functional_hips: float = 8.0
+    functional_hips_min_cameras: int = 7
 
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
@@ -220,6 +241,9 @@ class TrackerConfig:
             raise InputError(f"TrackerConfig.hold_max_step_m must be > 0, got {self.hold_max_step_m}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
+        if not (self.functional_hips >= 0 and math.isfinite(self.functional_hips)):
+            raise InputError(f"TrackerConfig.functional_hips must be >= 0 and finite (0: off), got "
+                             f"{self.functional_hips}")
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any], source: str = "<config>") -> TrackerConfig:
@@ -310,6 +334,17 @@ class _Subject:
         return self
 
 
+def with_hips_raised(skeleton: Skeleton, dz_m: float) -> Skeleton:
+    """The body with its hips ``dz_m`` higher on the trunk (``functional_hips``): the pelvis' origin, which the
+    hips sit on, moved up by ``dz_m`` along its z axis, the spine's joint on it down as much and the thighs
+    ``dz_m`` longer. A state whose root is moved up as much (:meth:`MarkerlessTracker.restate`) puts the trunk,
+    arms, head, knees and feet where the body's old state put them."""
+    spine = skeleton.joint_origin(SPINE_JOINT)
+    lengths = dict(zip(skeleton.bone_names, skeleton.bone_lengths.tolist()))
+    return skeleton.with_joint_origins({SPINE_JOINT: (spine[0], spine[1], spine[2] - dz_m)}).with_bone_lengths(
+        {b: lengths[b] + dz_m for b in THIGH_BLOBS})
+
+
 def _unwrap(angle: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     return angle + 2 * math.pi * torch.round((reference - angle) / (2 * math.pi))
 
@@ -336,6 +371,11 @@ class MarkerlessTracker:
         # hold_lost_feet: each foot's ankle and toe where last observed, and whether they were still then
         self.feet_seen: torch.Tensor | None = None  # (2, 2, 3)
         self.feet_still: torch.Tensor | None = None  # (2, 2) bool
+        # functional_hips: the thighs' axes gathered so far (None: not, or no longer, learning the hips), and
+        # the root shift (m, along the pelvis' z) each move of the hips made: the body's version is their count
+        self.hips: AxisPivot | None = None
+        self.hip_shifts: list[float] = []
+        self.bodies: list[Skeleton] = []  # the subject's body before each move
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -362,6 +402,7 @@ class MarkerlessTracker:
             self._setup(height_m, angles.device)
         else:
             self._use(skeleton.to(angles.device))
+        self._start_hips(learn=skeleton is None)
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
@@ -394,6 +435,7 @@ class MarkerlessTracker:
             self.lost = 0
             raise
         self._remember_feet()
+        self._start_hips(learn=True)
         return res
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
@@ -781,7 +823,89 @@ class MarkerlessTracker:
         self.previous, self.angles = self.angles, res.angles
         self.colour = res.blobs  # the colour model follows accepted frames only
         self._update_feet(res)
+        if self.hips is not None and obs.cameras_valid.numel() >= self.config.functional_hips_min_cameras:
+            self._learn_hips(res)
         return res
+
+    # ------------------------------------------------------------------------------------ functional hips
+    @property
+    def body_version(self) -> int:
+        """How many times the subject's body has been changed since initialisation (``functional_hips``)."""
+        return len(self.hip_shifts)
+
+    def _start_hips(self, learn: bool) -> None:
+        self.hip_shifts, self.bodies = [], []
+        self.hips = AxisPivot(2, device=self.subject.skeleton.lower.device) if (
+            learn and self.config.functional_hips > 0) else None
+
+    def _learn_hips(self, res: FrameResult) -> None:
+        """Add the frame's thigh axes; once both thighs' information reaches ``functional_hips``, move the hips
+        to their functional centres (:mod:`torchtrack.tracking.functional`) and stop learning."""
+        sub = self.subject
+        k = [sub.blobs.names.index(n) for n in THIGH_BLOBS]
+        blobs = res.blobs
+        weights = blobs.active[k].to(blobs.fill) * blobs.fill[k].clamp(0, 1)
+        self.hips.add(res.bone_frames[sub.skeleton.bone_names.index("pelvis")], blobs.mean[k], blobs.cov[k],
+                      weights)
+        if not bool((self.hips.information() >= self.config.functional_hips).all()):
+            return
+        skel = sub.skeleton
+        hips_z = torch.tensor([skel.joint_origin(j)[2] for j in HIP_JOINTS], dtype=self.hips.rhs.dtype)
+        centres = self.hips.centres().cpu()
+        dz = float((centres[:, 2] - hips_z).mean())
+        self.hips = None
+        spine = skel.joint_origin(SPINE_JOINT)
+        if abs(dz) > FUNCTIONAL_HIPS_MAX_M or spine[2] - dz < 0.2 * spine[2]:
+            log.warning("functional hips: the thighs pivot %.0f mm from the fitted hips; the body is left as "
+                        "fitted", 1e3 * dz)
+            return
+        log.info("functional hips: the thighs pivot %.0f mm above the fitted hips (left %.0f, right %.0f); the hips "
+                 "and the pelvis' origin are moved up, the thighs lengthened", 1e3 * dz,
+                 *(1e3 * (centres[:, 2] - hips_z)).tolist())
+        self.move_hips(dz)
+
+    def move_hips(self, dz_m: float) -> None:
+        """Raise the subject's hips by ``dz_m`` on its trunk (:func:`with_hips_raised`; a new
+        :attr:`body_version`), the tracked state re-stated in the new body (:meth:`restate`)."""
+        skel = self.subject.skeleton
+        self.bodies.append(skel)
+        self._use(with_hips_raised(skel, dz_m).to(skel.lower.device))
+        self.hip_shifts.append(float(dz_m))
+        self.angles, self.previous = (None if a is None else self.restate(a[None], self.body_version - 1)[0]
+                                      for a in (self.angles, self.previous))
+
+    def restate(self, angles: torch.Tensor, version: int | torch.Tensor = 0) -> torch.Tensor:
+        """State vectors of the subject's body as it was at ``version`` (:attr:`body_version`) in its current
+        body (``functional_hips``): the root (the pelvis' origin) moved up along the pelvis' z axis as the hips
+        were, which keeps the trunk, arms and head where they were, then CCD (the tracker's) towards the joints
+        the body of that version put there but the hips, which bends the longer thighs back onto the knees and
+        the feet (exactly where the thigh is straight under the hip, within a few mm otherwise). A NaN state
+        stays NaN.
+
+        Args:
+            angles: (N, D). version: one version, or (N,) per state.
+        """
+        check_shape(angles, ("N", self.generic.num_dofs), "angles")
+        V = self.body_version
+        since = torch.tensor([sum(self.hip_shifts[v:]) for v in range(V + 1)], dtype=angles.dtype,
+                             device=angles.device)  # (V + 1,) how far the hips moved since each version
+        version = torch.as_tensor(version, device=angles.device).expand(angles.shape[0]).clamp(0, V)  # (N,)
+        dz = since[version]  # (N,)
+        names = self.generic.dof_names
+        rot = root_rotation_matrix(angles[:, [names.index(n) for n in ("root_rz", "root_ry", "root_rx")]])
+        out = angles.clone()
+        t = [names.index(n) for n in ("root_tx", "root_ty", "root_tz")]
+        out[:, t] = angles[:, t] + rot[:, :, 2] * dz[:, None]
+        sub = self.subject
+        goal_w = torch.tensor([0.0 if j in HIP_FRAMES else 1.0 for j in CCD_GOALS], dtype=angles.dtype,
+                              device=angles.device)
+        finite = torch.isfinite(angles).all(1)
+        for v in range(V):
+            sel = (version == v) & finite
+            if bool(sel.any()):
+                old = self.bodies[v].to(angles.device).forward(angles[sel]).joints[:, sub.ccd_goal_index]
+                out[sel] = sub.ccd(out[sel], old, goal_w)
+        return out
 
     @staticmethod
     def _fit_cost(res: FrameResult) -> float:

@@ -59,6 +59,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     residual = np.full(T, np.nan, np.float32)
     explained = np.zeros(T, np.float32)
     reinit = np.zeros(T, bool)
+    version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
     t_start = time.perf_counter()
     keep = log_every if logger is not None else 0
     stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
@@ -79,6 +80,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 t1 = time.perf_counter()
                 t = int(fb.frame_index[i])
                 k = t - start
+                version[k] = tracker.body_version
                 if not bool(fb.valid[i].all()):  # a corrupt or missing camera frame: not tracked
                     bad = [n for n, ok in zip(rig.names, fb.valid[i].tolist()) if not ok]
                     log.warning("frame %d: unreadable frame from camera(s) %s; marked invalid", t, ", ".join(bad))
@@ -104,6 +106,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                     _log_frame(logger, t, obs, res, fb.images[i], rig, dt, t_obs)
                 bar.update(1)
                 bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
+    restate(tracker, angles, joints3d, version)
     elapsed = time.perf_counter() - t_start
     extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
              "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
@@ -114,6 +117,21 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                   joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
                   confidence=confidence, extra=extra)
     return poses, elapsed
+
+
+def restate(tracker: MarkerlessTracker, angles: np.ndarray, joints3d: np.ndarray, version: np.ndarray) -> None:
+    """In place: the frames tracked in an earlier version of the subject's body (``version (T,)``, the tracker's
+    :attr:`~MarkerlessTracker.body_version` then) re-stated in its final body (``functional_hips``), their output
+    points recomputed from it."""
+    redo = (version < tracker.body_version) & np.isfinite(angles).all(1)
+    if tracker.subject is None or not redo.any():
+        return
+    skel = tracker.subject.skeleton
+    dev = skel.lower.device
+    a = tracker.restate(torch.from_numpy(angles[redo]).to(dev, skel.lower.dtype),
+                        torch.from_numpy(version[redo]).to(dev))
+    angles[redo] = a.cpu().numpy()
+    joints3d[redo] = skel.forward(a).output_points.cpu().numpy()
 
 
 def _log_frame(tb, t: int, obs, res, images: torch.Tensor | None, rig, dt: float, t_obs: float) -> None:
