@@ -216,7 +216,7 @@ class TrackerConfig:
     hold_min_confidence: float = 0.3
     hold_max_step_m: float = 0.02
     rigid_trunk: bool = True
-    functional_hips: float = 8.0
+    functional_hips: float = 5.0
     functional_hips_min_cameras: int = 7
 
     def __post_init__(self) -> None:
