@@ -92,10 +92,20 @@ def test_raised_hips_keep_the_rest_of_the_body_where_it_was(skel):
     assert float(err[:, legs].max()) < 8e-3  # the thighs are dz longer: off by dz (1 - cos flexion)
     thigh = skel.bone_names.index("l_thigh")
     assert float(moved.bone_lengths[thigh]) == pytest.approx(float(skel.bone_lengths[thigh]) + dz, abs=1e-6)
-    # the tracked state moved with the body; a state already in it is left as it is, and NaN stays NaN
+    # the tracked state and the one before it moved with the body; a state already in it is left as it is, and
+    # NaN stays NaN
     np.testing.assert_allclose(tracker.angles.numpy(), tracker.restate(angles[:1], 0)[0].numpy(), atol=1e-6)
+    np.testing.assert_allclose(tracker.previous.numpy(), tracker.restate(angles[:1], 0)[0].numpy(), atol=1e-6)
     np.testing.assert_array_equal(tracker.restate(angles, 1).numpy(), angles.numpy())
     assert torch.isnan(tracker.restate(torch.full_like(angles[:1], math.nan), 0)).all()
+    # a second move: a state of version 0 takes both, one of version 1 the second only
+    tracker.move_hips(0.01)
+    for version, total in ((0, dz + 0.01), (1, 0.01)):
+        base = skel.forward(angles) if version == 0 else moved.forward(angles)
+        again = tracker.subject.skeleton.forward(tracker.restate(angles, torch.full((6,), version)))
+        np.testing.assert_allclose(again.output_points[:, hips].numpy(),
+                                   (base.output_points[:, hips] + total * up[:, None]).numpy(), atol=1e-5)
+        assert float((again.output_points - base.output_points).norm(dim=-1)[:, rest].max()) < 1e-5
 
 
 def _thigh_swing(skel: Skeleton, frames: int) -> torch.Tensor:
@@ -177,11 +187,14 @@ def test_functional_hips_setting_is_checked():
 
     with pytest.raises(InputError, match="functional_hips"):
         TrackerConfig(functional_hips=-1)
+    with pytest.raises(InputError, match="functional_hips_min_cameras"):
+        TrackerConfig(functional_hips_min_cameras=-1)
 
 
 def test_a_tracked_sequence_is_restated_in_the_moved_body(tmp_path):
-    """Frames tracked before the hips moved come out in the final body: their state vectors, put through the
-    output's body (``body_urdf``), give the output points (which fails where they are left in the old body)."""
+    """Frames tracked before the hips moved come out in the final body: their trunk, arms and head where they were
+    tracked, the pelvis and hips raised by the move, the legs within a few cm of the tracked ones (the thighs are
+    longer); their state vectors, put through the output's body (``body_urdf``), give the output points."""
     import dataclasses
 
     from torchtrack.background import BackgroundModel
@@ -199,8 +212,32 @@ def test_a_tracked_sequence_is_restated_in_the_moved_body(tmp_path):
     config = dataclasses.replace(TrackerConfig.from_dict(load_config("markerless.yaml")["tracker"]),
                                  functional_hips=0.2, functional_hips_min_cameras=4)  # a short 4-camera walk
     tracker = MarkerlessTracker(Skeleton.from_urdf(), config)
+    tracked, versions = [], []  # each frame's output points and pelvis as the tracker gave them
+    step = tracker.step
+
+    def recording_step(obs):
+        versions.append(tracker.body_version)
+        res = step(obs)
+        tracked.append((res.output_points.numpy().copy(), res.bone_frames[0, :3, 2].numpy().copy()))
+        return res
+
+    tracker.step = recording_step
     poses, _ = track_sequence(folder, observer, tracker, progress=False)
     assert tracker.body_version == 1 and poses.valid.all()
+    before = np.array(versions) == 0
+    assert 0 < before.sum() < len(versions)  # the move came mid-sequence
+    names = list(tracker.generic.output_names)
+    hips = [names.index(n) for n in ("pelvis", "l_hip", "r_hip")]
+    legs = [names.index(n) for n in ("l_knee", "l_ankle", "l_toe", "r_knee", "r_ankle", "r_toe")]
+    rest = [i for i in range(len(names)) if i not in hips + legs]
+    points = np.stack([p for p, _ in tracked])
+    up = np.stack([z for _, z in tracked])  # (T, 3) the pelvis' z axis (bone frame 0: the pelvis)
+    dz = tracker.hip_shifts[0]
+    np.testing.assert_allclose(poses.joints3d[:, rest], points[:, rest], atol=1e-4)
+    assert float(np.linalg.norm(poses.joints3d[:, legs] - points[:, legs], axis=-1).max()) < 0.5 * abs(dz) + 0.005
+    np.testing.assert_allclose(poses.joints3d[before][:, hips], points[before][:, hips] + dz * up[before][:, None],
+                               atol=1e-4)
+    np.testing.assert_allclose(poses.joints3d[~before], points[~before], atol=1e-6)
     body = Skeleton(str(poses.extra["body_urdf"]))
-    points = body.forward(torch.from_numpy(poses.angles)).output_points.numpy()
-    np.testing.assert_allclose(points, poses.joints3d, atol=1e-4)
+    fk = body.forward(torch.from_numpy(poses.angles)).output_points.numpy()
+    np.testing.assert_allclose(fk, poses.joints3d, atol=1e-4)

@@ -477,7 +477,7 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
     folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
-    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0,
+    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
                               subject=SimpleNamespace(skeleton=skel, blobs=None),
                               initialize_from_pose=lambda *a, **k: None)
     observer = SimpleNamespace(rig=_rig())
@@ -501,3 +501,44 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     assert len(calls) == 6 and calls[-1] is logger
     with pytest.raises(InputError, match="min_change_m"):
         RefineConfig(min_change_m=-1.0)
+
+
+def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
+    """A tracker started from a height learns its hips in the first pass (functional_hips); the later passes
+    start from the same state re-stated in the moved body, not from the body before the move."""
+    from types import SimpleNamespace
+
+    from torchtrack.tracking import refine
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+
+    T = 8
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    start = skel.rest_angles(0.9)
+    tracker.initialize_from_pose(start, height_m=skel.height())
+    starts = []
+    init = tracker.initialize_from_pose
+
+    def recording_init(angles, height_m=None, *, skeleton=None, floor_z_m=None):
+        starts.append((angles.clone(), skeleton))
+        init(angles, height_m, skeleton=skeleton, floor_z_m=floor_z_m)
+
+    def fake_track(*args, **kwargs):
+        if not starts:  # the first pass moves the hips
+            tracker.move_hips(0.03)
+        return _poses_at(np.zeros((T, 16, 3)), np.ones(T, bool), skel), 1.0
+
+    tracker.initialize_from_pose = recording_init
+    monkeypatch.setattr(refine, "track_sequence", fake_track)
+    monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
+    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+                             sample_frames=lambda *a, **k: (list(range(T)), None))
+    observer = SimpleNamespace(rig=_rig())
+    refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker,
+                                            RefineConfig(passes=2, min_change_m=0.0), BackgroundConfig())
+    assert len(starts) == 2
+    moved_up = start.clone()
+    moved_up[2] += 0.03  # upright: the pelvis' z axis is the world's
+    for angles, body in starts:
+        assert body is not skel and body.joint_origin("spine_flex")[2] == pytest.approx(
+            skel.joint_origin("spine_flex")[2] - 0.03)
+        np.testing.assert_allclose(angles.numpy(), moved_up.numpy(), atol=1e-5)

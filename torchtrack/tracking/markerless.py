@@ -224,6 +224,9 @@ class TrackerConfig:
     def __post_init__(self) -> None:
         if self.refinements < 1 or self.lost_frames < 1 or self.init_passes < 1:
             raise InputError("TrackerConfig: refinements, lost_frames and init_passes must be >= 1")
+        if self.functional_hips_min_cameras < 0:
+            raise InputError(f"TrackerConfig.functional_hips_min_cameras must be >= 0, got "
+                             f"{self.functional_hips_min_cameras}")
         if self.ghost_max_cameras < 0:
             raise InputError(f"TrackerConfig.ghost_max_cameras must be >= 0, got {self.ghost_max_cameras}")
         if not 0.0 <= self.ghost_weight <= 1.0:
@@ -340,7 +343,10 @@ def with_hips_raised(skeleton: Skeleton, dz_m: float) -> Skeleton:
     """The body with its hips ``dz_m`` higher on the trunk (``functional_hips``): the pelvis' origin, which the
     hips sit on, moved up by ``dz_m`` along its z axis, the spine's joint on it down as much and the thighs
     ``dz_m`` longer. A state whose root is moved up as much (:meth:`MarkerlessTracker.restate`) puts the trunk,
-    arms, head, knees and feet where the body's old state put them."""
+    arms and head where the body's old state put them, and the knees and feet too where the thighs hang straight.
+    The blobs follow the bones: the thigh blobs grow with the thighs, and the pelvis blob, whose extent along the
+    trunk is a share of the pelvis' length (to the spine's joint), shrinks (dz 46 mm: its semi-axis 126 -> 66
+    mm); the pelvis keeps at least a fifth of its length (FUNCTIONAL_HIPS_MAX_M)."""
     spine = skeleton.joint_origin(SPINE_JOINT)
     lengths = dict(zip(skeleton.bone_names, skeleton.bone_lengths.tolist()))
     return skeleton.with_joint_origins({SPINE_JOINT: (spine[0], spine[1], spine[2] - dz_m)}).with_bone_lengths(
@@ -434,6 +440,7 @@ class MarkerlessTracker:
             res = self._initialize(obs)
         except InputError:
             self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
+            self.hips, self.hip_shifts, self.bodies = None, [], []
             self.lost = 0
             raise
         self._remember_feet()
@@ -880,9 +887,10 @@ class MarkerlessTracker:
         """State vectors of the subject's body as it was at ``version`` (:attr:`body_version`) in its current
         body (``functional_hips``): the root (the pelvis' origin) moved up along the pelvis' z axis as the hips
         were, which keeps the trunk, arms and head where they were, then CCD (the tracker's) towards the joints
-        the body of that version put there but the hips, which bends the longer thighs back onto the knees and
-        the feet (exactly where the thigh is straight under the hip, within a few mm otherwise). A NaN state
-        stays NaN.
+        the body of that version put there but the hips, which bends the longer thighs back towards the knees
+        and the feet: exactly where the thigh hangs straight under the hip, off by about dz (1 - cos flexion)
+        otherwise (a longer thigh from a higher hip cannot reach a flexed knee: 14 mm at 1 rad for dz 3 cm, 30 mm
+        at 1.6 rad). A NaN state stays NaN.
 
         Args:
             angles: (N, D). version: one version, or (N,) per state.

@@ -381,6 +381,9 @@ def track_with_background_refinement(
                                                        size_wh=(W, H))
             k = np.asarray(indices) - start
             angles = torch.as_tensor(poses.angles[k])  # a lost frame: the pose the tracker held for it
+            if p == 1 and start_state is not None and tracker.body_version:
+                # the first pass moved the given start's hips (TrackerConfig.functional_hips): start in that body
+                start_state = (tracker.restate(start_state[0][None], 0)[0], tracker.subject.skeleton, start_state[2])
             if start_state is None:
                 first = int(np.flatnonzero(poses.valid)[0])
                 start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton,
