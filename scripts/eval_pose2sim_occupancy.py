@@ -80,22 +80,36 @@ def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np
     return np.linalg.norm(points[:, None] - nearest, axis=-1).min(1)
 
 
-def picture(path: Path, folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> None:
-    """The four views of frame ``t`` at the processing size with the occupied voxel centres drawn on them."""
+def voxel_views(folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> list[np.ndarray]:
+    """The four views of frame ``t`` at the rig's size as BGR uint8 images, the occupied voxel centres
+    ``(N, 3)`` projected and painted green over them (each centre's pixel grown by one: 1 cm voxels at half size
+    are about 3 px apart)."""
     import cv2
 
     W, H = (int(v) for v in rig.image_size_wh[0])
     img = folder.read_frame(t, size_wh=(W, H))  # (C, 3, H, W)
-    uv, valid = rig.project(centres)
+    uv, valid = rig.project(centres)  # (C, N, 2), (C, N)
     tiles = []
     for c in range(rig.num_cameras):
         tile = np.ascontiguousarray((img[c].permute(1, 2, 0).numpy() * 255).astype(np.uint8)[..., ::-1])
+        px = uv[c][valid[c]].round().long().numpy()
+        px = px[(px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)]
+        mask = np.zeros((H, W), np.uint8)
+        mask[px[:, 1], px[:, 0]] = 1
+        mask = cv2.dilate(mask, np.ones((3, 3), np.uint8)).astype(bool)
         overlay = tile.copy()
-        for u, v in uv[c][valid[c]].round().long().tolist():
-            cv2.circle(overlay, (u, v), 1, (40, 230, 40), -1)
-        tile = cv2.addWeighted(overlay, 0.6, tile, 0.4, 0)
-        cv2.putText(tile, rig.names[c], (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(tile)
+        overlay[mask] = (40, 230, 40)
+        tiles.append(cv2.addWeighted(overlay, 0.5, tile, 0.5, 0))
+    return tiles
+
+
+def picture(path: Path, folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> None:
+    """The four views of frame ``t`` at the processing size with the occupied voxel centres drawn on them."""
+    import cv2
+
+    tiles = voxel_views(folder, rig, centres, t)
+    for tile, name in zip(tiles, rig.names):
+        cv2.putText(tile, name, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.concatenate(tiles, axis=1), [cv2.IMWRITE_JPEG_QUALITY, 85])
 
@@ -110,26 +124,16 @@ def misses_picture(path: Path, folder: SequenceFolder, rig, voxels: list[torch.T
     W, H = (int(v) for v in rig.image_size_wh[0])
     rows = []
     for (t, missed), centres in zip(misses, voxels):
-        img = folder.read_frame(t, size_wh=(W, H))  # (C, 3, H, W)
-        uv_vox, ok_vox = rig.project(centres)
+        views = [cv2.copyMakeBorder(v, half, half, half, half, cv2.BORDER_CONSTANT)  # crops off the image pad
+                 for v in voxel_views(folder, rig, centres, t)]
         uv_kp, _ = rig.project(torch.from_numpy(ref[t]).float())  # (C, 21, 2)
         for name in missed:
             k = names.index(name)
             tiles = []
-            for c in range(rig.num_cameras):
-                tile = np.ascontiguousarray((img[c].permute(1, 2, 0).numpy() * 255).astype(np.uint8)[..., ::-1])
-                uv = uv_vox[c][ok_vox[c]].round().long().numpy()
-                uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)]
-                mask = np.zeros((H, W), np.uint8)
-                mask[uv[:, 1], uv[:, 0]] = 1
-                mask = cv2.dilate(mask, np.ones((3, 3), np.uint8)).astype(bool)  # voxels are ~3 px apart
-                overlay = tile.copy()
-                overlay[mask] = (40, 230, 40)
-                tile = cv2.addWeighted(overlay, 0.4, tile, 0.6, 0)
+            for c, view in enumerate(views):
                 u, v = uv_kp[c, k].tolist()
                 u0, v0 = int(np.clip(round(u), 0, W)), int(np.clip(round(v), 0, H))  # a full crop even off the image
-                crop = cv2.copyMakeBorder(tile, half, half, half, half, cv2.BORDER_CONSTANT)
-                crop = crop[v0:v0 + 2 * half, u0:u0 + 2 * half]  # centred on the keypoint (the border pads)
+                crop = view[v0:v0 + 2 * half, u0:u0 + 2 * half]  # centred on the keypoint
                 crop = cv2.resize(crop, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
                 for j in range(len(names)):
                     x, y = ((uv_kp[c, j] - uv_kp[c, k]).numpy() + half) * zoom

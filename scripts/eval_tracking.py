@@ -14,6 +14,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --outside            # the voxels' share outside the body
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --oracle-margin 0.04 # ghosts removed by the truth
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 4 --models hull --fit-rounds 10
+    .venv/bin/python scripts/eval_tracking.py --cameras 8 --hips     # where the thighs pivot (functional_hips)
 """
 
 from __future__ import annotations
@@ -172,6 +173,26 @@ def trunk_errors(poses, truth, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarr
     return tilt, at_limit
 
 
+def hips_outcome(tracker: MarkerlessTracker, cameras: int) -> str:
+    """--hips: what the functional hips did on a tracked sequence."""
+    cfg = tracker.config
+    if tracker.hip_estimate is not None:
+        above, info = (1e3 * tracker.hip_estimate[0]).tolist(), tracker.hip_estimate[1].tolist()
+        done = (f"moved up {1e3 * tracker.hip_shifts[0]:.1f} mm" if tracker.hip_shifts
+                else "not moved (a move up of at most FUNCTIONAL_HIPS_MAX_M is made)")
+        return (f"hips: the thighs pivot {above[0]:.0f} / {above[1]:.0f} mm above the fitted hips (information "
+                f"{info[0]:.1f} / {info[1]:.1f}): {done}")
+    if cfg.functional_hips <= 0:
+        return "hips: functional_hips off"
+    if cameras < cfg.functional_hips_min_cameras:
+        return f"hips: not learnt ({cameras} cameras < functional_hips_min_cameras {cfg.functional_hips_min_cameras})"
+    if tracker.hips is None:
+        return "hips: not learnt (a given body)"
+    info = tracker.hips.information().tolist()
+    return (f"hips: the thighs gathered information {info[0]:.1f} / {info[1]:.1f} of the {cfg.functional_hips:g} "
+            "needed: not moved")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--motions", nargs="+", default=list(MOTIONS))
@@ -199,6 +220,10 @@ def main() -> None:
     ap.add_argument("--oracle-margin", type=float, default=None, metavar="M",
                     help="diagnostic: leave out the voxels outside the rendered body grown by M metres (tracking "
                          "without ghosts)")
+    ap.add_argument("--hips", action="store_true",
+                    help="also print the functional hips' outcome (TrackerConfig.functional_hips): each thigh's "
+                         "pivot above the fitted hip and its information, or the information gathered when no "
+                         "estimate was made; and the hips' and pelvis' errors")
     ap.add_argument("--fit-rounds", type=int, default=0, metavar="N",
                     help="diagnostic, instead of tracking: N rounds of the bone fit on the first frame's voxels at "
                          "the true pose, its ridge towards the start and towards each round's body")
@@ -242,6 +267,10 @@ def main() -> None:
                 if args.outside:
                     print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
                           f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)
+                if args.hips:
+                    print("    " + hips_outcome(tracker, cams) + "; error (mm): " + ", ".join(
+                        f"{n} {e:.1f}" for e, n in zip(rep.per_landmark_mm, rep.landmark_names)
+                        if n in ("pelvis", "l_hip", "r_hip")), flush=True)
                 if args.proportions and tracker.subject is not None:
                     fit = tracker.subject.skeleton.proportions()
                     true = Skeleton.from_urdf(seq / "body.urdf").proportions()

@@ -118,56 +118,52 @@ def _thigh_swing(skel: Skeleton, frames: int) -> torch.Tensor:
     return skel.clamp(a)
 
 
-@pytest.mark.parametrize("dz", [0.03, 0.012])
-def test_the_tracker_moves_its_hips_to_where_the_thighs_pivot(skel, dz):
-    body = skel
+def _shown_moved_hips(body: Skeleton, dz: float) -> tuple[MarkerlessTracker, torch.Tensor, Skeleton, int]:
+    """A tracker learning the hips of ``body`` (as for a body it fitted) shown, frame after frame of a thigh
+    swing, the blobs of the subject's true body, whose hips are ``dz`` higher, until it stops learning.
+
+    Returns:
+        the tracker, the true body's state vectors (T, D), the true body and the last frame shown.
+    """
     config = TrackerConfig(functional_hips=2.0)
     tracker = MarkerlessTracker(Skeleton.from_urdf(), config)
     angles = _thigh_swing(body, 40)
     tracker.initialize_from_pose(angles[0], skeleton=body)
     tracker._start_hips(learn=True)  # as for a body the tracker fitted (a given skeleton is not learnt)
-    # the subject's true body has its hips dz higher: its blobs, seen while the fitted body is tracked
     true = with_hips_raised(body, dz)
-    blobs = BlobModel(true, *load_blob_specs(config.blobs))
-    true_angles = angles.clone()
-    true_angles[:, :3] += dz * body.forward(angles).bone_frames[:, body.bone_names.index("pelvis"), :3, 2]
-    means, covs = blobs.gaussians(true.forward(true_angles).bone_frames)
-    frames = body.forward(angles).bone_frames
+    frames = body.forward(angles).bone_frames  # the fitted body, tracked at the same states
+    true_angles = angles.clone()  # the true body's states: the same trunk, the pelvis dz higher
+    true_angles[:, :3] += dz * frames[:, body.bone_names.index("pelvis"), :3, 2]
+    means, covs = BlobModel(true, *load_blob_specs(config.blobs)).gaussians(true.forward(true_angles).bone_frames)
     for t in range(angles.shape[0]):
-        res = FrameResult(angles[t], torch.zeros(1, 3), torch.ones(1), True, 0.0, 1.0, False,
-                          prior_blobs(means[t], covs[t]), frames[t])
         tracker.angles = tracker.previous = angles[t]
-        tracker._learn_hips(res)
-        if tracker.body_version:
+        tracker._learn_hips(FrameResult(angles[t], torch.zeros(1, 3), torch.ones(1), True, 0.0, 1.0, False,
+                                        prior_blobs(means[t], covs[t]), frames[t]))
+        if tracker.hips is None:
             break
-    assert tracker.body_version == 1 and tracker.hips is None  # moved once, then no longer learning
+    return tracker, true_angles, true, t
+
+
+@pytest.mark.parametrize("dz", [0.03, 0.012])
+def test_the_tracker_moves_its_hips_to_where_the_thighs_pivot(skel, dz):
+    tracker, true_angles, true, t = _shown_moved_hips(skel, dz)
+    assert tracker.body_version == 1  # moved once, then no longer learning
     assert tracker.hip_shifts[0] == pytest.approx(dz, abs=2e-3)
+    above, information = tracker.hip_estimate
+    np.testing.assert_allclose(above.numpy(), [dz, dz], atol=3e-3)
+    assert bool((information >= 2.0).all())
     # the tracked state's hips now sit on the true ones
-    hips = [list(body.output_names).index(n) for n in ("pelvis", "l_hip", "r_hip")]
+    hips = [list(skel.output_names).index(n) for n in ("pelvis", "l_hip", "r_hip")]
     np.testing.assert_allclose(tracker.subject.skeleton.forward(tracker.angles[None]).output_points[0, hips].numpy(),
                                true.forward(true_angles[t:t + 1]).output_points[0, hips].numpy(), atol=3e-3)
 
 
 def test_a_pivot_below_the_fitted_hips_leaves_the_body(skel, caplog):
     """The bone fit's bias runs up: thighs that seem to pivot under the fitted hips are the axes' error."""
-    body = skel
-    config = TrackerConfig(functional_hips=2.0)
-    tracker = MarkerlessTracker(Skeleton.from_urdf(), config)
-    angles = _thigh_swing(body, 40)
-    tracker.initialize_from_pose(angles[0], skeleton=body)
-    tracker._start_hips(learn=True)
-    lower = with_hips_raised(body, -0.03)
-    true_angles = angles.clone()
-    true_angles[:, :3] -= 0.03 * body.forward(angles).bone_frames[:, body.bone_names.index("pelvis"), :3, 2]
-    means, covs = BlobModel(lower, *load_blob_specs(config.blobs)).gaussians(lower.forward(true_angles).bone_frames)
-    frames = body.forward(angles).bone_frames
     with caplog.at_level("WARNING", logger="torchtrack.tracking.markerless"):
-        for t in range(angles.shape[0]):
-            if tracker.hips is None:
-                break
-            tracker._learn_hips(FrameResult(angles[t], torch.zeros(1, 3), torch.ones(1), True, 0.0, 1.0, False,
-                                            prior_blobs(means[t], covs[t]), frames[t]))
-    assert tracker.hips is None and tracker.body_version == 0 and tracker.subject.skeleton is body
+        tracker, _, _, _ = _shown_moved_hips(skel, -0.03)
+    assert tracker.body_version == 0 and tracker.subject.skeleton is skel
+    np.testing.assert_allclose(tracker.hip_estimate[0].numpy(), [-0.03, -0.03], atol=3e-3)
     assert "-30 mm above the fitted hips" in caplog.text
 
 

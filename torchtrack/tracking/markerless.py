@@ -66,7 +66,8 @@ BONE_GROUPS: tuple[tuple[str, ...], ...] = (
 #: functional_hips: the thigh blobs whose axes locate the hips, and the joints (on the pelvis) they move. Only a
 #: shift up, of at most FUNCTIONAL_HIPS_MAX_M and leaving the pelvis at least a fifth of its length, is made: the
 #: bone fit's bias runs up (EM gives the thighs' tops to the pelvis blob), and a pivot below the fitted hips is
-#: the axes' error (8 cameras: none in 14 runs; 4 cameras, whose ghosts bend the axes: 3-54 mm below in 8 of 14);
+#: the axes' error (8 cameras: none of 10 estimates; 4 cameras, whose ghosts bend the axes: 4-54 mm below in 8 of
+#: 11; scripts/eval_tracking.py --hips);
 #: anything else is logged and the body left as fitted.
 THIGH_BLOBS, HIP_JOINTS, SPINE_JOINT = ("l_thigh", "r_thigh"), ("l_hip_flex", "r_hip_flex"), "spine_flex"
 HIP_FRAMES = ("l_thigh", "r_thigh")  # the hips' positions among JOINT_FRAMES
@@ -184,7 +185,7 @@ class TrackerConfig:
             :func:`~torchtrack.tracking.run.track_sequence` (:meth:`MarkerlessTracker.restate`).
             functional_hips_min_cameras: the thighs' axes are learnt only from rigs of at least this many
             cameras: the ghost volumes of four views bend the thigh blobs' axes (the kick with 4 cameras put the
-            hips 47-53 mm low where 8 put them 7 mm high, README).
+            hips 47-53 mm low where 8 put them 6-9 mm high, README).
         rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
             straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
             axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
@@ -384,6 +385,9 @@ class MarkerlessTracker:
         self.hips: AxisPivot | None = None
         self.hip_shifts: list[float] = []
         self.bodies: list[Skeleton] = []  # the subject's body before each move
+        #: the functional hips' estimate once made (moved or not), else None: each thigh's pivot above the
+        #: fitted hip (m) and its information then, both (2,) left, right
+        self.hip_estimate: tuple[torch.Tensor, torch.Tensor] | None = None
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -440,7 +444,7 @@ class MarkerlessTracker:
             res = self._initialize(obs)
         except InputError:
             self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
-            self.hips, self.hip_shifts, self.bodies = None, [], []
+            self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
             self.lost = 0
             raise
         self._remember_feet()
@@ -843,7 +847,7 @@ class MarkerlessTracker:
         return len(self.hip_shifts)
 
     def _start_hips(self, learn: bool) -> None:
-        self.hip_shifts, self.bodies = [], []
+        self.hip_shifts, self.bodies, self.hip_estimate = [], [], None
         self.hips = AxisPivot(2, device=self.subject.skeleton.lower.device) if (
             learn and self.config.functional_hips > 0) else None
 
@@ -860,8 +864,9 @@ class MarkerlessTracker:
             return
         skel = sub.skeleton
         hips_z = torch.tensor([skel.joint_origin(j)[2] for j in HIP_JOINTS], dtype=self.hips.rhs.dtype)
-        centres = self.hips.centres().cpu()
-        dz = float((centres[:, 2] - hips_z).mean())
+        above = self.hips.centres().cpu()[:, 2] - hips_z  # (2,)
+        self.hip_estimate = (above, self.hips.information().cpu())
+        dz = float(above.mean())
         self.hips = None
         spine = skel.joint_origin(SPINE_JOINT)
         if not 0.0 <= dz <= FUNCTIONAL_HIPS_MAX_M or spine[2] - dz < 0.2 * spine[2]:
@@ -869,8 +874,7 @@ class MarkerlessTracker:
                         "mm is made); the body is left as fitted", 1e3 * dz, 1e3 * FUNCTIONAL_HIPS_MAX_M)
             return
         log.info("functional hips: the thighs pivot %.0f mm above the fitted hips (left %.0f, right %.0f); the hips "
-                 "and the pelvis' origin are moved up, the thighs lengthened", 1e3 * dz,
-                 *(1e3 * (centres[:, 2] - hips_z)).tolist())
+                 "and the pelvis' origin are moved up, the thighs lengthened", 1e3 * dz, *(1e3 * above).tolist())
         self.move_hips(dz)
 
     def move_hips(self, dz_m: float) -> None:
