@@ -188,6 +188,39 @@ def print_bias(poses: Poses, names: list[str], ref: np.ndarray, demo: Path) -> N
           f"({np.percentile(off[:, 0], 5):.1f} to {np.percentile(off[:, 0], 95):.1f}), up {off[:, 2].mean():.1f} mm")
 
 
+#: --bias: the upper and the lower body, aligned to the reference apart.
+UPPER = ("neck", "head_top", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "l_wrist", "r_wrist")
+LOWER = ("pelvis", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")
+
+
+def rigid_residuals(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(L, 3) points x, y -> (L,) distances after the rigid motion that best takes x onto y (Kabsch)."""
+    cx, cy = x.mean(0), y.mean(0)
+    U, _, Vt = np.linalg.svd((x - cx).T @ (y - cy))
+    d = np.sign(np.linalg.det(U @ Vt))
+    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
+    return np.linalg.norm((x - cx) @ R.T + cy - y, axis=-1)
+
+
+def print_alignment(poses: Poses, names: list[str], ref: np.ndarray) -> None:
+    """--bias: the mean error per landmark (mm) after aligning each frame's landmarks to the reference rigidly,
+    as one body and as an upper and a lower body apart (what a trunk that bends and twists freely would gain at
+    most), and after removing each landmark's mean offset (what is left that varies with time)."""
+    ref = ref[:poses.num_frames]
+    idx = [list(poses.joint_names).index(n) for n in names]
+    ok = poses.valid & np.isfinite(ref).all((1, 2))
+    x, y = np.asarray(poses.joints3d)[:, idx][ok], ref[ok]
+    up, low = [names.index(n) for n in UPPER], [names.index(n) for n in LOWER]
+    whole = np.mean([rigid_residuals(a, b).mean() for a, b in zip(x, y)])
+    apart = np.mean([np.concatenate([rigid_residuals(a[up], b[up]), rigid_residuals(a[low], b[low])]).mean()
+                     for a, b in zip(x, y)])
+    d = x - y
+    debiased = np.linalg.norm(d - d.mean(0), axis=-1).mean()
+    print(f"error after a rigid alignment per frame: {1e3 * whole:.1f} mm as one body, {1e3 * apart:.1f} mm with the "
+          f"upper and the lower body aligned apart; after removing each landmark's mean offset: "
+          f"{1e3 * debiased:.1f} mm")
+
+
 def picture(path: Path, folder: SequenceFolder, poses: Poses, t: int, scale: float) -> None:
     import cv2
 
@@ -243,7 +276,8 @@ def main() -> None:
                          "background re-estimated from it (with --refine-passes 0: one more pass of that run)")
     ap.add_argument("--bias", action="store_true",
                     help="also print each landmark's mean signed offset from the reference (forward, left, up of "
-                         "the reference's hips) and where the reference's Neck sits against its shoulders")
+                         "the reference's hips), where the reference's Neck sits against its shoulders, and the error "
+                         "left after aligning each frame rigidly, as one body and as upper and lower body apart")
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
@@ -348,6 +382,7 @@ def main() -> None:
         print(rep.format())
         if args.bias:
             print_bias(poses, names, ref, args.demo)
+            print_alignment(poses, names, ref)
         if args.save_poses is not None:
             save_poses(poses, args.save_poses)
             print(f"wrote {args.save_poses}")

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import pytorch_kinematics as pk
 import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
@@ -173,6 +174,42 @@ def trunk_errors(poses, truth, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarr
     return tilt, at_limit
 
 
+def trunk_headings(poses, truth) -> dict[str, np.ndarray]:
+    """--trunk, per valid frame (deg): how far the tracked pelvis' and torso's headings (the yaw of their left
+    axis: the root's rotation, and the root's times the spine's) lie from the true ones, and from the mean of the
+    true two (where a trunk that will not twist puts both); and the true twist between them."""
+    def headings(p) -> tuple[np.ndarray, np.ndarray]:
+        names = list(p.dof_names)
+        a = torch.from_numpy(np.asarray(p.angles, np.float64)[ok])
+        R_root = root_rotation_matrix(a[:, [names.index(n) for n in ("root_rz", "root_ry", "root_rx")]])
+        # the spine's DOFs, flex (y), abduction (x), twist (z), in the URDF's order
+        R_spine = pk.transforms.euler_angles_to_matrix(
+            a[:, [names.index(n) for n in ("spine_flex", "spine_abd", "spine_twist")]], "YXZ")
+        yaw = [np.degrees(np.arctan2(R[:, 1, 1].numpy(), R[:, 0, 1].numpy())) for R in (R_root, R_root @ R_spine)]
+        return yaw[0], yaw[1]
+
+    def off(x: np.ndarray) -> np.ndarray:
+        return np.abs((x + 180.0) % 360.0 - 180.0)
+
+    ok = poses.valid & truth.valid[:len(poses.valid)]
+    (pelvis, torso), (true_pelvis, true_torso) = headings(poses), headings(truth)
+    twist = (true_torso - true_pelvis + 180.0) % 360.0 - 180.0
+    mean = true_pelvis + 0.5 * twist
+    return {"pelvis": off(pelvis - true_pelvis), "torso": off(torso - true_torso),
+            "pelvis_from_mean": off(pelvis - mean), "torso_from_mean": off(torso - mean),
+            "true_twist": np.abs(twist), "tracked_twist": off(torso - pelvis)}
+
+
+def headings_line(h: dict[str, np.ndarray]) -> str:
+    """--trunk: :func:`trunk_headings` in one line (deg)."""
+    def both(keys: Sequence[str], suffix: str = "") -> str:
+        return ", ".join(f"{k} {h[k + suffix].mean():.1f} / {h[k + suffix].max():.1f}" for k in keys)
+
+    return (f"headings off the true ones (deg, mean / worst frame): {both(('pelvis', 'torso'))}; off the mean of the "
+            f"true two: {both(('pelvis', 'torso'), '_from_mean')}; twist between them: "
+            f"{both(('true', 'tracked'), '_twist')}")
+
+
 def hips_outcome(tracker: MarkerlessTracker, cameras: int) -> str:
     """--hips: what the functional hips did on a tracked sequence."""
     cfg = tracker.config
@@ -212,8 +249,9 @@ def main() -> None:
                     help="track with the rendered body from the first ground-truth pose (no initialisation, no "
                          "bone fit): separates the fit's share of the error")
     ap.add_argument("--trunk", action="store_true",
-                    help="also print how far the tracked pelvis tilts from the true one (mean and worst frame) and "
-                         "the share of frames with a thigh at its extension limit")
+                    help="also print how far the tracked pelvis tilts from the true one (mean and worst frame), the "
+                         "share of frames with a thigh at its extension limit, and how far the pelvis' and the "
+                         "torso's headings lie from the true ones and from the mean of the true two")
     ap.add_argument("--outside", action="store_true",
                     help=f"also print the share of the voxel weight outside the rendered body grown by "
                          f"{OUTSIDE_M * 100:g} cm (ghosts, shadows), mean over frames")
@@ -264,6 +302,7 @@ def main() -> None:
                     print(f"    pelvis tilt off the true one: mean {tilt.mean():.1f}, worst frame {tilt.max():.1f} "
                           f"deg; a thigh at its extension limit in {100 * at_limit.mean():.0f}% of the frames",
                           flush=True)
+                    print("    " + headings_line(trunk_headings(poses, truth)), flush=True)
                 if args.outside:
                     print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
                           f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)
