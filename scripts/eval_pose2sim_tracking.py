@@ -56,6 +56,7 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.goals import weighted_kabsch
 from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
@@ -194,31 +195,42 @@ LOWER = ("pelvis", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")
 
 
 def rigid_residuals(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(L, 3) points x, y -> (L,) distances after the rigid motion that best takes x onto y (Kabsch)."""
-    cx, cy = x.mean(0), y.mean(0)
-    U, _, Vt = np.linalg.svd((x - cx).T @ (y - cy))
-    d = np.sign(np.linalg.det(U @ Vt))
-    R = (U @ np.diag([1.0, 1.0, d]) @ Vt).T
-    return np.linalg.norm((x - cx) @ R.T + cy - y, axis=-1)
+    """(T, L, 3) points x, y -> (T, L) distances after the rigid motion that best takes each frame's x onto its y
+    (:func:`~torchtrack.tracking.goals.weighted_kabsch`, batched over the frames)."""
+    xt, yt = torch.from_numpy(np.asarray(x, np.float64)), torch.from_numpy(np.asarray(y, np.float64))
+    R, t = weighted_kabsch(xt, yt, torch.ones(xt.shape[:2], dtype=xt.dtype))
+    return (torch.einsum("tij,tlj->tli", R, xt) + t[:, None] - yt).norm(dim=-1).numpy()
+
+
+def knee_bend(points: np.ndarray, names: list[str], side: str) -> np.ndarray:
+    """(T, L, 3) -> (T,) the knee's bend (deg): the angle between the thigh (hip to knee) and the shank (knee to
+    ankle), 0 for a straight leg."""
+    hip, knee, ankle = (points[:, names.index(f"{side}_{j}")] for j in ("hip", "knee", "ankle"))
+    u, v = knee - hip, ankle - knee
+    cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
 def print_alignment(poses: Poses, names: list[str], ref: np.ndarray) -> None:
     """--bias: the mean error per landmark (mm) after aligning each frame's landmarks to the reference rigidly,
     as one body and as an upper and a lower body apart (what a trunk that bends and twists freely would gain at
-    most), and after removing each landmark's mean offset (what is left that varies with time)."""
+    most), and after removing each landmark's mean offset (what is left that varies with time); and how much
+    more the track bends each knee than the reference."""
     ref = ref[:poses.num_frames]
     idx = [list(poses.joint_names).index(n) for n in names]
     ok = poses.valid & np.isfinite(ref).all((1, 2))
     x, y = np.asarray(poses.joints3d)[:, idx][ok], ref[ok]
     up, low = [names.index(n) for n in UPPER], [names.index(n) for n in LOWER]
-    whole = np.mean([rigid_residuals(a, b).mean() for a, b in zip(x, y)])
-    apart = np.mean([np.concatenate([rigid_residuals(a[up], b[up]), rigid_residuals(a[low], b[low])]).mean()
-                     for a, b in zip(x, y)])
+    whole = rigid_residuals(x, y).mean()
+    apart = np.concatenate([rigid_residuals(x[:, up], y[:, up]), rigid_residuals(x[:, low], y[:, low])], 1).mean()
     d = x - y
     debiased = np.linalg.norm(d - d.mean(0), axis=-1).mean()
     print(f"error after a rigid alignment per frame: {1e3 * whole:.1f} mm as one body, {1e3 * apart:.1f} mm with the "
           f"upper and the lower body aligned apart; after removing each landmark's mean offset: "
           f"{1e3 * debiased:.1f} mm")
+    more = {side: knee_bend(x, names, side) - knee_bend(y, names, side) for side in ("l", "r")}
+    print("knee bend, track - reference (deg): " + ", ".join(
+        f"{side} mean {m.mean():.1f} (median {np.median(m):.1f})" for side, m in more.items()))
 
 
 def picture(path: Path, folder: SequenceFolder, poses: Poses, t: int, scale: float) -> None:
@@ -277,7 +289,8 @@ def main() -> None:
     ap.add_argument("--bias", action="store_true",
                     help="also print each landmark's mean signed offset from the reference (forward, left, up of "
                          "the reference's hips), where the reference's Neck sits against its shoulders, and the error "
-                         "left after aligning each frame rigidly, as one body and as upper and lower body apart")
+                         "left after aligning each frame rigidly, as one body and as upper and lower body apart, "
+                         "and how much more the track bends the knees")
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")

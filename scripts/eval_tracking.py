@@ -25,7 +25,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import pytorch_kinematics as pk
 import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
@@ -174,30 +173,29 @@ def trunk_errors(poses, truth, skeleton: Skeleton) -> tuple[np.ndarray, np.ndarr
     return tilt, at_limit
 
 
-def trunk_headings(poses, truth) -> dict[str, np.ndarray]:
-    """--trunk, per valid frame (deg): how far the tracked pelvis' and torso's headings (the yaw of their left
-    axis: the root's rotation, and the root's times the spine's) lie from the true ones, and from the mean of the
-    true two (where a trunk that will not twist puts both); and the true twist between them."""
-    def headings(p) -> tuple[np.ndarray, np.ndarray]:
-        names = list(p.dof_names)
-        a = torch.from_numpy(np.asarray(p.angles, np.float64)[ok])
-        R_root = root_rotation_matrix(a[:, [names.index(n) for n in ("root_rz", "root_ry", "root_rx")]])
-        # the spine's DOFs, flex (y), abduction (x), twist (z), in the URDF's order
-        R_spine = pk.transforms.euler_angles_to_matrix(
-            a[:, [names.index(n) for n in ("spine_flex", "spine_abd", "spine_twist")]], "YXZ")
-        yaw = [np.degrees(np.arctan2(R[:, 1, 1].numpy(), R[:, 0, 1].numpy())) for R in (R_root, R_root @ R_spine)]
-        return yaw[0], yaw[1]
-
-    def off(x: np.ndarray) -> np.ndarray:
-        return np.abs((x + 180.0) % 360.0 - 180.0)
-
+def trunk_headings(poses, truth, skeleton: Skeleton) -> dict[str, np.ndarray]:
+    """--trunk, per valid frame (deg): how far the tracked pelvis' and torso's headings (the yaw of their bones'
+    left axes, by ``skeleton``'s forward kinematics: the heading does not depend on the bones' lengths) lie from
+    the true ones, and from the mean of the true two (where a trunk that will not twist puts both); and the true
+    and the tracked twist between them."""
     ok = poses.valid & truth.valid[:len(poses.valid)]
-    (pelvis, torso), (true_pelvis, true_torso) = headings(poses), headings(truth)
-    twist = (true_torso - true_pelvis + 180.0) % 360.0 - 180.0
-    mean = true_pelvis + 0.5 * twist
-    return {"pelvis": off(pelvis - true_pelvis), "torso": off(torso - true_torso),
-            "pelvis_from_mean": off(pelvis - mean), "torso_from_mean": off(torso - mean),
-            "true_twist": np.abs(twist), "tracked_twist": off(torso - pelvis)}
+    bones = [skeleton.bone_names.index(b) for b in ("pelvis", "torso")]
+
+    def headings(p) -> np.ndarray:  # (n, 2) pelvis, torso
+        left = skeleton.forward(torch.from_numpy(np.asarray(p.angles, np.float32)[ok])).bone_frames[:, bones, :3, 1]
+        return np.degrees(np.arctan2(left[..., 1].numpy(), left[..., 0].numpy()))
+
+    def wrap(x: np.ndarray) -> np.ndarray:
+        return (x + 180.0) % 360.0 - 180.0
+
+    tracked, true = headings(poses), headings(truth)
+    twist = wrap(true[:, 1] - true[:, 0])
+    mean = true[:, 0] + 0.5 * twist
+    off = np.abs(wrap(tracked - true))
+    from_mean = np.abs(wrap(tracked - mean[:, None]))
+    return {"pelvis": off[:, 0], "torso": off[:, 1], "pelvis_from_mean": from_mean[:, 0],
+            "torso_from_mean": from_mean[:, 1], "true_twist": np.abs(twist),
+            "tracked_twist": np.abs(wrap(tracked[:, 1] - tracked[:, 0]))}
 
 
 def headings_line(h: dict[str, np.ndarray]) -> str:
@@ -302,7 +300,7 @@ def main() -> None:
                     print(f"    pelvis tilt off the true one: mean {tilt.mean():.1f}, worst frame {tilt.max():.1f} "
                           f"deg; a thigh at its extension limit in {100 * at_limit.mean():.0f}% of the frames",
                           flush=True)
-                    print("    " + headings_line(trunk_headings(poses, truth)), flush=True)
+                    print("    " + headings_line(trunk_headings(poses, truth, tracker.generic)), flush=True)
                 if args.outside:
                     print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
                           f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)
