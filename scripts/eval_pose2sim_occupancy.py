@@ -22,10 +22,13 @@ keypoint of every frame projects into all four images.
 
 ``--background-from-track POSES`` takes the background from the frames each pixel is clearest of a track's body
 instead (:func:`torchtrack.tracking.refine.background_from_track`; a track of the demo with its body, e.g.
-``eval_pose2sim_tracking.py --init-from-reference --save-poses POSES``).
+``eval_pose2sim_tracking.py --init-from-reference --save-poses POSES``); ``--refine FIELD=VALUE`` overrides the
+config's ``background_refinement`` settings it uses (``near_fraction=0.02``: pixels that stay near the tracked body
+keep the plain estimate, its fill, which gives the stance foot's toes back; README, Observation).
 
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.5] [--voxel 0.01] [--window 1] [--min-views 4]
-       [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES]
+       [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES
+       [--refine near_fraction=0.02]]
 """
 
 from __future__ import annotations
@@ -42,12 +45,13 @@ from scipy.spatial import cKDTree
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.cameras import load_calibration
-from torchtrack.checks import InputError
+from torchtrack.checks import InputError, with_overrides
 from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import BayesConfig, BayesianGrid, grid_from_rig
-from torchtrack.tracking.refine import background_from_track
+from torchtrack.tracking.cli import load_config
+from torchtrack.tracking.refine import RefineConfig, background_from_track
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -164,11 +168,16 @@ def main() -> None:
     ap.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                     help="re-estimate the background from the frames clearest of this track's body (a poses.npz of "
                          "the demo with its body, e.g. from eval_pose2sim_tracking.py --save-poses)")
+    ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="with --background-from-track: RefineConfig overrides of configs/markerless.yaml's "
+                         "background_refinement section, e.g. near_fraction=0.01")
     ap.add_argument("--picture", type=Path, default=Path("docs/images/pose2sim_occupancy.jpg"),
                     help="the worst frame's voxels projected on the four views")
     ap.add_argument("--misses", type=Path, default=Path("docs/images/pose2sim_occupancy_misses.jpg"),
                     help="the keypoints missed in the frames under 90 %% (the worst four), in the four views")
     args = ap.parse_args()
+    if args.refine and args.background_from_track is None:
+        raise SystemExit("--refine changes the background from a track: give --background-from-track")
     torch.set_grad_enabled(False)
     names, ref = reference_keypoints(args.demo)  # (T, 21, 3)
     with tempfile.TemporaryDirectory() as tmp:
@@ -183,7 +192,10 @@ def main() -> None:
                                      fill_prior_log_odds=args.fill_prior_log_odds)
         if args.background_from_track is not None:
             try:
-                bg = background_from_track(folder, load_poses(args.background_from_track), bg_config,
+                config = load_config("markerless.yaml")
+                refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
+                                        args.refine, "--refine")
+                bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, refine,
                                            size_wh=(W, H), source=str(args.background_from_track))
             except InputError as e:
                 raise SystemExit(str(e)) from None

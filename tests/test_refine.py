@@ -119,6 +119,24 @@ def test_clear_frame_masks_keep_the_clearest_frames_and_never_the_body():
         clear_frame_masks(torch.zeros(4, 5), k, big)
 
 
+def test_clear_frame_masks_leave_pixels_that_stay_near_the_body_to_the_fallback():
+    """near_px: a pixel with fewer than k frames at least near_px clear of the body keeps no frame; the others
+    keep what they keep without it (against a plain loop over pixels)."""
+    k, big, near = 5, 20.0, 6.0
+    gen = torch.Generator().manual_seed(3)
+    clearance = (torch.rand(12, 40, 7, generator=gen) * 14).floor()  # (12 frames, 40 x 7 pixels), 0-13 px
+    clearance[:, 0, 0] = torch.tensor([2.0, 3, 2, 3, 4, 5, 2, 3, 1, 0, 0, 5])  # just outside a body that stays
+    without = clear_frame_masks(clearance, k, big)
+    got = clear_frame_masks(clearance, k, big, near)
+    assert bool(got[:, 0, 0].all()) and not bool(without[:, 0, 0].all())
+    for i in range(40):
+        for j in range(7):
+            far = sum(float(c) >= near for c in clearance[:, i, j])
+            expect = [True] * 12 if far < k else without[:, i, j].tolist()
+            assert got[:, i, j].tolist() == expect, (i, j)
+    assert torch.equal(clear_frame_masks(clearance, k, big, 0.0), without)
+
+
 def test_refined_background_removes_the_ghost_of_a_subject_who_stands_still(skel):
     """A body stands in one place in 20 of 30 frames and elsewhere in the others: the temporal median keeps it
     as a ghost; re-estimated from the frames the true poses leave each pixel clearest of, the background is the
@@ -149,11 +167,45 @@ def test_refined_background_removes_the_ghost_of_a_subject_who_stands_still(skel
     assert error(off) < 0.05, error(off)
 
 
+def test_refined_background_keeps_the_sequence_estimate_where_the_body_stays_near(skel):
+    """near_fraction: the pixels with fewer than clear_frames frames that far from the drawn body (a plain
+    count over cv2's distance transform) take the plain sequence estimate (passes 1-3), the others what they
+    take without it."""
+    import cv2
+
+    rig = _rig()
+    gen = torch.Generator().manual_seed(2)
+    room = 0.25 + 0.5 * torch.rand(2, 3, H, W, generator=gen)
+    angles = torch.stack([_pose(skel, 0.0)] * 20 + [_pose(skel, 0.3, -0.3)] * 10)
+    body = body_masks(rig, skel, angles)
+    shirt = torch.tensor([0.9, 0.1, 0.1])[None, None, :, None, None]
+    frames = torch.where(body[:, :, None], shirt, room[None]) + 0.004 * torch.randn(30, 2, 3, H, W, generator=gen)
+    frames = frames.clamp(0, 1)
+    config = RefineConfig(blob_scale=1.0, near_fraction=0.15)
+    near_px = config.near_fraction * max(H, W)
+    far = np.zeros((2, H, W), int)  # frames at least near_px from the body, per pixel
+    for t in range(30):
+        for c in range(2):
+            d = cv2.distanceTransform((~body[t, c]).numpy().astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            far[c] += d >= near_px
+    near = torch.from_numpy(far < config.clear_frames)
+    assert 50 < int(near.sum()) < 0.8 * near.numel()
+    plain = BackgroundModel.from_sequence(frames, BackgroundConfig())
+    without = refined_background(frames, angles, rig, skel, BackgroundConfig(), dataclasses.replace(
+        config, near_fraction=0.0))
+    got = refined_background(frames, angles, rig, skel, BackgroundConfig(), config)
+    for c in range(2):
+        torch.testing.assert_close(got.mean_yuv[c][:, near[c]], plain.mean_yuv[c][:, near[c]])
+        torch.testing.assert_close(got.mean_yuv[c][:, ~near[c]], without.mean_yuv[c][:, ~near[c]])
+    assert not torch.allclose(got.mean_yuv, without.mean_yuv)
+
+
 def test_refine_config_names_bad_settings():
     assert RefineConfig.from_dict(None) == RefineConfig()
     with pytest.raises(InputError, match="unknown background_refinement settings"):
         RefineConfig.from_dict({"pases": 2}, "my.yaml")
     for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0},
+                {"near_fraction": -0.01}, {"near_fraction": 1.0},
                 {"passes": 2.5}, {"passes": True}, {"blob_scale": "big"}):
         with pytest.raises(InputError, match=next(iter(bad))):
             RefineConfig.from_dict(bad)
@@ -392,6 +444,12 @@ def test_observe_cli_with_the_background_from_a_track(standing_then_walking, tmp
     bad = _track_file(seq, tmp_path / "bad.npz")
     assert main(["observe", str(bare), "--out", str(tmp_path / "bad"), "--background-from-track", str(bad)]) == 2
     assert "bad.npz: no subject body" in capsys.readouterr().err
+    assert main(["observe", str(bare), "--out", str(tmp_path / "bad"), "--near-fraction", "0.02"]) == 2
+    assert "give --background-from-track" in capsys.readouterr().err
+    assert main(["observe", str(bare), "--out", str(tmp_path / "bad"), "--background-from-track", str(track),
+                 "--near-fraction", "1.5"]) == 2
+    assert "near_fraction must be in [0, 1)" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
 
 
 def test_track_cli_starts_from_the_background_of_an_earlier_track(standing_then_walking, tmp_path, capsys):

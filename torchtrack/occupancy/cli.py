@@ -8,6 +8,8 @@ import logging
 import time
 from pathlib import Path
 
+from torchtrack.checks import InputError
+
 log = logging.getLogger(__name__)
 
 
@@ -34,6 +36,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="estimate the background from the frames each pixel is clearest of a tracked body: the "
                         "poses.npz of a `torchtrack track` run on this sequence (for a sequence without "
                         "background/ frames whose subject hardly moves; see torchtrack.tracking.refine)")
+    p.add_argument("--near-fraction", type=float, default=0.0, metavar="F",
+                   help="with --background-from-track: pixels with fewer than 10 frames at least F of the image's "
+                        "larger side clear of the tracked body keep the plain estimate (with --fill-static-subject, "
+                        "its fill): parts that stay just outside the drawn body, such as a stance foot's toes, "
+                        "come back, and the volume grows (0: off; RefineConfig.near_fraction)")
     p.set_defaults(func=run)
 
 
@@ -62,11 +69,14 @@ def _run(args: argparse.Namespace) -> int:
     W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
     rig = full.resized(W, H).float().to(device)
     bg_config = BackgroundConfig(fill_static_subject=args.fill_static_subject)
+    if args.near_fraction and args.background_from_track is None:
+        raise InputError("--near-fraction changes the background from a track: give --background-from-track")
     if args.background_from_track is not None:
         from torchtrack.io.poses import load_poses
-        from torchtrack.tracking.refine import background_from_track
+        from torchtrack.tracking.refine import RefineConfig, background_from_track
 
-        bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, size_wh=(W, H),
+        refine = RefineConfig(near_fraction=args.near_fraction)
+        bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, refine, (W, H),
                                    device=device, source=str(args.background_from_track))
     else:
         bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)

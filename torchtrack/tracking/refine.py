@@ -73,6 +73,13 @@ class RefineConfig:
             (see ``clear_fraction``), never from a frame where the rendered body covers it: where fewer than
             ``MIN_CLEAN_FRAMES`` frames leave a pixel, the sequence estimate (passes 1-3) is kept there.
         clear_fraction: frames at least this fraction of the image's larger side clear of the body all count.
+        near_fraction: a pixel with fewer than ``clear_frames`` frames at least this fraction of the image's
+            larger side clear of the rendered body keeps the sequence estimate (passes 1-3, with the static-subject
+            fill) instead: a part of the subject that stays in place just outside the drawn body (the toes of a
+            stance foot) is otherwise in all of those frames and so in the background (0: off). On the Pose2Sim
+            demo's occupancy it brings the stance foot's toes back and grows the volume (README, Observation);
+            between tracking passes it lost (``scripts/eval_pose2sim_tracking.py --refine near_fraction=0.01``:
+            84.1 mm against 66.4), so the tracking config leaves it off.
         min_change_m: the passes stop early once a pass's track moved less than this from the one before
             (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then the last (0:
             all ``passes`` are run).
@@ -82,11 +89,12 @@ class RefineConfig:
     blob_scale: float = 1.3
     clear_frames: int = 10
     clear_fraction: float = 0.04
+    near_fraction: float = 0.0
     min_change_m: float = 0.01
 
     def __post_init__(self) -> None:
         for name, kind in (("passes", int), ("clear_frames", int), ("blob_scale", float),
-                           ("clear_fraction", float), ("min_change_m", float)):
+                           ("clear_fraction", float), ("near_fraction", float), ("min_change_m", float)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
                 raise InputError(f"background_refinement.{name} must be a number{' (whole)' * (kind is int)}, "
@@ -100,6 +108,9 @@ class RefineConfig:
                              f"frames a pixel's background is estimated from), got {self.clear_frames}")
         if not 0.0 < self.clear_fraction < 1.0:
             raise InputError(f"background_refinement.clear_fraction must be in (0, 1), got {self.clear_fraction}")
+        if not 0.0 <= self.near_fraction < 1.0:
+            raise InputError(f"background_refinement.near_fraction must be in [0, 1) (0: off), got "
+                             f"{self.near_fraction}")
         if not (self.min_change_m >= 0 and np.isfinite(self.min_change_m)):
             raise InputError(f"background_refinement.min_change_m must be >= 0 and finite (0: off), got "
                              f"{self.min_change_m}")
@@ -192,7 +203,8 @@ def clearance_px(masks: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(out).reshape(masks.shape).to(masks.device)
 
 
-def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: float) -> torch.Tensor:
+def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: float, near_px: float = 0.0
+                      ) -> torch.Tensor:
     """Subject masks that leave each pixel its clearest frames.
 
     Args:
@@ -200,6 +212,9 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
         clear_frames: k: each pixel keeps at least its k clearest frames (all of them when N <= k), ties
             included, but never a frame where it is on the body (clearance 0).
         clear_px: frames at least this clear are all kept.
+        near_px: a pixel with fewer than k frames at least this clear of the body (its k-th clearest frame
+            nearer) keeps none (0: off), so that the caller's fallback (``BackgroundModel.from_sequence``: passes
+            1-3) decides it.
 
     Returns:
         (N, ..., H, W) bool, True where a frame is not used for a pixel's background.
@@ -210,7 +225,10 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
     kth = clearance.topk(k, dim=0).values[-1]  # (..., H, W) the k-th largest
     threshold = torch.clamp(torch.minimum(kth, torch.tensor(clear_px, dtype=kth.dtype, device=kth.device)),
                             min=torch.finfo(kth.dtype).tiny)
-    return clearance < threshold
+    out = clearance < threshold
+    if near_px > 0:
+        out |= (kth < near_px)[None]
+    return out
 
 
 def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRig, skeleton: Skeleton,
@@ -229,7 +247,8 @@ def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRi
     masks = torch.empty((N, C, H, W), dtype=torch.bool)
     body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs).cpu()
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
-        masks[:, c] = clear_frame_masks(clearance_px(body[:, c]), config.clear_frames, clear_px)
+        masks[:, c] = clear_frame_masks(clearance_px(body[:, c]), config.clear_frames, clear_px,
+                                        config.near_fraction * max(H, W))
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
 
 
