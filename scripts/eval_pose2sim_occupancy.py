@@ -8,6 +8,8 @@ connected components of occupied voxels that hold no keypoint (the operator stan
 cam01/cam02 must not become one of human size). Writes a picture of the voxels projected on the four views, and
 one of the keypoints missed in the frames under 90 %: each missed keypoint's surroundings in the four views, the
 occupied voxels drawn over them, so whether the reference or the voxels are off can be seen.
+The keypoints are Pose2Sim's raw triangulation, or with ``--filtered-reference`` its filtered output
+(:data:`torchtrack.io.pose2sim.REFERENCE_FILTERED`), whose single-frame outliers are smoothed away.
 
 The defaults (frames at half the videos' size, 1 cm voxels, a 1 x 1 window) keep thin parts (toes, the head's
 top) within 5 cm; the README also quotes figures at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25
@@ -28,7 +30,7 @@ keep the plain estimate, its fill, which gives the stance foot's toes back; READ
 
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.5] [--voxel 0.01] [--window 1] [--min-views 4]
        [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES
-       [--refine near_fraction=0.02]]
+       [--refine near_fraction=0.02]] [--filtered-reference]
 """
 
 from __future__ import annotations
@@ -168,6 +170,9 @@ def main() -> None:
     ap.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                     help="re-estimate the background from the frames clearest of this track's body (a poses.npz of "
                          "the demo with its body, e.g. from eval_pose2sim_tracking.py --save-poses)")
+    ap.add_argument("--filtered-reference", action="store_true",
+                    help="score against Pose2Sim's filtered keypoints (its final output) instead of the raw "
+                         "triangulation (torchtrack.io.pose2sim.REFERENCE_FILTERED)")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="with --background-from-track: RefineConfig overrides of configs/markerless.yaml's "
                          "background_refinement section, e.g. near_fraction=0.01")
@@ -179,7 +184,7 @@ def main() -> None:
     if args.refine and args.background_from_track is None:
         raise SystemExit("--refine changes the background from a track: give --background-from-track")
     torch.set_grad_enabled(False)
-    names, ref = reference_keypoints(args.demo)  # (T, 21, 3)
+    names, ref = reference_keypoints(args.demo, filtered=args.filtered_reference)  # (T, 21, 3)
     with tempfile.TemporaryDirectory() as tmp:
         seq = pose2sim_sequence(args.demo, Path(tmp) / "seq")
         full = load_calibration(seq / "calibration.toml")

@@ -393,6 +393,11 @@ def main() -> None:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                   "(a body is about 0.07)")
         print(rep.format())
+        names_f, ref_f = reference_landmarks(args.demo, filtered=True)
+        rep_f = evaluate(poses, reference_poses(names_f, ref_f, folder.fps, list(tracker.generic.output_names)),
+                         landmarks=names_f)
+        print(f"against Pose2Sim's filtered keypoints (its final output, REFERENCE_FILTERED): MPJPE "
+              f"{rep_f.mpjpe_mm:.1f} mm, worst frame {rep_f.max_frame_mm:.1f} mm")
         if args.bias:
             print_bias(poses, names, ref, args.demo)
             print_alignment(poses, names, ref)

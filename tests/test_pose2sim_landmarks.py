@@ -49,3 +49,25 @@ def test_the_reference_head_point_is_the_head_top(mapped):
     to_top, to_centre = scale * model_length("neck", "head_top"), scale * model_length("neck", "head")
     assert abs(neck_head - to_top) < 0.15 * to_top, (neck_head, to_top)
     assert neck_head > 1.5 * to_centre, (neck_head, to_centre)
+
+
+def test_the_filtered_reference_is_the_raw_one_smoothed():
+    """Pose2Sim's filtered keypoints: the same points in the same frames (within a few cm of the raw ones on
+    average), with far less frame-to-frame jitter (the RMS second difference, a closed form of the noise)."""
+    from torchtrack.io.pose2sim import reference_keypoints
+
+    demo = shared_data("pose2sim_demo")
+    names, raw = reference_keypoints(demo)
+    names_f, filt = reference_keypoints(demo, filtered=True)
+    assert names_f == names and filt.shape == raw.shape and np.isfinite(filt).all()
+    apart = np.linalg.norm(filt - raw, axis=-1)
+    assert np.median(apart) < 0.02 and apart.mean() < 0.03, (np.median(apart), apart.mean())
+
+    def jitter(x):
+        return float(np.sqrt((np.diff(x, 2, axis=0) ** 2).sum(-1).mean()))
+
+    assert jitter(filt) < 0.2 * jitter(raw), (jitter(filt), jitter(raw))
+    _, lm = reference_landmarks(demo, filtered=True)
+    assert lm.shape == (100, len(LANDMARK_MAP), 3)
+    np.testing.assert_allclose(lm[:, list(LANDMARK_MAP).index("pelvis")],
+                               filt[:, [names.index("RHip"), names.index("LHip")]].mean(1))

@@ -2,7 +2,8 @@
 
 The demo's files are laid out Pose2Sim's way (``videos/cam01.mp4``, a calibration TOML whose cameras are
 ``cam_01``..): :func:`pose2sim_sequence` links them into the DESIGN.md layout without copying the videos,
-and :func:`reference_keypoints` reads Pose2Sim's own 3D keypoints (BODY_25B names, TRC, Y up) in our world.
+and :func:`reference_keypoints` reads Pose2Sim's own 3D keypoints (BODY_25B names, TRC, Y up) in our world,
+raw or filtered.
 """
 
 from __future__ import annotations
@@ -17,6 +18,11 @@ from torchtrack.io.trc import read_trc, y_up_to_world
 
 CALIBRATION = "calibration/Calib_qualisys_pose2sim.toml"
 REFERENCE = "reference_3d/S00_P00_T01_BalancingTrial_0-100.trc"
+#: The same keypoints after Pose2Sim's own filtering step (a zero-phase Butterworth low-pass): its final output.
+#: The raw triangulation jitters from frame to frame (RMS second difference 43 mm against 2.8, 11 mm apart on
+#: average) and has single-frame outliers (frame 46's right small toe 13 cm from the filtered one, off the foot
+#: in two views).
+REFERENCE_FILTERED = "reference_3d/S00_P00_T01_BalancingTrial_0-100_filt_butterworth.trc"
 
 #: Pose2Sim BODY_25B keypoints -> our output points (``Skeleton.output_names``), where the two define the same
 #: point. BODY_25B's ``Head`` is the top of the head (0.29 m from its ``Neck`` in the demo; our template's
@@ -47,14 +53,16 @@ def pose2sim_sequence(demo: str | Path, out: str | Path) -> Path:
     return out
 
 
-def reference_keypoints(demo: str | Path) -> tuple[list[str], np.ndarray]:
-    """Pose2Sim's 3D keypoints: names (21,) and (T, 21, 3) world positions in metres (Z up)."""
-    trc = read_trc(Path(demo) / REFERENCE)
+def reference_keypoints(demo: str | Path, filtered: bool = False) -> tuple[list[str], np.ndarray]:
+    """Pose2Sim's 3D keypoints: names (21,) and (T, 21, 3) world positions in metres (Z up); the raw
+    triangulation (:data:`REFERENCE`) or, with ``filtered``, Pose2Sim's filtered output (:data:`REFERENCE_FILTERED`)."""
+    trc = read_trc(Path(demo) / (REFERENCE_FILTERED if filtered else REFERENCE))
     return trc.marker_names, y_up_to_world(trc.positions_m())
 
 
-def reference_landmarks(demo: str | Path) -> tuple[list[str], np.ndarray]:
-    """The reference mapped onto our output points (:data:`LANDMARK_MAP`): names (L,), (T, L, 3)."""
-    names, pts = reference_keypoints(demo)
+def reference_landmarks(demo: str | Path, filtered: bool = False) -> tuple[list[str], np.ndarray]:
+    """The reference (:func:`reference_keypoints`) mapped onto our output points (:data:`LANDMARK_MAP`): names (L,),
+    (T, L, 3)."""
+    names, pts = reference_keypoints(demo, filtered)
     out = [pts[:, [names.index(s) for s in src]].mean(axis=1) for src in LANDMARK_MAP.values()]
     return list(LANDMARK_MAP), np.stack(out, axis=1)
