@@ -142,8 +142,9 @@ def test_tracking_with_a_worker_gives_the_same_poses(seq):
 
     folder, observer = _observer(seq, "hull")
     cfg = TrackerConfig.from_dict(load_config("markerless.yaml")["tracker"])
-    runs = [track_sequence(folder, observer, MarkerlessTracker(Skeleton.from_urdf(), cfg), progress=False,
-                           workers=w)[0] for w in (0, 1)]
+    trackers = [MarkerlessTracker(Skeleton.from_urdf(), cfg) for _ in range(2)]
+    runs = [track_sequence(folder, observer, t, progress=False, workers=w)[0] for t, w in zip(trackers, (0, 1))]
+    assert [t.frame_rate for t in trackers] == [folder.fps] * 2  # the prediction's velocity is set for it
     assert runs[0].valid.all() and np.array_equal(runs[0].valid, runs[1].valid)
     # same observations; the tracker's float sums may round differently at another thread count
     np.testing.assert_allclose(runs[1].joints3d, runs[0].joints3d, atol=1e-3)

@@ -402,6 +402,45 @@ def _track(skel, motion, frames, tracker=None, edit=None):
     return tracker, np.array(errs), results
 
 
+def test_the_prediction_velocity_follows_the_frame_rate(skel, monkeypatch):
+    """The velocity factor is configured at velocity_fps and re-derived for the sequence's rate: k = v / (1 - v)
+    scales with (velocity_fps / fps)^2, the factor is k / (1 + k) (0.5 at 30 fps: 0.2 at 60, 0.8 at 15); the
+    frame's prediction extrapolates the last two poses by it."""
+    tracker = MarkerlessTracker(skel, TrackerConfig(velocity=0.5, velocity_fps=30.0))
+    assert tracker.prediction_velocity == 0.5  # no rate given: as configured
+    for fps, v in ((30.0, 0.5), (60.0, 0.2), (15.0, 0.8), (120.0, 1 / 17)):
+        tracker.set_frame_rate(fps)
+        assert tracker.prediction_velocity == pytest.approx(v, abs=1e-12), fps
+    tracker.set_frame_rate(60.0)
+    for cfg in (TrackerConfig(velocity=0.5, velocity_fps=0.0), TrackerConfig(velocity=0.0),
+                TrackerConfig(velocity=1.0)):  # not re-derived: off, no velocity, full velocity
+        other = MarkerlessTracker(skel, cfg)
+        other.set_frame_rate(60.0)
+        assert other.prediction_velocity == cfg.velocity
+    for bad in (0.0, -30.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="frame rate"):
+            tracker.set_frame_rate(bad)
+    with pytest.raises(InputError, match="velocity_fps"):
+        TrackerConfig(velocity_fps=-1.0)
+    # the prediction: the pose _track regenerates the blobs from
+    tracker.initialize_from_pose(skel.rest_angles(), height_m=1.75)
+    before, last = skel.rest_angles(), skel.rest_angles()
+    before[skel.dof_names.index("root_tx")], last[skel.dof_names.index("root_tx")] = 0.0, 0.05
+    tracker.previous, tracker.angles = before, last
+
+    class Predicted(Exception):
+        pass
+
+    def capture(angles):
+        raise Predicted(angles)
+
+    monkeypatch.setattr(tracker, "_regenerate", capture)
+    with pytest.raises(Predicted) as got:
+        tracker._track(None, learn_colour=False, max_rot=0.1)
+    predicted = got.value.args[0]
+    assert float(predicted[skel.dof_names.index("root_tx")]) == pytest.approx(0.05 + 0.2 * 0.05)
+
+
 @pytest.mark.parametrize("motion", ["walk", "kick"])
 def test_tracker_follows_voxelised_ground_truth(skel, motion):
     tracker, errs, results = _track(skel, motion, 24)

@@ -140,7 +140,15 @@ class TrackerConfig:
         em, ccd: EM and CCD settings.
         refinements: goals -> root -> CCD passes per frame.
         max_root_rotation_deg: bound on the root's change of orientation per pass (no front/back flips).
-        velocity: factor of the constant-velocity prediction (0 = previous pose).
+        velocity: factor of the constant-velocity prediction (0 = previous pose), at ``velocity_fps``.
+        velocity_fps: the frame rate ``velocity`` is set for (0: use it as it is at every rate). At another rate
+            (:meth:`MarkerlessTracker.set_frame_rate`) the factor is re-derived as the gain of a velocity read off
+            one frame difference: with per-frame motion d and pose noise s, the prediction error is least at
+            ``v = d^2 / (d^2 + 2 s^2)``; d scales with 1 / fps and s does not, so ``k = v / (1 - v)`` scales with
+            ``(velocity_fps / fps)^2`` and the factor is ``k / (1 + k)``: 0.5 at 30 fps is 0.2 at 60 fps
+            (:attr:`MarkerlessTracker.prediction_velocity`). On the 60 fps Pose2Sim demo a sweep of ``velocity``
+            found its best at 0.2-0.3 (62.6 / 61.3 / 61.4 mm against 66.4 at 0.5), while the 30 fps synthetic
+            table wants 0.5.
         min_voxels, min_volume_m3: below either, the frame has nobody in it (valid = False).
         lost_residual_m: mean goal-to-joint distance above which a frame counts as diverging.
         min_explained: fraction of the voxel weight the blobs must take (else diverging).
@@ -199,6 +207,7 @@ class TrackerConfig:
     refinements: int = 2
     max_root_rotation_deg: float = 25.0
     velocity: float = 0.5
+    velocity_fps: float = 30.0
     min_voxels: int = 30
     min_volume_m3: float = 0.01
     lost_residual_m: float = 0.08
@@ -247,6 +256,9 @@ class TrackerConfig:
             raise InputError(f"TrackerConfig.hold_max_step_m must be > 0, got {self.hold_max_step_m}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
+        if not (self.velocity_fps >= 0 and math.isfinite(self.velocity_fps)):
+            raise InputError(f"TrackerConfig.velocity_fps must be >= 0 and finite (0: velocity at every rate), got "
+                             f"{self.velocity_fps}")
         if not (self.functional_hips >= 0 and math.isfinite(self.functional_hips)):
             raise InputError(f"TrackerConfig.functional_hips must be >= 0 and finite (0: off), got "
                              f"{self.functional_hips}")
@@ -388,6 +400,26 @@ class MarkerlessTracker:
         #: the functional hips' estimate once made (moved or not), else None: each thigh's pivot above the
         #: fitted hip (m) and its information then, both (2,) left, right
         self.hip_estimate: tuple[torch.Tensor, torch.Tensor] | None = None
+        self.frame_rate: float | None = None  # the sequence's (set_frame_rate); None: velocity as configured
+
+    def set_frame_rate(self, fps: float) -> None:
+        """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
+        to the sequence's, ``SequenceFolder.fps``): the prediction's velocity factor is re-derived for it
+        (:attr:`prediction_velocity`)."""
+        if not (fps > 0 and math.isfinite(fps)):
+            raise InputError(f"MarkerlessTracker.set_frame_rate: the frame rate must be > 0 and finite, got {fps}")
+        self.frame_rate = float(fps)
+
+    @property
+    def prediction_velocity(self) -> float:
+        """The constant-velocity prediction's factor at the sequence's frame rate: ``TrackerConfig.velocity`` at
+        ``velocity_fps``, re-derived for :attr:`frame_rate` (``k = v / (1 - v)`` scaled by ``(velocity_fps /
+        fps)^2``, the factor ``k / (1 + k)``; see :class:`TrackerConfig`)."""
+        v, at = self.config.velocity, self.config.velocity_fps
+        if self.frame_rate is None or at == 0 or v in (0.0, 1.0):
+            return v
+        k = v / (1.0 - v) * (at / self.frame_rate) ** 2
+        return k / (1.0 + k)
 
     # ------------------------------------------------------------------------------------ initialisation
     @property
@@ -752,7 +784,7 @@ class MarkerlessTracker:
         search of initialisation and re-acquisition, whose hypotheses must be scored on the same goals); ``hold``:
         hold unseen planted feet where they were last seen (off in re-acquisition's search)."""
         sub, cfg = self.subject, self.config
-        a = self.angles + cfg.velocity * (self.angles - self.previous)
+        a = self.angles + self.prediction_velocity * (self.angles - self.previous)
         a = sub.skeleton.clamp(a)
         fk, prior = self._regenerate(a)
         weights = self._ghost_weights(obs, prior) if predicted else obs.weights

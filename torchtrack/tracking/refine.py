@@ -19,7 +19,8 @@ where the body is in every frame, even when it is imperfect, and that is what ea
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
 limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them. On the
 Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) the passes take
-the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four tracks, and to 66.4 mm after seven,
+the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four tracks, and to 66.4 mm after seven
+(with the velocity factor 0.5 at the demo's 60 fps; 62.6 mm after eight at the 0.2 the frame rate now gives),
 where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
 background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown
 masks as they are oscillated between 160 and 260 mm.

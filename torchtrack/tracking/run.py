@@ -50,6 +50,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
     if stop <= start:
         raise InputError(f"{folder.root}: no frames in [{start}, {stop}) ({folder.num_frames} frames)")
+    tracker.set_frame_rate(folder.fps)
     names = tracker.generic.output_names
     T, D = stop - start, tracker.generic.num_dofs
     joints3d = np.full((T, len(names), 3), np.nan, np.float32)
