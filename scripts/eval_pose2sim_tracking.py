@@ -50,7 +50,7 @@ from torchtrack.background.estimate import MIN_CLEAN_FRAMES, dilate, subsample
 from torchtrack.checks import InputError, with_overrides
 from torchtrack.eval import evaluate
 from torchtrack.cameras import CameraRig
-from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints, reference_landmarks
+from torchtrack.io.pose2sim import REFERENCE_FILTERED, pose2sim_sequence, reference_keypoints, reference_landmarks
 from torchtrack.io.poses import Poses, load_poses, save_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
@@ -393,11 +393,14 @@ def main() -> None:
             print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                   "(a body is about 0.07)")
         print(rep.format())
-        names_f, ref_f = reference_landmarks(args.demo, filtered=True)
-        rep_f = evaluate(poses, reference_poses(names_f, ref_f, folder.fps, list(tracker.generic.output_names)),
-                         landmarks=names_f)
-        print(f"against Pose2Sim's filtered keypoints (its final output, REFERENCE_FILTERED): MPJPE "
-              f"{rep_f.mpjpe_mm:.1f} mm, worst frame {rep_f.max_frame_mm:.1f} mm")
+        if (args.demo / REFERENCE_FILTERED).is_file():
+            names_f, ref_f = reference_landmarks(args.demo, filtered=True)
+            rep_f = evaluate(poses, reference_poses(names_f, ref_f, folder.fps, list(tracker.generic.output_names)),
+                             landmarks=names_f)
+            print(f"against Pose2Sim's filtered keypoints (its final output, REFERENCE_FILTERED): MPJPE "
+                  f"{rep_f.mpjpe_mm:.1f} mm, worst frame {rep_f.max_frame_mm:.1f} mm")
+        else:
+            print(f"(no {REFERENCE_FILTERED} in {args.demo}: no figure against Pose2Sim's filtered keypoints)")
         if args.bias:
             print_bias(poses, names, ref, args.demo)
             print_alignment(poses, names, ref)

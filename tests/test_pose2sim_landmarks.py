@@ -53,9 +53,10 @@ def test_the_reference_head_point_is_the_head_top(mapped):
 
 def test_the_filtered_reference_is_the_raw_one_smoothed():
     """Pose2Sim's filtered keypoints: the same points in the same frames (within a few cm of the raw ones on
-    average), with far less frame-to-frame jitter (the RMS second difference, a closed form of the noise)."""
-    from torchtrack.io.pose2sim import reference_keypoints
+    average), with far less frame-to-frame jitter (the RMS of the second difference over frames)."""
+    from torchtrack.io.pose2sim import REFERENCE_FILTERED, reference_keypoints
 
+    shared_data("pose2sim_demo", REFERENCE_FILTERED)
     demo = shared_data("pose2sim_demo")
     names, raw = reference_keypoints(demo)
     names_f, filt = reference_keypoints(demo, filtered=True)

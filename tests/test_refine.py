@@ -448,7 +448,7 @@ def test_observe_cli_with_the_background_from_a_track(standing_then_walking, tmp
     assert "give --background-from-track" in capsys.readouterr().err
     assert main(["observe", str(bare), "--out", str(tmp_path / "bad"), "--background-from-track", str(track),
                  "--near-fraction", "1.5"]) == 2
-    assert "near_fraction must be in [0, 1)" in capsys.readouterr().err
+    assert "near-fraction must be in [0, 1)" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
 
 

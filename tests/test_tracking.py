@@ -408,16 +408,20 @@ def test_the_prediction_velocity_follows_the_frame_rate(skel, monkeypatch):
     frame's prediction extrapolates the last two poses by it."""
     tracker = MarkerlessTracker(skel, TrackerConfig(velocity=0.5, velocity_fps=30.0))
     assert tracker.prediction_velocity == 0.5  # no rate given: as configured
-    for fps, v in ((30.0, 0.5), (60.0, 0.2), (15.0, 0.8), (120.0, 1 / 17)):
+    for fps, v in ((60.0, 0.2), (15.0, 0.8), (120.0, 1 / 17)):
         tracker.set_frame_rate(fps)
         assert tracker.prediction_velocity == pytest.approx(v, abs=1e-12), fps
+    for v in (0.5, 0.45, 0.53, 0.55, 0.35):  # at the rate it is set for: exactly the configured factor
+        at_30 = MarkerlessTracker(skel, TrackerConfig(velocity=v, velocity_fps=30.0))
+        at_30.set_frame_rate(30.0)
+        assert at_30.prediction_velocity == v
     tracker.set_frame_rate(60.0)
     for cfg in (TrackerConfig(velocity=0.5, velocity_fps=0.0), TrackerConfig(velocity=0.0),
                 TrackerConfig(velocity=1.0)):  # not re-derived: off, no velocity, full velocity
         other = MarkerlessTracker(skel, cfg)
         other.set_frame_rate(60.0)
         assert other.prediction_velocity == cfg.velocity
-    for bad in (0.0, -30.0, float("nan"), float("inf")):
+    for bad in (0.0, -30.0, 1e-200, 1e300, float("nan"), float("inf")):
         with pytest.raises(InputError, match="frame rate"):
             tracker.set_frame_rate(bad)
     with pytest.raises(InputError, match="velocity_fps"):

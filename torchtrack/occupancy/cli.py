@@ -69,6 +69,8 @@ def _run(args: argparse.Namespace) -> int:
     W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
     rig = full.resized(W, H).float().to(device)
     bg_config = BackgroundConfig(fill_static_subject=args.fill_static_subject)
+    if not 0.0 <= args.near_fraction < 1.0:  # NaN too
+        raise InputError(f"--near-fraction must be in [0, 1) (0: off), got {args.near_fraction}")
     if args.near_fraction and args.background_from_track is None:
         raise InputError("--near-fraction changes the background from a track: give --background-from-track")
     if args.background_from_track is not None:

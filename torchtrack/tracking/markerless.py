@@ -77,6 +77,9 @@ FUNCTIONAL_HIPS_MAX_M = 0.08
 #: together): subjects differ in how far the neck base sits above the shoulder joints. Finite-difference step (m).
 NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 
+#: Frame rates a sequence may declare (MarkerlessTracker.set_frame_rate): a video's, from time-lapse to high speed.
+MIN_FRAME_RATE, MAX_FRAME_RATE = 0.1, 10000.0
+
 #: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to the
 #: voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
 #: NECK_STEP_M (towards each round's body; with the torso's length held, it moves the shoulders). Towards the start,
@@ -143,12 +146,13 @@ class TrackerConfig:
         velocity: factor of the constant-velocity prediction (0 = previous pose), at ``velocity_fps``.
         velocity_fps: the frame rate ``velocity`` is set for (0: use it as it is at every rate). At another rate
             (:meth:`MarkerlessTracker.set_frame_rate`) the factor is re-derived as the gain of a velocity read off
-            one frame difference: with per-frame motion d and pose noise s, the prediction error is least at
-            ``v = d^2 / (d^2 + 2 s^2)``; d scales with 1 / fps and s does not, so ``k = v / (1 - v)`` scales with
-            ``(velocity_fps / fps)^2`` and the factor is ``k / (1 + k)``: 0.5 at 30 fps is 0.2 at 60 fps
-            (:attr:`MarkerlessTracker.prediction_velocity`). On the 60 fps Pose2Sim demo a sweep of ``velocity``
-            found its best at 0.2-0.3 (62.6 / 61.3 / 61.4 mm against 66.4 at 0.5), while the 30 fps synthetic
-            table wants 0.5.
+            one frame difference, a heuristic: with per-frame motion d and a velocity estimate whose noise is s
+            per frame (the last pose taken as exact), the prediction error is least at ``v = d^2 / (d^2 + 2 s^2)``;
+            d scales with 1 / fps and s does not, so ``k = v / (1 - v)`` scales with ``(velocity_fps / fps)^2``
+            and the factor is ``k / (1 + k)``: 0.5 at 30 fps is 0.2 at 60 fps
+            (:attr:`MarkerlessTracker.prediction_velocity`). On the 60 fps Pose2Sim demo one factor for every rate
+            (``velocity_fps=0``) found its best at 0.2-0.3 (62.6 / 61.3 / 61.4 mm against 66.4 at 0.5), while the
+            30 fps synthetic table wants 0.5.
         min_voxels, min_volume_m3: below either, the frame has nobody in it (valid = False).
         lost_residual_m: mean goal-to-joint distance above which a frame counts as diverging.
         min_explained: fraction of the voxel weight the blobs must take (else diverging).
@@ -406,8 +410,9 @@ class MarkerlessTracker:
         """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
         to the sequence's, ``SequenceFolder.fps``): the prediction's velocity factor is re-derived for it
         (:attr:`prediction_velocity`)."""
-        if not (fps > 0 and math.isfinite(fps)):
-            raise InputError(f"MarkerlessTracker.set_frame_rate: the frame rate must be > 0 and finite, got {fps}")
+        if not MIN_FRAME_RATE <= fps <= MAX_FRAME_RATE:  # NaN fails too
+            raise InputError(f"MarkerlessTracker.set_frame_rate: the frame rate must be in [{MIN_FRAME_RATE:g}, "
+                             f"{MAX_FRAME_RATE:g}] frames/s, got {fps}")
         self.frame_rate = float(fps)
 
     @property
@@ -416,8 +421,8 @@ class MarkerlessTracker:
         ``velocity_fps``, re-derived for :attr:`frame_rate` (``k = v / (1 - v)`` scaled by ``(velocity_fps /
         fps)^2``, the factor ``k / (1 + k)``; see :class:`TrackerConfig`)."""
         v, at = self.config.velocity, self.config.velocity_fps
-        if self.frame_rate is None or at == 0 or v in (0.0, 1.0):
-            return v
+        if self.frame_rate is None or at == 0 or v in (0.0, 1.0) or self.frame_rate == at:
+            return v  # exactly as configured (k / (1 + k) may round it by an ulp)
         k = v / (1.0 - v) * (at / self.frame_rate) ** 2
         return k / (1.0 + k)
 

@@ -74,13 +74,14 @@ class RefineConfig:
             (see ``clear_fraction``), never from a frame where the rendered body covers it: where fewer than
             ``MIN_CLEAN_FRAMES`` frames leave a pixel, the sequence estimate (passes 1-3) is kept there.
         clear_fraction: frames at least this fraction of the image's larger side clear of the body all count.
-        near_fraction: a pixel with fewer than ``clear_frames`` frames at least this fraction of the image's
-            larger side clear of the rendered body keeps the sequence estimate (passes 1-3, with the static-subject
-            fill) instead: a part of the subject that stays in place just outside the drawn body (the toes of a
-            stance foot) is otherwise in all of those frames and so in the background (0: off). On the Pose2Sim
-            demo's occupancy it brings the stance foot's toes back and grows the volume (README, Observation);
-            between tracking passes it lost (``scripts/eval_pose2sim_tracking.py --refine near_fraction=0.01``:
-            84.1 mm against 66.4), so the tracking config leaves it off.
+        near_fraction: a pixel with fewer than ``clear_frames`` frames (all of them, when there are fewer) at least
+            this fraction of the image's larger side clear of the rendered body keeps the sequence estimate (passes
+            1-3, with the static-subject fill) instead: a part of the subject that stays in place just outside the
+            drawn body (the toes of a stance foot) is otherwise in all of those frames and so in the background (0:
+            off). On the Pose2Sim demo's occupancy it brings the stance foot's toes back and grows the volume
+            (README, Observation); between tracking passes it lost (``scripts/eval_pose2sim_tracking.py --refine
+            near_fraction=0.01``, with the velocity factor 0.5 at every rate: 84.1 mm against 66.4), so the tracking
+            config leaves it off.
         min_change_m: the passes stop early once a pass's track moved less than this from the one before
             (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then the last (0:
             all ``passes`` are run).
@@ -213,9 +214,9 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
         clear_frames: k: each pixel keeps at least its k clearest frames (all of them when N <= k), ties
             included, but never a frame where it is on the body (clearance 0).
         clear_px: frames at least this clear are all kept.
-        near_px: a pixel with fewer than k frames at least this clear of the body (its k-th clearest frame
-            nearer) keeps none (0: off), so that the caller's fallback (``BackgroundModel.from_sequence``: passes
-            1-3) decides it.
+        near_px: a pixel with fewer than k frames (k as above: all N when N <= k) at least this clear of the body
+            (its k-th clearest frame nearer) keeps none (0: off), so that the caller's fallback
+            (``BackgroundModel.from_sequence``: passes 1-3) decides it.
 
     Returns:
         (N, ..., H, W) bool, True where a frame is not used for a pixel's background.
