@@ -9,7 +9,8 @@ cam01/cam02 must not become one of human size). Writes a picture of the voxels p
 one of the keypoints missed in the frames under 90 %: each missed keypoint's surroundings in the four views, the
 occupied voxels drawn over them, so whether the reference or the voxels are off can be seen.
 The keypoints are Pose2Sim's raw triangulation, or with ``--filtered-reference`` its filtered output
-(:data:`torchtrack.io.pose2sim.REFERENCE_FILTERED`), whose single-frame outliers are smoothed away.
+(:data:`torchtrack.io.pose2sim.REFERENCE_FILTERED`), whose single-frame outliers are smoothed away;
+``--reference-noise`` prints how the two differ.
 
 The defaults (frames at half the videos' size, 1 cm voxels, a 1 x 1 window) keep thin parts (toes, the head's
 top) within 5 cm; the README also quotes figures at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25
@@ -30,7 +31,7 @@ keep the plain estimate, its fill, which gives the stance foot's toes back; READ
 
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.5] [--voxel 0.01] [--window 1] [--min-views 4]
        [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES
-       [--refine near_fraction=0.02]] [--filtered-reference]
+       [--refine near_fraction=0.02]] [--filtered-reference] [--reference-noise]
 """
 
 from __future__ import annotations
@@ -56,6 +57,24 @@ from torchtrack.tracking.cli import load_config
 from torchtrack.tracking.refine import RefineConfig, background_from_track
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
+
+
+def jitter_mm(points: np.ndarray) -> float:
+    """(T, K, 3) m -> the RMS over frames and keypoints of the second difference along time (mm a frame^2): the
+    frame-to-frame noise of a trajectory (0 for one that moves at constant velocity)."""
+    return 1e3 * float(np.sqrt((np.diff(points, 2, axis=0) ** 2).sum(-1).mean()))
+
+
+def reference_noise(demo: Path) -> None:
+    """``--reference-noise``: Pose2Sim's raw triangulation against its filtered output: each one's jitter, how far
+    apart they are, and the keypoint and frame where they are farthest apart."""
+    names, raw = reference_keypoints(demo)
+    _, filt = reference_keypoints(demo, filtered=True)
+    apart = 1e3 * np.linalg.norm(raw - filt, axis=-1)  # (T, K) mm
+    t, k = np.unravel_index(int(apart.argmax()), apart.shape)
+    print(f"Pose2Sim's keypoints, raw / filtered: jitter (RMS second difference) {jitter_mm(raw):.1f} / "
+          f"{jitter_mm(filt):.1f} mm a frame; apart by {apart.mean():.1f} mm on average, at most {apart[t, k]:.0f} "
+          f"mm ({names[k]}, frame {t})")
 
 
 def components_without_keypoints(occ: np.ndarray, keypoint_voxels: np.ndarray, voxel: float) -> list[float]:
@@ -173,6 +192,9 @@ def main() -> None:
     ap.add_argument("--filtered-reference", action="store_true",
                     help="score against Pose2Sim's filtered keypoints (its final output) instead of the raw "
                          "triangulation (torchtrack.io.pose2sim.REFERENCE_FILTERED)")
+    ap.add_argument("--reference-noise", action="store_true",
+                    help="print only how the raw triangulation and the filtered keypoints differ (jitter, distance, "
+                         "the farthest keypoint); no video")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="with --background-from-track: RefineConfig overrides of configs/markerless.yaml's "
                          "background_refinement section, e.g. near_fraction=0.01")
@@ -183,6 +205,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.refine and args.background_from_track is None:
         raise SystemExit("--refine changes the background from a track: give --background-from-track")
+    if args.reference_noise:
+        reference_noise(args.demo)
+        return
     torch.set_grad_enabled(False)
     names, ref = reference_keypoints(args.demo, filtered=args.filtered_reference)  # (T, 21, 3)
     with tempfile.TemporaryDirectory() as tmp:

@@ -207,8 +207,8 @@ def knee_bend(points: np.ndarray, names: list[str], side: str) -> np.ndarray:
     ankle), 0 for a straight leg."""
     hip, knee, ankle = (points[:, names.index(f"{side}_{j}")] for j in ("hip", "knee", "ankle"))
     u, v = knee - hip, ankle - knee
-    cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
-    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    # atan2 of |u x v| and u . v: well conditioned near a straight leg, where arccos of the cosine is not
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(u, v), axis=-1), (u * v).sum(-1)))
 
 
 def print_alignment(poses: Poses, names: list[str], ref: np.ndarray) -> None:

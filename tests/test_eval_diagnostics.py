@@ -94,3 +94,20 @@ def test_knee_bend_closed_form():
     pts = np.stack([np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 0.6],
                               [-0.38 * math.sin(b), 0.0, 0.6 - 0.38 * math.cos(b)]]) for b in bend])
     np.testing.assert_allclose(mod.knee_bend(pts, names, "l"), np.degrees(bend), atol=1e-6)
+    # nearly straight, in float32 (the tracks' dtype): 0.05 deg is still read as such
+    b = math.radians(0.05)
+    nearly = np.array([[[0.0, 0.0, 1.0], [0.0, 0.0, 0.6], [-0.38 * math.sin(b), 0.0, 0.6 - 0.38 * math.cos(b)]]],
+                      np.float32)
+    np.testing.assert_allclose(mod.knee_bend(nearly, names, "l"), [0.05], atol=5e-4)  # arccos: 0.0523
+
+
+def test_jitter_of_constant_velocity_and_of_alternating_noise():
+    """The RMS second difference: 0 for a trajectory at constant velocity; 4 a for one that alternates by +-a
+    (second difference a (1 + 2 + 1) in every frame)."""
+    mod = _script("eval_pose2sim_occupancy")
+    t = np.arange(30, dtype=float)[:, None, None]
+    moving = np.array([0.01, -0.02, 0.005]) * t + np.zeros((1, 5, 3))  # (30, 5, 3) m
+    assert mod.jitter_mm(moving) == pytest.approx(0.0, abs=1e-9)
+    a = 0.003
+    alternating = moving + a * (-1.0) ** t * np.array([1.0, 0.0, 0.0])
+    assert mod.jitter_mm(alternating) == pytest.approx(4e3 * a)

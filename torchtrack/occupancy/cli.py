@@ -37,10 +37,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "poses.npz of a `torchtrack track` run on this sequence (for a sequence without "
                         "background/ frames whose subject hardly moves; see torchtrack.tracking.refine)")
     p.add_argument("--near-fraction", type=float, default=0.0, metavar="F",
-                   help="with --background-from-track: pixels with fewer than 10 frames at least F of the image's "
-                        "larger side clear of the tracked body keep the plain estimate (with --fill-static-subject, "
-                        "its fill): parts that stay just outside the drawn body, such as a stance foot's toes, "
-                        "come back, and the volume grows (0: off; RefineConfig.near_fraction)")
+                   help="with --background-from-track: pixels with fewer than RefineConfig.clear_frames (10) frames "
+                        "at least F of the image's larger side clear of the tracked body keep the plain estimate "
+                        "(with --fill-static-subject, its fill): parts that stay just outside the drawn body, such "
+                        "as a stance foot's toes, come back, and the volume grows (0: off; "
+                        "RefineConfig.near_fraction)")
     p.set_defaults(func=run)
 
 
