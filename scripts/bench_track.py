@@ -30,7 +30,7 @@ from torchtrack.background import BackgroundModel
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import grid_from_rig
 from torchtrack.skeleton import Skeleton
-from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.stream import observe_batches
@@ -38,10 +38,10 @@ from torchtrack.tracking.stream import observe_batches
 
 def sequence(work: Path, cameras: int, width: int, height: int, seconds: float) -> Path:
     out = work / f"walk_{cameras}cam_{width}x{height}"
-    if not (out / "gt.npz").is_file():
-        write_sequence(SynthConfig(motion="walk", duration_s=seconds, starfish_s=0.5, video_format="mp4",
-                                   rig=RigConfig(num_cameras=cameras, width=width, height=height)), out,
-                       progress=False)
+    cfg = SynthConfig(motion="walk", duration_s=seconds, starfish_s=0.5, video_format="mp4",
+                      rig=RigConfig(num_cameras=cameras, width=width, height=height))
+    if not is_current(out, cfg):
+        write_sequence(cfg, out, progress=False)
     return out
 
 

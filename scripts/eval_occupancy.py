@@ -29,7 +29,7 @@ from torchtrack.occupancy import BayesConfig, BayesianGrid, GridSpec, Silhouette
 from torchtrack.occupancy.hull import HullConfig, hull_from_images
 from torchtrack.occupancy.metrics import false_components, inside_ellipsoids, iou
 from torchtrack.synth.scene import SceneConfig
-from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 
 VOLUME = ((-1.3, -1.3, 0.0), (1.3, 1.3, 2.1))  # the synthetic motions stay within ~1.1 m of the origin
 
@@ -43,11 +43,10 @@ CASES = {
 
 def ensure_sequence(work: Path, name: str, cams: int, scene: dict, motion: str, fmt: str) -> Path:
     out = work / f"{name}_{motion}_{fmt}"
-    if not (out / "gt.npz").is_file():
-        cfg = SynthConfig(motion=motion, duration_s=1.0, starfish_s=0.5, fps=15, background_frames=10,
-                          video_format=fmt,
-                          rig=RigConfig(num_cameras=cams),
-                          scene=dataclasses.replace(SceneConfig(), **scene))
+    cfg = SynthConfig(motion=motion, duration_s=1.0, starfish_s=0.5, fps=15, background_frames=10,
+                      video_format=fmt, rig=RigConfig(num_cameras=cams),
+                      scene=dataclasses.replace(SceneConfig(), **scene))
+    if not is_current(out, cfg):
         write_sequence(cfg, out)
     return out
 

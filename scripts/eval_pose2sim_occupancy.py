@@ -10,7 +10,8 @@ one of the keypoints missed in the frames under 90 %: each missed keypoint's sur
 occupied voxels drawn over them, so whether the reference or the voxels are off can be seen.
 The keypoints are Pose2Sim's raw triangulation, or with ``--filtered-reference`` its filtered output
 (:data:`torchtrack.io.pose2sim.REFERENCE_FILTERED`), whose single-frame outliers are smoothed away;
-``--reference-noise`` prints how the two differ.
+``--reference-noise`` prints how the two differ. ``--limb-centroids`` prints where along each limb of the
+reference its occupied voxels centre (the blobs' ``offset`` in configs/blobs.yaml is that fraction).
 
 The defaults (frames at half the videos' size, 1 cm voxels, a 1 x 1 window) keep thin parts (toes, the head's
 top) within 5 cm; the README also quotes figures at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25
@@ -105,6 +106,30 @@ def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np
     return np.linalg.norm(points[:, None] - nearest, axis=-1).min(1)
 
 
+#: --limb-centroids: a voxel counts for a segment within this distance (m).
+LIMB_RADIUS_M = 0.12
+#: --limb-centroids: the limbs (proximal, distal keypoint) whose voxels' centroid is printed.
+LIMBS = [("RHip", "RKnee"), ("RKnee", "RAnkle"), ("LHip", "LKnee"), ("LKnee", "LAnkle"), ("RShoulder", "RElbow"),
+         ("RElbow", "RWrist"), ("LShoulder", "LElbow"), ("LElbow", "LWrist")]
+
+
+def centroid_along_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
+    """(S,) where the centroid of each segment's points lies along it, as a fraction from ``a`` (0) to ``b`` (1);
+    NaN for a segment with none. A point belongs to the nearest of the segments ``a (S, 3) -> b (S, 3)`` if within
+    ``radius`` of it; its position along the segment is clamped to [0, 1]."""
+    ab = b - a  # (S, 3)
+    t = np.einsum("nsk,sk->ns", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)  # (N, S)
+    t = np.clip(t, 0, 1)
+    dist = np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)  # (N, S)
+    nearest = dist.argmin(1) if len(points) else np.zeros(0, int)  # (N,)
+    out = np.full(len(a), np.nan)
+    for k in range(len(a)):
+        mine = (nearest == k) & (dist[:, k] <= radius)
+        if mine.any():
+            out[k] = t[mine, k].mean()
+    return out
+
+
 def voxel_views(folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> list[np.ndarray]:
     """The four views of frame ``t`` at the rig's size as BGR uint8 images, the occupied voxel centres
     ``(N, 3)`` projected and painted green over them (each centre's pixel grown by one: 1 cm voxels at half size
@@ -195,6 +220,11 @@ def main() -> None:
     ap.add_argument("--reference-noise", action="store_true",
                     help="print only how the raw triangulation and the filtered keypoints differ (jitter, distance, "
                          "the farthest keypoint); no video")
+    ap.add_argument("--limb-centroids", action="store_true",
+                    help="also print where along each limb of the reference (hip-knee, knee-ankle, shoulder-elbow, "
+                         "elbow-wrist) its occupied voxels centre, as a fraction from the proximal keypoint: median "
+                         "and quartiles over the frames; a voxel counts for the nearest of the body's segments, "
+                         "within 12 cm")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="with --background-from-track: RefineConfig overrides of configs/markerless.yaml's "
                          "background_refinement section, e.g. near_fraction=0.01")
@@ -238,6 +268,8 @@ def main() -> None:
         shares, phantoms, hits, distances = [], [], [], []  # hits, distances: (T, 21) keypoint to nearest voxel
         volumes, outside = [], []  # occupied m^3 per frame; share of the occupied voxels outside the body
         seg = np.array([[names.index(p), names.index(q)] for p, q in BODY_SEGMENTS])
+        limbs = np.array([BODY_SEGMENTS.index(limb) for limb in LIMBS])
+        centroids = []  # (T, len(LIMBS)) with --limb-centroids
         for s in range(0, frames.shape[0], 10):
             occ = grid(frames[s:s + 10]).occupied()  # (b, V)
             for i in range(occ.shape[0]):
@@ -251,6 +283,9 @@ def main() -> None:
                 if len(pts):
                     far = distance_to_segments(pts, ref[t][seg[:, 0]], ref[t][seg[:, 1]]) > args.body_radius
                     outside.append(float(far.mean()))
+                if args.limb_centroids:  # every body segment competes for the voxels, the limbs' are kept
+                    along = centroid_along_segments(pts, ref[t][seg[:, 0]], ref[t][seg[:, 1]], LIMB_RADIUS_M)
+                    centroids.append(along[limbs])
                 shares.append(float(near.mean()))
                 kp_vox, inside = spec.index_of(torch.from_numpy(ref[t]).float())
                 phantoms.append(components_without_keypoints(occ[i].reshape(spec.shape).numpy(),
@@ -271,6 +306,13 @@ def main() -> None:
         print(f"  largest component without a keypoint: {largest:.2f} m across")
         print(f"  occupied volume per frame: mean {np.mean(volumes):.3f} m^3 (a body is about 0.07), of which "
               f"{np.mean(outside):.2f} farther than {args.body_radius * 100:.0f} cm from every body segment")
+        if args.limb_centroids:
+            c = np.array(centroids)  # (T, len(LIMBS))
+            print("  where each limb's voxels centre, from its proximal keypoint (median over frames, quartiles):")
+            for k, (p, q) in enumerate(LIMBS):
+                v = c[:, k][np.isfinite(c[:, k])]
+                q1, med, q3 = np.percentile(v, [25, 50, 75]) if len(v) else (np.nan,) * 3
+                print(f"    {p}-{q}: {med:.3f} ({q1:.3f}-{q3:.3f}), {len(v)} frames")
         t = int(shares_a.argmin())
         occ = grid(frames[t:t + 1]).occupied()[0]
         picture(args.picture, folder, rig, centres[occ], t)

@@ -35,7 +35,7 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
-from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult, MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
@@ -53,12 +53,11 @@ PROPORTIONS = ("height", "torso", "neck_above_shoulders", "head", "l_upperarm", 
 
 def sequence(work: Path, motion: str, cameras: int, duration: float, fmt: str) -> Path:
     out = work / f"{motion.replace(':', '_')}_{cameras}cam"
-    if (out / "gt.npz").is_file():
-        return out
     src = str(CMU / f"{motion[4:]}.bvh") if motion.startswith("cmu:") else motion
     cfg = SynthConfig(motion=src, duration_s=duration, starfish_s=0.5, video_format=fmt,
                       rig=RigConfig(num_cameras=cameras), scene=SceneConfig())
-    write_sequence(cfg, out, device="cpu", progress=False)
+    if not is_current(out, cfg):  # rendered before with other settings or another body model
+        write_sequence(cfg, out, device="cpu", progress=False)
     return out
 
 

@@ -27,8 +27,9 @@ def test_rest_pose_centres_by_hand(model):
     chest = centres[0, blobs.names.index("chest")]
     # torso bone starts 0.10 m above the pelvis, is 0.45 m long, the chest sits at 60 % of it
     torch.testing.assert_close(chest, torch.tensor([0.0, 0.0, z_pelvis + 0.10 + 0.6 * 0.45], dtype=torch.float64))
+    # the shank's blob sits at 45 % of the bone (its centre of mass towards the knee)
     shank = centres[0, blobs.names.index("r_shank")]
-    torch.testing.assert_close(shank, torch.tensor([0.0, -0.09, z_pelvis - 0.42 - 0.5 * 0.42], dtype=torch.float64))
+    torch.testing.assert_close(shank, torch.tensor([0.0, -0.09, z_pelvis - 0.42 - 0.45 * 0.42], dtype=torch.float64))
     # the 'along' axis of a hanging limb points down, 'width' to the left
     Rs = R[0, blobs.names.index("l_forearm")]
     torch.testing.assert_close(Rs[:, 0], torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64))

@@ -111,3 +111,29 @@ def test_jitter_of_constant_velocity_and_of_alternating_noise():
     a = 0.003
     alternating = moving + a * (-1.0) ** t * np.array([1.0, 0.0, 0.0])
     assert mod.jitter_mm(alternating) == pytest.approx(4e3 * a)
+
+
+def test_centroid_along_segments_against_closed_forms():
+    """Points filling a cylinder around a segment centre at 0.5 of it; a cone with its base at the proximal end at
+    0.25 (a solid cone's centroid is a quarter of its height from the base); points nearer another segment or
+    beyond the radius are not counted; a segment without points is NaN."""
+    mod = _script("eval_pose2sim_occupancy")
+    rng = np.random.default_rng(0)
+    n = 200_000
+    z = rng.uniform(0, 1, n)  # along, from the proximal end at z = 1 down to 0 (a hanging limb, 1 m)
+    r, phi = 0.05 * np.sqrt(rng.uniform(0, 1, n)), rng.uniform(0, 2 * np.pi, n)
+    cylinder = np.stack([r * np.cos(phi), r * np.sin(phi), 1 - z], 1)
+    # a cone of base radius 0.06 at the top: accept points under its surface (rejection sampling in its cylinder)
+    rc = 0.06 * np.sqrt(rng.uniform(0, 1, n))
+    keep = rc <= 0.06 * (1 - z)
+    cone = np.stack([rc * np.cos(phi) + 1.0, rc * np.sin(phi), 1 - z], 1)[keep]
+    far = np.array([[0.0, 0.5, 0.5]])  # 0.5 m from the first segment, beyond the radius of every segment
+    a = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 1.0], [3.0, 0.0, 1.0]])  # (S, 3) proximal ends
+    b = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    got = mod.centroid_along_segments(np.concatenate([cylinder, cone, far]), a, b, radius=0.12)
+    np.testing.assert_allclose(got[:2], [0.5, 0.25], atol=3e-3)
+    assert np.isnan(got[2])
+    # a point nearer the second segment goes to it, not to the first even within the radius
+    between = np.array([[0.6, 0.0, 0.5]])
+    got = mod.centroid_along_segments(between, a[:2], b[:2], radius=0.5)
+    assert np.isnan(got[0]) and got[1] == pytest.approx(0.5)

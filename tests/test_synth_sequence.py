@@ -104,6 +104,15 @@ def test_cli_synth(tmp_path, capsys):
     assert (tmp_path / "c" / "video" / "cam1.mp4").is_file()
     assert main(["synth", "--out", str(tmp_path / "d"), "--size", "big"]) == 2
     assert "--size" in capsys.readouterr().err
+    # --reuse keeps a folder that holds the same sequence, and renders one of other settings
+    args = ["synth", "--out", str(tmp_path / "c"), "--motion", "squat", "--duration", "0.2", "--starfish", "0.2",
+            "--fps", "10", "--cameras", "2", "--size", "64x48", "--background-frames", "2", "--reuse"]
+    stamp = (tmp_path / "c" / "gt.npz").stat().st_mtime_ns
+    assert main(args) == 0
+    assert "kept" in capsys.readouterr().out
+    assert (tmp_path / "c" / "gt.npz").stat().st_mtime_ns == stamp
+    assert main(args + ["--seed", "3"]) == 0
+    assert "wrote synthetic sequence" in capsys.readouterr().out
 
 
 def test_saved_calibration_keeps_the_float64_rig(seq):
@@ -112,3 +121,38 @@ def test_saved_calibration_keeps_the_float64_rig(seq):
     ring = make_ring_rig(RigConfig(num_cameras=3, width=96, height=72))
     torch.testing.assert_close(saved.R_cam_world, ring.R_cam_world, atol=1e-12, rtol=0)
     torch.testing.assert_close(saved.t_cam_world, ring.t_cam_world, atol=1e-12, rtol=0)
+
+
+def test_is_current_sees_other_settings_and_body_model(seq, tmp_path, monkeypatch):
+    """A kept sequence is current for the config that rendered it, not for another one, nor after the body model
+    (configs/blobs.yaml, body.urdf) changed, nor when half-written."""
+    import hashlib
+    import shutil
+
+    from torchtrack import resources
+    from torchtrack.synth import sequence as synth_sequence
+
+    assert synth_sequence.is_current(seq, _cfg())
+    assert not synth_sequence.is_current(seq, _cfg(seed=1))
+    assert not synth_sequence.is_current(seq, _cfg(video_format="mp4"))
+    assert not synth_sequence.is_current(seq, _cfg(rig=RigConfig(num_cameras=4, width=96, height=72)))
+    assert not synth_sequence.is_current(tmp_path / "missing", _cfg())
+    # the digest is the SHA-256 of the two files, in that order
+    h = hashlib.sha256(resources.config_path("body.urdf").read_bytes()
+                       + resources.config_path("blobs.yaml").read_bytes())
+    assert synth_sequence.body_model_digest() == h.hexdigest()[:16]
+    # another blobs.yaml: the kept sequence is no longer current
+    configs = tmp_path / "configs"
+    shutil.copytree(resources.CONFIG_DIR, configs)
+    text = (configs / "blobs.yaml").read_text()
+    moved = text.replace("offset: 0.45, along: 0.55", "offset: 0.50, along: 0.55")  # the shanks' blobs
+    assert moved != text
+    (configs / "blobs.yaml").write_text(moved)
+    monkeypatch.setattr(resources, "CONFIG_DIR", configs)
+    assert not synth_sequence.is_current(seq, _cfg())
+    monkeypatch.undo()
+    # a folder without its ground truth (a half-written copy) is not current
+    half = tmp_path / "half"
+    shutil.copytree(seq, half)
+    (half / "gt.npz").unlink()
+    assert not synth_sequence.is_current(half, _cfg())

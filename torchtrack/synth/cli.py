@@ -33,13 +33,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="a static object absent from the background frames, seen by some views")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--reuse", action="store_true",
+                   help="keep OUT as it is when it already holds this sequence: rendered with these settings and "
+                        "today's configs/body.urdf and blobs.yaml (meta.toml's [synth] table); render it otherwise")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from torchtrack.checks import InputError
     from torchtrack.synth.scene import SceneConfig
-    from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
+    from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
@@ -53,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
                                   illumination_change=args.illumination_change, shadow=args.shadow,
                                   distractor=args.distractor, seed=args.seed),
         seed=args.seed)
+    if args.reuse and is_current(args.out, cfg):
+        print(f"{args.out} already holds this sequence (--reuse): kept")
+        return 0
     out = write_sequence(cfg, args.out, device=args.device)
     print(f"wrote synthetic sequence to {out}")
     return 0

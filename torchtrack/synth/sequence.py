@@ -9,6 +9,7 @@ The folder appears atomically when everything is written.
 from __future__ import annotations
 
 import copy
+import hashlib
 import logging
 import math
 from dataclasses import asdict, dataclass, field
@@ -22,6 +23,7 @@ from torchtrack.cameras import CameraRig, save_calibration
 from torchtrack.checks import InputError
 from torchtrack.io.atomic import atomic_dir
 from torchtrack.io.poses import Poses, save_poses
+from torchtrack.resources import config_path
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import MOTIONS, procedural_motion
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
@@ -197,13 +199,49 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
     return out
 
 
+def body_model_digest() -> str:
+    """The first 16 hex digits of the SHA-256 of the built-in body model the renderer draws (``configs/body.urdf``
+    and ``configs/blobs.yaml``); meta.toml's ``synth.body_model`` records it."""
+    from torchtrack.blobs.model import DEFAULT_BLOBS
+    from torchtrack.skeleton.model import DEFAULT_URDF
+
+    h = hashlib.sha256()
+    for name in (DEFAULT_URDF, DEFAULT_BLOBS):
+        h.update(config_path(name).read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _synth_table(cfg: SynthConfig) -> dict:
+    """meta.toml's ``[synth]`` table for ``cfg``: what rendered the sequence."""
+    scene = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.scene).items() if v is not None}
+    rig = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.rig).items()}
+    return {"motion": cfg.motion, "duration_s": cfg.duration_s, "starfish_s": cfg.starfish_s, "seed": cfg.seed,
+            "subject_height_m": cfg.subject_height_m, "background_frames": cfg.background_frames,
+            "video_format": cfg.video_format, "body_model": body_model_digest(), "rig": rig, "scene": scene}
+
+
+def is_current(out: str | Path, cfg: SynthConfig) -> bool:
+    """Whether ``out`` is a complete sequence that :func:`write_sequence` rendered from ``cfg`` with today's body
+    model (its meta.toml's frame rate and ``[synth]`` table equal what ``cfg`` would write now): scripts that keep
+    rendered sequences between runs re-render the ones that are not. Changes to the renderer's code are not seen."""
+    out = Path(out)
+    if not (out / "gt.npz").is_file() or not (out / "meta.toml").is_file():
+        return False
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python < 3.11
+        import tomli as tomllib
+    try:
+        meta = tomllib.loads((out / "meta.toml").read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+        return False
+    return meta.get("fps") == cfg.fps and meta.get("synth") == _synth_table(cfg)
+
+
 def _write_meta(path: Path, cfg: SynthConfig, skel: Skeleton) -> None:
     import tomli_w
 
-    scene = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.scene).items() if v is not None}
-    rig = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.rig).items()}
     doc = {"fps": cfg.fps, "subject_height_m": round(skel.height(), 4),
            "notes": "synthetic sequence rendered by torchtrack synth; body.urdf is the subject's skeleton",
-           "synth": {"motion": cfg.motion, "duration_s": cfg.duration_s, "starfish_s": cfg.starfish_s,
-                     "seed": cfg.seed, "background_frames": cfg.background_frames, "rig": rig, "scene": scene}}
+           "synth": _synth_table(cfg)}
     path.write_text(tomli_w.dumps(doc), encoding="utf-8")

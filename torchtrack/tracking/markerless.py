@@ -108,6 +108,12 @@ FIT_ROUNDS = 8
 #: The Bayesian grid's voxels (3 cm) are not split.
 BONE_FIT_VOXEL_M = 0.03
 
+#: Initialisation: the heading the toes point along (the first tried) gives way to another only if that fits the
+#: starfish frame better by more than this (m of the fit's cost, :meth:`MarkerlessTracker._fit_cost`). Where the
+#: toes are unclear the fits of a starfish and of its flip are often a tie: 20.5 / 20.4 mm on the 4-camera hull's
+#: CMU 131_01 (the flip won and the whole track ran backwards, 335.5 mm), against 16.6 / 21.1 on 131_02.
+HEADING_MARGIN_M = 0.002
+
 #: A starfish's arms are raised: the initialisation refuses a fit whose upper arm hangs within this angle of
 #: straight down (the starfish has them 72 deg up; the fits of the 28 synthetic starfish starts, 68-93 deg).
 STARFISH_MIN_ARM_RAISE_DEG = 45.0
@@ -542,8 +548,9 @@ class MarkerlessTracker:
             cost = self._fit_cost(res)
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
                       1e3 * res.residual_m, res.explained)
-            if best is None or cost < best[0]:
-                best = (cost, res)
+            # the toes' heading (the first) is kept unless another fits clearly better
+            if best is None or cost < best[0] - (HEADING_MARGIN_M if best[2] else 0.0):
+                best = (cost, res, best is None and toe > 0.0)
         res = best[1]
         self.angles = self.previous = res.angles
         # the bone fit's rounds explain ghosts away: so does the fit they must improve on
