@@ -115,13 +115,13 @@ LIMBS = [("RHip", "RKnee"), ("RKnee", "RAnkle"), ("LHip", "LKnee"), ("LKnee", "L
 
 def centroid_along_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, radius: float) -> np.ndarray:
     """(S,) where the centroid of each segment's points lies along it, as a fraction from ``a`` (0) to ``b`` (1);
-    NaN for a segment with none. A point belongs to the nearest of the segments ``a (S, 3) -> b (S, 3)`` if within
-    ``radius`` of it; its position along the segment is clamped to [0, 1]."""
+    NaN for a segment with none. A point of ``points (N, 3)`` belongs to the nearest of the segments
+    ``a (S, 3) -> b (S, 3)`` if within ``radius`` of it; its position along the segment is clamped to [0, 1]."""
     ab = b - a  # (S, 3)
     t = np.einsum("nsk,sk->ns", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)  # (N, S)
     t = np.clip(t, 0, 1)
     dist = np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)  # (N, S)
-    nearest = dist.argmin(1) if len(points) else np.zeros(0, int)  # (N,)
+    nearest = dist.argmin(1)  # (N,)
     out = np.full(len(a), np.nan)
     for k in range(len(a)):
         mine = (nearest == k) & (dist[:, k] <= radius)

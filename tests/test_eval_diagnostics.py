@@ -133,6 +133,10 @@ def test_centroid_along_segments_against_closed_forms():
     got = mod.centroid_along_segments(np.concatenate([cylinder, cone, far]), a, b, radius=0.12)
     np.testing.assert_allclose(got[:2], [0.5, 0.25], atol=3e-3)
     assert np.isnan(got[2])
+    # a point 0.5 m off the first segment's axis is not counted for it, however near its end
+    assert np.isnan(mod.centroid_along_segments(np.array([[0.0, 0.5, 0.9]]), a[:1], b[:1], radius=0.12)[0])
+    assert mod.centroid_along_segments(np.array([[0.0, 0.1, 0.9]]), a[:1], b[:1], radius=0.12)[0] == \
+        pytest.approx(0.1)
     # a point nearer the second segment goes to it, not to the first even within the radius
     between = np.array([[0.6, 0.0, 0.5]])
     got = mod.centroid_along_segments(between, a[:2], b[:2], radius=0.5)

@@ -126,7 +126,6 @@ def test_saved_calibration_keeps_the_float64_rig(seq):
 def test_is_current_sees_other_settings_and_body_model(seq, tmp_path, monkeypatch):
     """A kept sequence is current for the config that rendered it, not for another one, nor after the body model
     (configs/blobs.yaml, body.urdf) changed, nor when half-written."""
-    import hashlib
     import shutil
 
     from torchtrack import resources
@@ -137,10 +136,20 @@ def test_is_current_sees_other_settings_and_body_model(seq, tmp_path, monkeypatc
     assert not synth_sequence.is_current(seq, _cfg(video_format="mp4"))
     assert not synth_sequence.is_current(seq, _cfg(rig=RigConfig(num_cameras=4, width=96, height=72)))
     assert not synth_sequence.is_current(tmp_path / "missing", _cfg())
-    # the digest is the SHA-256 of the two files, in that order
-    h = hashlib.sha256(resources.config_path("body.urdf").read_bytes()
-                       + resources.config_path("blobs.yaml").read_bytes())
-    assert synth_sequence.body_model_digest() == h.hexdigest()[:16]
+    # the built-in body model, also from inside a sequence folder (which holds its subject's own body.urdf)
+    digest = synth_sequence.body_model_digest()
+    monkeypatch.chdir(seq)
+    assert synth_sequence.body_model_digest() == digest
+    assert synth_sequence.is_current(seq, _cfg())
+    # a scene and rig of other than default values (tuples, None, bools) read back equal
+    scene = dataclasses.replace(SceneConfig(), noise_std=0.0, shadow=True, distractor=True, distractor_cameras=(0, 2),
+                                illumination_change=0.25)
+    other = _cfg(scene=scene, rig=RigConfig(num_cameras=3, width=64, height=48, radius_m=3.0, k1=0.0), seed=4)
+    written = write_sequence(other, tmp_path / "other", progress=False)
+    assert synth_sequence.is_current(written, other)
+    assert not synth_sequence.is_current(written, dataclasses.replace(other, scene=dataclasses.replace(
+        scene, distractor_cameras=None)))
+    monkeypatch.undo()
     # another blobs.yaml: the kept sequence is no longer current
     configs = tmp_path / "configs"
     shutil.copytree(resources.CONFIG_DIR, configs)

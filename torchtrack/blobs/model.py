@@ -22,7 +22,7 @@ import yaml
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
-from torchtrack.resources import config_path
+from torchtrack.resources import builtin_config, config_path
 from torchtrack.skeleton import Skeleton
 
 DEFAULT_BLOBS = "blobs.yaml"
@@ -47,7 +47,7 @@ class BlobSpec:
 
 def load_blob_specs(path: str | Path | None = None) -> tuple[list[BlobSpec], float]:
     """Read a blob config: (specs, reference height in metres)."""
-    p = config_path(path or DEFAULT_BLOBS)
+    p = builtin_config(DEFAULT_BLOBS) if path is None else config_path(path)
     try:
         doc = yaml.safe_load(p.read_text(encoding="utf-8"))
     except yaml.YAMLError as exc:

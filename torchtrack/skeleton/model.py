@@ -25,7 +25,7 @@ from torch import nn
 
 from torchtrack.checks import InputError, check_finite, check_shape
 from torchtrack.conventions import LANDMARKS
-from torchtrack.resources import config_path
+from torchtrack.resources import builtin_config, config_path
 
 #: Landmark -> the URDF link whose origin is that landmark.
 LANDMARK_FRAMES: dict[str, str] = {
@@ -158,7 +158,7 @@ class Skeleton(nn.Module):
     @classmethod
     def from_urdf(cls, path: str | Path | None = None) -> Skeleton:
         """Load the body chain; ``path`` None is the built-in ``configs/body.urdf``."""
-        p = config_path(path or DEFAULT_URDF)
+        p = builtin_config(DEFAULT_URDF) if path is None else config_path(path)
         return cls(p.read_text(encoding="utf-8"), source=str(p))
 
     def frame_index(self, names: Sequence[str]) -> torch.Tensor:

@@ -23,7 +23,7 @@ from torchtrack.cameras import CameraRig, save_calibration
 from torchtrack.checks import InputError
 from torchtrack.io.atomic import atomic_dir
 from torchtrack.io.poses import Poses, save_poses
-from torchtrack.resources import config_path
+from torchtrack.resources import builtin_config
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import MOTIONS, procedural_motion
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
@@ -151,6 +151,7 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
         raise InputError(f"video_format must be 'mp4' or 'png', got {cfg.video_format!r}")
     device = torch.device(device or "cpu")
     out = Path(out)
+    table = _synth_table(cfg)  # the body model's digest as of the start, before the body is read
     skel, angles = motion_angles(cfg, Skeleton.from_urdf())
     blobs = BlobModel.from_config(skel)
     rig = make_ring_rig(cfg.rig)
@@ -193,7 +194,7 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
                    "blob_R_world": R.float().numpy(), "blob_semi_axes": blobs.semi_axes.numpy(),
                    "bone_names": np.asarray(skel.bone_names), "bone_lengths": skel.bone_lengths.numpy()})
         save_poses(poses, tmp / "gt.npz")
-        _write_meta(tmp / "meta.toml", cfg, skel)
+        _write_meta(tmp / "meta.toml", cfg, skel, table)
         (tmp / "body.urdf").write_text(skel.urdf_text, encoding="utf-8")
     log.info("wrote %s: %d cameras, %d frames (%d background)", out, C, T, cfg.background_frames)
     return out
@@ -201,13 +202,14 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
 
 def body_model_digest() -> str:
     """The first 16 hex digits of the SHA-256 of the built-in body model the renderer draws (``configs/body.urdf``
-    and ``configs/blobs.yaml``); meta.toml's ``synth.body_model`` records it."""
+    and ``configs/blobs.yaml``, whatever the working directory holds); meta.toml's ``synth.body_model`` records
+    it."""
     from torchtrack.blobs.model import DEFAULT_BLOBS
     from torchtrack.skeleton.model import DEFAULT_URDF
 
     h = hashlib.sha256()
     for name in (DEFAULT_URDF, DEFAULT_BLOBS):
-        h.update(config_path(name).read_bytes())
+        h.update(builtin_config(name).read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -223,14 +225,13 @@ def _synth_table(cfg: SynthConfig) -> dict:
 def is_current(out: str | Path, cfg: SynthConfig) -> bool:
     """Whether ``out`` is a complete sequence that :func:`write_sequence` rendered from ``cfg`` with today's body
     model (its meta.toml's frame rate and ``[synth]`` table equal what ``cfg`` would write now): scripts that keep
-    rendered sequences between runs re-render the ones that are not. Changes to the renderer's code are not seen."""
+    rendered sequences between runs re-render the ones that are not. Not seen: changes to the code (renderer,
+    procedural motions, BVH retargeting) and to a BVH file's contents under the same path."""
+    import tomllib
+
     out = Path(out)
     if not (out / "gt.npz").is_file() or not (out / "meta.toml").is_file():
         return False
-    try:
-        import tomllib
-    except ModuleNotFoundError:  # Python < 3.11
-        import tomli as tomllib
     try:
         meta = tomllib.loads((out / "meta.toml").read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
@@ -238,10 +239,10 @@ def is_current(out: str | Path, cfg: SynthConfig) -> bool:
     return meta.get("fps") == cfg.fps and meta.get("synth") == _synth_table(cfg)
 
 
-def _write_meta(path: Path, cfg: SynthConfig, skel: Skeleton) -> None:
+def _write_meta(path: Path, cfg: SynthConfig, skel: Skeleton, table: dict) -> None:
     import tomli_w
 
     doc = {"fps": cfg.fps, "subject_height_m": round(skel.height(), 4),
            "notes": "synthetic sequence rendered by torchtrack synth; body.urdf is the subject's skeleton",
-           "synth": _synth_table(cfg)}
+           "synth": table}
     path.write_text(tomli_w.dumps(doc), encoding="utf-8")
