@@ -98,12 +98,18 @@ BODY_SEGMENTS = [("RHip", "RKnee"), ("RKnee", "RAnkle"), ("RAnkle", "RBigToe"), 
                  ("RElbow", "RWrist"), ("Neck", "Head"), ("Head", "Nose"), ("Neck", "LHip"), ("Neck", "RHip")]
 
 
-def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N,) distance of each of ``points (N, 3)`` to the nearest of the segments ``a (S, 3) -> b (S, 3)``."""
+def project_on_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each of ``points (N, 3)`` on each segment ``a (S, 3) -> b (S, 3)``: (N, S) the nearest point's position along
+    the segment as a fraction from ``a`` (clamped to [0, 1]), and (N, S) the distance to it."""
     ab = b - a  # (S, 3)
     t = np.einsum("nsk,sk->ns", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)
-    nearest = a[None] + np.clip(t, 0, 1)[..., None] * ab[None]  # (N, S, 3)
-    return np.linalg.norm(points[:, None] - nearest, axis=-1).min(1)
+    t = np.clip(t, 0, 1)
+    return t, np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)
+
+
+def distance_to_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N,) distance of each of ``points (N, 3)`` to the nearest of the segments ``a (S, 3) -> b (S, 3)``."""
+    return project_on_segments(points, a, b)[1].min(1)
 
 
 #: --limb-centroids: a voxel counts for a segment within this distance (m).
@@ -117,17 +123,13 @@ def centroid_along_segments(points: np.ndarray, a: np.ndarray, b: np.ndarray, ra
     """(S,) where the centroid of each segment's points lies along it, as a fraction from ``a`` (0) to ``b`` (1);
     NaN for a segment with none. A point of ``points (N, 3)`` belongs to the nearest of the segments
     ``a (S, 3) -> b (S, 3)`` if within ``radius`` of it; its position along the segment is clamped to [0, 1]."""
-    ab = b - a  # (S, 3)
-    t = np.einsum("nsk,sk->ns", points[:, None] - a[None], ab) / np.maximum((ab * ab).sum(-1), 1e-12)  # (N, S)
-    t = np.clip(t, 0, 1)
-    dist = np.linalg.norm(points[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)  # (N, S)
+    t, dist = project_on_segments(points, a, b)  # (N, S) each
     nearest = dist.argmin(1)  # (N,)
-    out = np.full(len(a), np.nan)
-    for k in range(len(a)):
-        mine = (nearest == k) & (dist[:, k] <= radius)
-        if mine.any():
-            out[k] = t[mine, k].mean()
-    return out
+    rows = np.arange(len(points))
+    mine = dist[rows, nearest] <= radius  # (N,) within the radius of its nearest segment
+    count = np.bincount(nearest[mine], minlength=len(a))  # (S,)
+    total = np.bincount(nearest[mine], weights=t[rows, nearest][mine], minlength=len(a))  # (S,)
+    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
 def voxel_views(folder: SequenceFolder, rig, centres: torch.Tensor, t: int) -> list[np.ndarray]:

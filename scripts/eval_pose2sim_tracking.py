@@ -31,6 +31,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
        [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
+       [--velocities 0.5 0.47 0.53 0.45 0.55]
 """
 
 from __future__ import annotations
@@ -202,6 +203,18 @@ def rigid_residuals(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return (torch.einsum("tij,tlj->tli", R, xt) + t[:, None] - yt).norm(dim=-1).numpy()
 
 
+def velocity_table(rows: list[tuple[float, float, float | None, int, int]]) -> str:
+    """--velocities: one line per run (velocity, MPJPE against the raw and the filtered reference or None, lost
+    frames, passes) and the medians of the two MPJPE columns over the runs."""
+    lines = ["runs: velocity, MPJPE raw / filtered (mm), lost frames, passes"]
+    for v, raw, filt, lost, passes in rows:
+        lines.append(f"  {v:<6g} {raw:6.1f} / {'-' if filt is None else f'{filt:.1f}':>5s}  {lost:3d}  {passes:2d}")
+    filts = [f for _, _, f, _, _ in rows if f is not None]
+    med_f = f"{np.median(filts):.1f}" if len(filts) == len(rows) else "-"
+    lines.append(f"  median {np.median([r for _, r, _, _, _ in rows]):6.1f} / {med_f:>5s}  over {len(rows)} runs")
+    return "\n".join(lines)
+
+
 def knee_bend(points: np.ndarray, names: list[str], side: str) -> np.ndarray:
     """(T, L, 3) -> (T,) the knee's bend (deg): the angle between the thigh (hip to knee) and the shank (knee to
     ankle), 0 for a straight leg."""
@@ -266,6 +279,10 @@ def main() -> None:
                          "reference's height, without fitting its bones' lengths")
     ap.add_argument("--fill-prior-log-odds", type=float, default=0.0,
                     help="BackgroundConfig.fill_prior_log_odds: prior log odds of room against subject in the fill")
+    ap.add_argument("--velocities", nargs="+", type=float, default=None, metavar="V",
+                    help="one whole run per prediction velocity (TrackerConfig.velocity, after --tracker), then the "
+                         "runs side by side with the medians of their MPJPE (the README's five: 0.5 0.47 0.53 0.45 "
+                         "0.55, 3 min each); --bias, --save-poses and --picture take the last run")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="TrackerConfig overrides of the config's tracker section, e.g. velocity=0")
     ap.add_argument("--reference-silhouettes", action="store_true",
@@ -345,9 +362,7 @@ def main() -> None:
             raise SystemExit(str(e)) from None
         if args.reference_silhouettes or args.reference_background:
             refine = replace(refine, passes=0)
-        tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
-                                        "--tracker")
-        tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
+        start = None  # --continue-from: its first valid frame's pose and its body
         if args.continue_from is not None:
             try:
                 before = load_poses(args.continue_from)
@@ -357,50 +372,73 @@ def main() -> None:
                 raise SystemExit(str(e)) from None
             observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
             first = int(np.flatnonzero(before.valid)[0])
-            tracker.initialize_from_pose(torch.as_tensor(before.angles[first]), skeleton=body)
+            start = (torch.as_tensor(before.angles[first]), body)
             print(f"continuing {args.continue_from}: its frame {int(before.frame_index[first])} and body, the "
                   "background re-estimated from its track")
-        if args.init_from_reference:
-            angles, body = fit_to_landmarks(tracker.generic, names, ref[0], fit_bones=not args.scale_only)
-            tracker.initialize_from_pose(angles, skeleton=body)
-            print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
-                  f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
-        truth = reference_poses(names, ref, folder.fps, list(tracker.generic.output_names))
-
-        passes: list[Poses] = []
-
-        def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
-            if refine.passes:
-                r = evaluate(poses, truth, landmarks=names)
-                moved = (f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before"
-                         if passes else "")
-                print(f"pass {p + 1} (of at most {refine.passes + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
-                      f"{int((~poses.valid).sum())} lost{moved}", flush=True)
-                passes.append(poses)
-
-        try:
-            poses, elapsed, _ = track_with_background_refinement(
-                folder, bg, lambda b: observer if b is bg else observer_from_config(rig, b, config["observation"],
-                                                                                    args.model, args.voxel),
-                tracker, refine, bg_config, progress=False, on_pass=report_pass)
-        except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
-            raise SystemExit(f"tracking failed: {e}") from None
-        rep = evaluate(poses, truth, landmarks=names)
-        print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
-              f"{max(len(passes) - 1, 0)} times, {poses.num_frames * max(len(passes), 1) / elapsed:.1f} frames/s, "
-              f"subject height {float(poses.extra['subject_height_m']):.2f} m")
-        if args.reference_silhouettes:
-            print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
-                  "(a body is about 0.07)")
-        print(rep.format())
+        truth = reference_poses(names, ref, folder.fps, list(Skeleton.from_urdf().output_names))
+        filtered = None
         if (args.demo / REFERENCE_FILTERED).is_file():
             names_f, ref_f = reference_landmarks(args.demo, filtered=True)
-            rep_f = evaluate(poses, reference_poses(names_f, ref_f, folder.fps, list(tracker.generic.output_names)),
-                             landmarks=names_f)
-            print(f"against Pose2Sim's filtered keypoints (its final output, REFERENCE_FILTERED): MPJPE "
-                  f"{rep_f.mpjpe_mm:.1f} mm, worst frame {rep_f.max_frame_mm:.1f} mm")
+            filtered = reference_poses(names_f, ref_f, folder.fps, list(Skeleton.from_urdf().output_names))
         else:
             print(f"(no {REFERENCE_FILTERED} in {args.demo}: no figure against Pose2Sim's filtered keypoints)")
+
+        def track_once(overrides: list[str]) -> tuple[Poses, object, object, int]:
+            """One whole run (every refinement pass) with these --tracker overrides: the track, its report against
+            the raw and (or None) the filtered reference, and its number of passes."""
+            tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]),
+                                            overrides, "--tracker")
+            tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
+            if start is not None:
+                tracker.initialize_from_pose(start[0], skeleton=start[1])
+            if args.init_from_reference:
+                angles, body = fit_to_landmarks(tracker.generic, names, ref[0], fit_bones=not args.scale_only)
+                tracker.initialize_from_pose(angles, skeleton=body)
+                print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
+                      f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
+            passes: list[Poses] = []
+
+            def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
+                if refine.passes:
+                    r = evaluate(poses, truth, landmarks=names)
+                    moved = (f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before"
+                             if passes else "")
+                    print(f"pass {p + 1} (of at most {refine.passes + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
+                          f"{int((~poses.valid).sum())} lost{moved}", flush=True)
+                    passes.append(poses)
+
+            try:
+                poses, elapsed, _ = track_with_background_refinement(
+                    folder, bg, lambda b: observer if b is bg else observer_from_config(
+                        rig, b, config["observation"], args.model, args.voxel),
+                    tracker, refine, bg_config, progress=False, on_pass=report_pass)
+            except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
+                raise SystemExit(f"tracking failed: {e}") from None
+            rep = evaluate(poses, truth, landmarks=names)
+            print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
+                  f"{max(len(passes) - 1, 0)} times, {poses.num_frames * max(len(passes), 1) / elapsed:.1f} "
+                  f"frames/s, subject height {float(poses.extra['subject_height_m']):.2f} m")
+            if args.reference_silhouettes:
+                print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
+                      "(a body is about 0.07)")
+            print(rep.format())
+            rep_f = None
+            if filtered is not None:
+                rep_f = evaluate(poses, filtered, landmarks=names_f)
+                print(f"against Pose2Sim's filtered keypoints (its final output, REFERENCE_FILTERED): MPJPE "
+                      f"{rep_f.mpjpe_mm:.1f} mm, worst frame {rep_f.max_frame_mm:.1f} mm")
+            return poses, rep, rep_f, max(len(passes), 1)
+
+        if not args.velocities:
+            poses, rep, _, _ = track_once(list(args.tracker))
+        else:  # one whole run per prediction velocity, then the runs side by side and their medians
+            runs = []
+            for v in args.velocities:
+                print(f"--- velocity {v:g} ---", flush=True)
+                runs.append((v, *track_once(list(args.tracker) + [f"velocity={v!r}"])))
+            poses, rep = runs[-1][1], runs[-1][2]
+            print(velocity_table([(v, r.mpjpe_mm, None if rf is None else rf.mpjpe_mm,
+                                   int((~p.valid).sum()), n) for v, p, r, rf, n in runs]))
         if args.bias:
             print_bias(poses, names, ref, args.demo)
             print_alignment(poses, names, ref)

@@ -137,7 +137,23 @@ def test_centroid_along_segments_against_closed_forms():
     assert np.isnan(mod.centroid_along_segments(np.array([[0.0, 0.5, 0.9]]), a[:1], b[:1], radius=0.12)[0])
     assert mod.centroid_along_segments(np.array([[0.0, 0.1, 0.9]]), a[:1], b[:1], radius=0.12)[0] == \
         pytest.approx(0.1)
+    assert np.isnan(mod.centroid_along_segments(np.zeros((0, 3)), a, b, radius=0.12)).all()  # no points
     # a point nearer the second segment goes to it, not to the first even within the radius
     between = np.array([[0.6, 0.0, 0.5]])
     got = mod.centroid_along_segments(between, a[:2], b[:2], radius=0.5)
     assert np.isnan(got[0]) and got[1] == pytest.approx(0.5)
+
+
+def test_velocity_table_medians():
+    """--velocities' summary: a line per run and the medians over the runs (worked by hand: the middle of the five
+    sorted values), '-' for the filtered column when a run has no filtered figure."""
+    mod = _script("eval_pose2sim_tracking")
+    rows = [(0.5, 60.7, 58.5, 0, 7), (0.47, 60.4, 58.2, 0, 8), (0.53, 65.4, 63.3, 0, 8), (0.45, 60.4, 58.2, 0, 8),
+            (0.55, 64.7, 62.7, 1, 7)]
+    lines = mod.velocity_table(rows).splitlines()
+    assert len(lines) == 7
+    assert lines[3].split() == ["0.53", "65.4", "/", "63.3", "0", "8"]
+    assert lines[-1].split()[:4] == ["median", "60.7", "/", "58.5"]
+    two = mod.velocity_table([(0.5, 60.0, None, 0, 7), (0.4, 62.0, 59.0, 0, 7)]).splitlines()
+    assert two[1].split() == ["0.5", "60.0", "/", "-", "0", "7"]
+    assert two[-1].split()[:4] == ["median", "61.0", "/", "-"]

@@ -789,6 +789,11 @@ def test_starfish_heading_the_toes_point_along_wins_a_near_tie(skel, monkeypatch
     assert markerless.HEADING_MARGIN_M == pytest.approx(0.002)
     assert len(headings) >= 2 and math.cos(headings[0]) > 0.9 and math.cos(headings[1]) < -0.9  # toes', flip
     assert (math.cos(float(res.angles[rz])) < 0) == flipped
+    # what the start reports: the toes 1 cm ahead, the two headings tried with their costs
+    check = tracker.start_check
+    assert check.toe_ahead_m == pytest.approx(0.01, abs=3e-3)
+    assert [c for _, c in check.headings[:2]] == pytest.approx([0.02, 0.02 - flip_better_mm * 1e-3])
+    assert math.cos(check.headings[0][0]) > 0.99 and math.cos(check.headings[1][0]) < -0.99  # toes', flip
 
 
 def test_initial_pose_replaces_the_starfish(skel):

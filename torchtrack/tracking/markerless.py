@@ -301,12 +301,18 @@ class StartCheck:
         arm_raise_deg: (left, right) each fitted upper arm's angle from hanging straight down
             (``STARFISH_MIN_ARM_RAISE_DEG``). arm_fill: (left, right) the larger fill of each arm's upper-arm and
             forearm blobs (NaN for a blob config without them; ``em.min_fill``).
+        toe_ahead_m: how far the lowest voxels' centroid lies ahead of all the voxels' along the heading the toes
+            point to (>= 0; 3 cm or more settles the heading alone).
+        headings: (heading about +Z in rad, the fit's cost in m) of each heading tried, in the order tried (the
+            toes' first; ``HEADING_MARGIN_M``).
     """
 
     height_m: float
     volume_ratio: float
     arm_raise_deg: tuple[float, float]
     arm_fill: tuple[float, float]
+    toe_ahead_m: float = math.nan
+    headings: tuple[tuple[float, float], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -533,6 +539,7 @@ class MarkerlessTracker:
         candidates = [yaw] if toe > 0.03 else [yaw, yaw + math.pi]
         if float(evals[1]) < 1.3 * float(evals[0]):  # no clear arms' line: try the quarter turns as well
             candidates += [h + 0.5 * math.pi for h in candidates]
+        tried = []  # (heading, cost) of each candidate
         for candidate in candidates:
             a = skel.starfish_angles().to(pts)
             a[skel.dof_names.index("root_tz")] += max(sole, 0.0)
@@ -546,6 +553,7 @@ class MarkerlessTracker:
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False)
                 self.angles = self.previous = res.angles
             cost = self._fit_cost(res)
+            tried.append((float(candidate), float(cost)))
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
                       1e3 * res.residual_m, res.explained)
             # the toes' heading (the first) is kept unless another fits clearly better
@@ -592,7 +600,7 @@ class MarkerlessTracker:
         self.colour = None
         # against the body scaled to the voxels' height, not the fitted one (the bone fit may grow into phantoms)
         raise_deg, fill = self._arms(res)
-        check = self.start_check = StartCheck(height, obs.volume_m3() / body_m3, raise_deg, fill)
+        check = self.start_check = StartCheck(height, obs.volume_m3() / body_m3, raise_deg, fill, toe, tuple(tried))
         if check.volume_ratio > STARFISH_MAX_VOLUME_RATIO:
             raise InputError(
                 f"initialisation: the first frame's voxels hold {check.volume_ratio:.1f} times the volume of a body "
