@@ -375,11 +375,12 @@ def main() -> None:
             start = (torch.as_tensor(before.angles[first]), body)
             print(f"continuing {args.continue_from}: its frame {int(before.frame_index[first])} and body, the "
                   "background re-estimated from its track")
-        truth = reference_poses(names, ref, folder.fps, list(Skeleton.from_urdf().output_names))
+        outputs = list(Skeleton.from_urdf().output_names)
+        truth = reference_poses(names, ref, folder.fps, outputs)
         filtered = None
         if (args.demo / REFERENCE_FILTERED).is_file():
             names_f, ref_f = reference_landmarks(args.demo, filtered=True)
-            filtered = reference_poses(names_f, ref_f, folder.fps, list(Skeleton.from_urdf().output_names))
+            filtered = reference_poses(names_f, ref_f, folder.fps, outputs)
         else:
             print(f"(no {REFERENCE_FILTERED} in {args.demo}: no figure against Pose2Sim's filtered keypoints)")
 

@@ -15,6 +15,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --oracle-margin 0.04 # ghosts removed by the truth
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 4 --models hull --fit-rounds 10
     .venv/bin/python scripts/eval_tracking.py --cameras 8 --hips     # where the thighs pivot (functional_hips)
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --start --blob-activity
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.checks import InputError, with_overrides
+from torchtrack.conventions import LANDMARKS
 from torchtrack.eval import evaluate
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
@@ -97,6 +99,52 @@ class AgainstTruth(torch.nn.Module):
         return out
 
 
+class RecordingTracker(MarkerlessTracker):
+    """A tracker that keeps, for every frame it is given, which blobs were active after EM (``active``: (K,) bool
+    arrays, None for a frame not tracked): --blob-activity."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.active: list[np.ndarray | None] = []
+
+    def step(self, obs: VoxelObservation) -> FrameResult:
+        res = super().step(obs)
+        self.active.append(None if res.blobs is None else res.blobs.active.cpu().numpy().copy())
+        return res
+
+    def skip(self) -> FrameResult:
+        self.active.append(None)
+        return super().skip()
+
+
+def frame_ranges(frames: Sequence[int]) -> str:
+    """Sorted frame indices -> runs of consecutive ones, e.g. [3, 4, 5, 9] -> '3-5, 9'."""
+    runs: list[list[int]] = []
+    for f in frames:
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
+
+
+def blob_activity(tracker: RecordingTracker) -> list[str]:
+    """--blob-activity: each blob that was de-activated in some tracked frame, and the frames."""
+    names = tracker.subject.blobs.names
+    lines = []
+    for k, name in enumerate(names):
+        off = [t for t, a in enumerate(tracker.active) if a is not None and not a[k]]
+        if off:
+            lines.append(f"{name} off in {len(off)} frame{'s' if len(off) > 1 else ''}: {frame_ranges(off)}")
+    return lines or ["every blob active in every tracked frame"]
+
+
+def start_heights(poses, truth) -> str:
+    """--start: each landmark's height in the first frame, tracked less true (cm)."""
+    d = 100 * (poses.landmarks()[0, :, 2] - truth.landmarks()[0, :, 2])
+    return "first frame, height tracked - true (cm): " + ", ".join(f"{n} {v:+.1f}" for n, v in zip(LANDMARKS, d))
+
+
 def _observer(seq: Path, model: str, config: dict, background: BackgroundConfig) -> tuple[SequenceFolder, object]:
     """The sequence folder and the observer the config's ``observation`` section makes for it."""
     folder = SequenceFolder(seq)
@@ -120,11 +168,11 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
                                     "--tracker")
     if true_body:
         body = Skeleton.from_urdf(seq / "body.urdf")
-        tracker = MarkerlessTracker(body, tracker_config)
+        tracker = RecordingTracker(body, tracker_config)
         angles = torch.from_numpy(load_poses(seq / "gt.npz").angles[0]).float()
         tracker.initialize_from_pose(angles, body.height())
     else:
-        tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
+        tracker = RecordingTracker(Skeleton.from_urdf(), tracker_config)
     poses, elapsed = track_sequence(folder, observer, tracker, progress=False)  # in this process, frames in order
     return poses, poses.num_frames / elapsed, tracker, observer
 
@@ -259,6 +307,11 @@ def main() -> None:
                     help="also print the functional hips' outcome (TrackerConfig.functional_hips): each thigh's "
                          "pivot above the fitted hip and its information, or the information gathered when no "
                          "estimate was made; and the hips' and pelvis' errors")
+    ap.add_argument("--start", action="store_true",
+                    help="also print each landmark's height in the first frame, tracked less true (the started "
+                         "body's fit to the starfish)")
+    ap.add_argument("--blob-activity", action="store_true",
+                    help="also print the frames in which each blob was de-activated (its fill under em.min_fill)")
     ap.add_argument("--fit-rounds", type=int, default=0, metavar="N",
                     help="diagnostic, instead of tracking: N rounds of the bone fit on the first frame's voxels at "
                          "the true pose, its ridge towards the start and towards each round's body")
@@ -307,6 +360,10 @@ def main() -> None:
                     print("    " + hips_outcome(tracker, cams) + "; error (mm): " + ", ".join(
                         f"{n} {e:.1f}" for e, n in zip(rep.per_landmark_mm, rep.landmark_names)
                         if n in ("pelvis", "l_hip", "r_hip")), flush=True)
+                if args.start:
+                    print("    " + start_heights(poses, truth), flush=True)
+                if args.blob_activity:
+                    print("\n".join("    " + line for line in blob_activity(tracker)), flush=True)
                 if args.proportions and tracker.subject is not None:
                     fit = tracker.subject.skeleton.proportions()
                     true = Skeleton.from_urdf(seq / "body.urdf").proportions()

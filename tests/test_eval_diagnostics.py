@@ -157,3 +157,55 @@ def test_velocity_table_medians():
     two = mod.velocity_table([(0.5, 60.0, None, 0, 7), (0.4, 62.0, 59.0, 0, 7)]).splitlines()
     assert two[1].split() == ["0.5", "60.0", "/", "-", "0", "7"]
     assert two[-1].split()[:4] == ["median", "61.0", "/", "-"]
+
+
+def test_frame_ranges(eval_tracking):
+    assert eval_tracking.frame_ranges([3, 4, 5, 9]) == "3-5, 9"
+    assert eval_tracking.frame_ranges([0, 2, 3, 7, 8, 9, 11]) == "0, 2-3, 7-9, 11"
+    assert eval_tracking.frame_ranges([]) == ""
+
+
+def test_blob_activity_records_a_hand_without_voxels(eval_tracking, skeleton):
+    """--blob-activity: a starfish whose left hand's voxels are taken away (the ground truth of the scene) gives a
+    de-activated left hand in the frame tracked and nothing for a skipped frame; the whole body: every blob on."""
+    import dataclasses
+
+    from test_tracking import _observation
+
+    from torchtrack.blobs.model import BlobModel
+    from torchtrack.occupancy.metrics import inside_ellipsoids
+    from torchtrack.tracking.markerless import TrackerConfig
+
+    subj = skeleton.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    angles = subj.starfish_angles()
+    obs = _observation(subj, blobs, angles)
+    centres, R = blobs.ellipsoids(subj.forward(angles[None].double()).bone_frames)
+    k = blobs.names.index("l_hand")
+    hand = inside_ellipsoids(obs.points.double(), centres[0, k:k + 1], R[0, k:k + 1],
+                             blobs.semi_axes[k:k + 1].double() + 0.02)
+    keep = ~hand
+    handless = dataclasses.replace(obs, points=obs.points[keep], sizes=obs.sizes[keep], weights=obs.weights[keep],
+                                   colours=obs.colours[keep])
+    tracker = eval_tracking.RecordingTracker(skeleton, TrackerConfig(fit_bone_lengths=False))
+    tracker.initialize_from_pose(angles, 1.75)
+    tracker.step(obs)
+    tracker.skip()
+    tracker.step(handless)
+    assert len(tracker.active) == 3 and tracker.active[1] is None
+    assert tracker.active[0].all()
+    assert not tracker.active[2][k] and tracker.active[2].sum() == len(blobs.names) - 1
+    assert eval_tracking.blob_activity(tracker) == ["l_hand off in 1 frame: 2"]
+
+
+def test_start_heights_are_the_first_frames_height_differences(eval_tracking):
+    from torchtrack.conventions import LANDMARKS
+
+    true = np.zeros((2, len(LANDMARKS), 3))
+    tracked = true.copy()
+    tracked[0, LANDMARKS.index("pelvis"), 2] = -0.058
+    tracked[0, LANDMARKS.index("l_ankle")] = [0.3, 0.1, 0.028]  # only the height counts
+    tracked[1] = 1.0  # a later frame: not read
+    line = eval_tracking.start_heights(SimpleNamespace(landmarks=lambda: tracked),
+                                       SimpleNamespace(landmarks=lambda: true))
+    assert "pelvis -5.8," in line and "l_ankle +2.8," in line and "head +0.0," in line

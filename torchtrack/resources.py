@@ -7,6 +7,8 @@ from pathlib import Path
 from torchtrack.checks import InputError
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+_INSTALL_HINT = ("torchtrack is meant to be installed with `pip install -e .` from its repository so that configs/ "
+                 "is found")
 
 
 def builtin_config(name: str) -> Path:
@@ -14,8 +16,7 @@ def builtin_config(name: str) -> Path:
     subject's own ``body.urdf``, which :func:`config_path` would take for a bare ``body.urdf``)."""
     p = CONFIG_DIR / name
     if not p.is_file():
-        raise InputError(f"built-in config not found: {p} (torchtrack is meant to be installed with "
-                         "`pip install -e .` from its repository so that configs/ is found)")
+        raise InputError(f"built-in config not found: {p} ({_INSTALL_HINT})")
     return p
 
 
@@ -24,9 +25,8 @@ def config_path(name: str | Path) -> Path:
     p = Path(name)
     if p.is_file():
         return p
-    q = CONFIG_DIR / p.name
-    if p.parent == Path(".") and q.is_file():
-        return q
-    hint = "" if p.parent != Path(".") else (f" (nor {q}; torchtrack is meant to be installed with "
-                                             "`pip install -e .` from its repository so that configs/ is found)")
-    raise InputError(f"config file not found: {p}{hint}")
+    if p.parent != Path("."):
+        raise InputError(f"config file not found: {p}")
+    if not (CONFIG_DIR / p.name).is_file():
+        raise InputError(f"config file not found: {p} (nor {CONFIG_DIR / p.name}; {_INSTALL_HINT})")
+    return builtin_config(p.name)
