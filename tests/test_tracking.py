@@ -374,6 +374,71 @@ def test_re_acquisition_holds_no_foot_from_before_the_loss(skel):
     assert err[-5:].max() < 0.05, err  # measured 10 cm on the re-acquired frame, 2-4 cm from the 9th on
 
 
+def _lost_arm_run(skel, start_edit, lost_hand_frames, frames=8):
+    """A subject 1.80 m tall standing still with the arms hanging (voxelised ground truth), tracked from its pose
+    with the left arm's DOFs set by ``start_edit`` (an arm that ran off its voxels). Returns per frame the left
+    wrist's error (m), whether the left hand's blob was active, and the right wrist's error (m)."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    true = subj.rest_angles()
+    start = true.clone()
+    for name, value in start_edit.items():
+        start[skel.dof_names.index(name)] = value
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=lost_hand_frames))
+    tracker.initialize_from_pose(start, 1.80)
+    obs = _observation(subj, blobs, true)
+    truth = _landmarks(subj, true)
+    lw, rw, hand = LANDMARKS.index("l_wrist"), LANDMARKS.index("r_wrist"), blobs.names.index("l_hand")
+    left, active, right = [], [], []
+    for _ in range(frames):
+        r = tracker.step(obs)
+        assert r.valid
+        left.append(float((r.output_points[lw] - truth[lw]).norm()))
+        right.append(float((r.output_points[rw] - truth[rw]).norm()))
+        active.append(bool(r.blobs.active[hand]))
+    return np.array(left), np.array(active), np.array(right)
+
+
+@pytest.mark.parametrize("edit", [{"l_shoulder_abd": 1.5}, {"l_shoulder_flex": 2.5},
+                                  {"l_shoulder_abd": 1.2, "l_elbow_flex": 2.0}])
+def test_a_lost_arm_is_searched_again_from_hanging(skel, edit):
+    """The left arm starts out where there are no voxels (held out sideways, raised, or bent): its hand's blob is
+    empty and, de-activated, never fills again, so without the search the wrist stays 0.5-1 m off. With
+    ``lost_hand_frames`` 3 the arm is searched from hanging on the third frame the hand is off, found, and stays
+    found (no velocity carries it back off); the right arm is not touched."""
+    left, active, right = _lost_arm_run(skel, edit, 0)
+    assert left.min() > 0.4 and not active.any()
+    left, active, right = _lost_arm_run(skel, edit, 3)
+    assert not active[:2].any() and left[:2].min() > 0.4  # the first two frames: not searched yet
+    assert active[2:].all() and left[2:].max() < 0.02, left
+    assert right.max() < 0.02, right
+
+
+def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel):
+    """A hand that is off because its voxels are gone, not because the arm is lost: the arm raised sideways in
+    the truth too, its hand's voxels taken away. The search from hanging finds no hand and is refused, so the
+    arm stays where the forearm's voxels put it."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    true = subj.rest_angles()
+    true[skel.dof_names.index("l_shoulder_abd")] = 1.4
+    obs = _observation(subj, blobs, true)
+    k = blobs.names.index("l_hand")
+    centres, R = blobs.ellipsoids(subj.forward(true[None].double()).bone_frames)
+    keep = ~inside_ellipsoids(obs.points.double(), centres[0, k:k + 1], R[0, k:k + 1],
+                              blobs.semi_axes[k:k + 1].double() + 0.02)
+    obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
+                           obs.cameras_valid)
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=2))
+    tracker.initialize_from_pose(true, 1.80)
+    elbow = LANDMARKS.index("l_elbow")
+    for _ in range(6):
+        r = tracker.step(obs)
+        assert r.valid and not bool(r.blobs.active[k])
+        assert float((r.output_points[elbow] - _landmarks(subj, true)[elbow]).norm()) < 0.03
+    assert tracker.hands_off == [6, 0]
+
+
 def test_the_floor_is_the_initial_poses_lower_sole_or_the_configured_height(skel):
     pose = skel.rest_angles(0.9).clone()  # a standing subject with the root 0.9 m up: soles 0.9 - its rest height
     pose[skel.dof_names.index("r_hip_flex")] = 0.5  # the right foot forward and up: the left is the lower

@@ -17,6 +17,9 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
    re-initialises from the voxels (several heading hypotheses around the last good pose, the best EM fit wins)
    instead of drifting. A frame without enough voxels (nobody there, unreadable cameras) is not tracked and is
    returned ``valid = False``.
+5. in an accepted frame, an arm whose hand's blob has been de-activated for ``lost_hand_frames`` frames in a row
+   is searched again from hanging (the frame tracked once more with it at rest), which is kept where it finds
+   the hand and fits better.
 
 Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic from the starfish pose (Caillette §4.2):
 position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms lie
@@ -137,6 +140,9 @@ SPINE_DOFS: tuple[str, ...] = ("spine_flex", "spine_abd", "spine_twist")
 #: bone inwards (a forearm coming back into the volume folded onto its upper arm, the elbow at its limit).
 MAX_OUTSIDE = 0.25
 
+#: lost_hand_frames: the DOFs of each arm (after its side's ``l_`` / ``r_``) put back at rest when its hand is lost.
+ARM_DOFS: tuple[str, ...] = ("shoulder_flex", "shoulder_abd", "shoulder_twist", "elbow_flex", "wrist_flex")
+
 #: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
 CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
 
@@ -204,6 +210,15 @@ class TrackerConfig:
             functional_hips_min_cameras: the thighs' axes are learnt only from rigs of at least this many
             cameras: the ghost volumes of four views bend the thigh blobs' axes (the kick with 4 cameras put the
             hips 47-53 mm low where 8 put them 6-9 mm high, README).
+        lost_hand_frames: a hand whose blob has been de-activated (empty, Caillette §4.3) for this many accepted
+            frames in a row has lost its arm: from then on, each accepted frame is tracked once more with that
+            arm's five DOFs (``ARM_DOFS``) at rest, hanging beside the body, and the search is kept if the hand's
+            blob is active again, the fit's cost (:meth:`MarkerlessTracker._fit_cost`) is lower and the frame
+            does not diverge (0: off). De-activation alone only waits for the hand to fill again where the arm
+            predicts it, which it does not once the arm has drifted off its voxels: on the 4-camera hull's CMU
+            131_01 the left forearm stayed folded behind the body with its hand off in 73 of 105 frames (left
+            wrist 176 mm; with the search 54.9 -> 53.2 mm, the wrist 79, the other 27 sequences of the table as they
+            were; scripts/eval_tracking.py --blob-activity).
         rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
             straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
             axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
@@ -237,6 +252,7 @@ class TrackerConfig:
     hold_lost_feet: float = 2.0
     hold_min_confidence: float = 0.3
     hold_max_step_m: float = 0.02
+    lost_hand_frames: int = 10
     rigid_trunk: bool = True
     functional_hips: float = 5.0
     functional_hips_min_cameras: int = 7
@@ -247,6 +263,8 @@ class TrackerConfig:
         if self.functional_hips_min_cameras < 0:
             raise InputError(f"TrackerConfig.functional_hips_min_cameras must be >= 0, got "
                              f"{self.functional_hips_min_cameras}")
+        if self.lost_hand_frames < 0:
+            raise InputError(f"TrackerConfig.lost_hand_frames must be >= 0 (0: off), got {self.lost_hand_frames}")
         if self.ghost_max_cameras < 0:
             raise InputError(f"TrackerConfig.ghost_max_cameras must be >= 0, got {self.ghost_max_cameras}")
         if not 0.0 <= self.ghost_weight <= 1.0:
@@ -408,6 +426,8 @@ class MarkerlessTracker:
         # hold_lost_feet: each foot's ankle and toe where last observed, and whether they were still then
         self.feet_seen: torch.Tensor | None = None  # (2, 2, 3)
         self.feet_still: torch.Tensor | None = None  # (2, 2) bool
+        # lost_hand_frames: accepted frames in a row each hand's blob (left, right) has been de-activated
+        self.hands_off = [0, 0]
         # functional_hips: the thighs' axes gathered so far (None: not, or no longer, learning the hips), and
         # the root shift (m, along the pelvis' z) each move of the hips made: the body's version is their count
         self.hips: AxisPivot | None = None
@@ -467,6 +487,7 @@ class MarkerlessTracker:
         self.angles = self.previous = angles.clone()
         self.colour = None
         self.lost = 0
+        self.hands_off = [0, 0]
         self._remember_feet()
         if floor_z_m is None:
             floor_z_m = float(sole_heights(self.feet_seen, self.subject.ankle_height).min())
@@ -489,6 +510,7 @@ class MarkerlessTracker:
             uninitialised, as before the call).
         """
         self.feet_seen = self.feet_still = None  # nothing held while the start is searched
+        self.hands_off = [0, 0]
         try:
             res = self._initialize(obs)
         except InputError:
@@ -885,12 +907,47 @@ class MarkerlessTracker:
             self.previous = self.angles  # keep the last good pose, without velocity
             return replace(res, valid=False)
         self.lost = 0
-        self.previous, self.angles = self.angles, res.angles
+        res, found = self._search_lost_arms(obs, res)
+        self.previous, self.angles = self.angles.clone(), res.angles
+        for arm in found:  # no velocity across the search's jump (it ran off again the way it came)
+            self.previous[arm] = res.angles[arm]
         self.colour = res.blobs  # the colour model follows accepted frames only
         self._update_feet(res)
         if self.hips is not None and obs.cameras_valid.numel() >= self.config.functional_hips_min_cameras:
             self._learn_hips(res)
         return res
+
+    def _search_lost_arms(self, obs: VoxelObservation, res: FrameResult) -> tuple[FrameResult, list[torch.Tensor]]:
+        """``lost_hand_frames``: an accepted frame's result, or the frame tracked again with a lost arm at rest
+        where that fits better (see :class:`TrackerConfig`), and the DOF indices of each arm so found. Counts each
+        hand's de-activated frames."""
+        n = self.config.lost_hand_frames
+        found_arms: list[torch.Tensor] = []
+        if n <= 0 or res.blobs is None:
+            return res, found_arms
+        sub = self.subject
+        for i, side in enumerate(("l", "r")):
+            k = sub.blobs.names.index(f"{side}_hand")
+            self.hands_off[i] = 0 if bool(res.blobs.active[k]) else self.hands_off[i] + 1
+            if self.hands_off[i] < n:
+                continue
+            arm = sub.skeleton.dof_index([f"{side}_{d}" for d in ARM_DOFS]).to(res.angles.device)
+            hanging = res.angles.clone()
+            hanging[arm] = sub.skeleton.rest_angles().to(hanging)[arm]
+            kept = self.angles, self.previous
+            self.angles = self.previous = sub.skeleton.clamp(hanging[None])[0]  # from there, without velocity
+            try:
+                trial = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+            finally:
+                self.angles, self.previous = kept
+            cost, trial_cost = self._fit_cost(res), self._fit_cost(trial)
+            found = bool(trial.blobs.active[k]) and trial_cost < cost and not self._diverging(trial)
+            log.debug("the %s hand off for %d frames: the arm searched from hanging fits at %.1f mm against %.1f: %s",
+                      side, self.hands_off[i], 1e3 * trial_cost, 1e3 * cost, "kept" if found else "refused")
+            if found:
+                res, self.hands_off[i] = trial, 0
+                found_arms.append(arm)
+        return res, found_arms
 
     # ------------------------------------------------------------------------------------ functional hips
     @property
