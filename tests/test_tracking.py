@@ -404,8 +404,9 @@ def _lost_arm_run(skel, start_edit, lost_hand_frames, frames=8):
 def test_a_lost_arm_is_searched_again_from_hanging(skel, edit):
     """The left arm starts out where there are no voxels (held out sideways, raised, or bent): its hand's blob is
     empty and, de-activated, never fills again, so without the search the wrist stays 0.5-1 m off. With
-    ``lost_hand_frames`` 3 the arm is searched from hanging on the third frame the hand is off, found, and stays
-    found (no velocity carries it back off); the right arm is not touched."""
+    ``lost_hand_frames`` 3 the arm is searched for from hanging on the third frame the hand is off, found (it fits
+    better than the frame tracked again as it was), and stays found (no velocity carries it back off); the right
+    arm is not touched."""
     left, active, right = _lost_arm_run(skel, edit, 0)
     assert left.min() > 0.4 and not active.any()
     left, active, right = _lost_arm_run(skel, edit, 3)
@@ -414,14 +415,13 @@ def test_a_lost_arm_is_searched_again_from_hanging(skel, edit):
     assert right.max() < 0.02, right
 
 
-def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel):
-    """A hand that is off because its voxels are gone, not because the arm is lost: the arm raised sideways in
-    the truth too, its hand's voxels taken away. The search from hanging finds no hand and is refused, so the
-    arm stays where the forearm's voxels put it."""
+def _raised_arm_without_hand(skel):
+    """A subject 1.80 m tall, the left arm raised sideways above the shoulder, whose left hand's voxels are gone
+    (its ellipsoid grown by 2 cm emptied): the body, the pose, the observation and the hand's blob index."""
     subj = skel.scaled_to_height(1.80)
     blobs = BlobModel.from_config(subj)
     true = subj.rest_angles()
-    true[skel.dof_names.index("l_shoulder_abd")] = 1.4
+    true[skel.dof_names.index("l_shoulder_abd")] = 2.0
     obs = _observation(subj, blobs, true)
     k = blobs.names.index("l_hand")
     centres, R = blobs.ellipsoids(subj.forward(true[None].double()).bone_frames)
@@ -429,14 +429,59 @@ def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel):
                               blobs.semi_axes[k:k + 1].double() + 0.02)
     obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
                            obs.cameras_valid)
+    return subj, true, obs, k
+
+
+def _counting_searches(tracker, monkeypatch):
+    """Count the tracker's extra passes of the lost-arm search (two per search)."""
+    calls = []
+    inner = tracker._track_again
+
+    def counted(obs, angles):
+        calls.append(1)
+        return inner(obs, angles)
+
+    monkeypatch.setattr(tracker, "_track_again", counted)
+    return calls
+
+
+def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel, monkeypatch):
+    """A hand that is off because its voxels are gone, not because the arm is lost: searched for every second
+    frame (``lost_hand_frames`` 2), the arm tracked again from hanging fits worse than the raised one the forearm's
+    voxels show (kept, it leaves the arm off them), so the arm stays where it is, its elbow and wrist within 3 cm
+    of the truth."""
+    subj, true, obs, k = _raised_arm_without_hand(skel)
     tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=2))
     tracker.initialize_from_pose(true, 1.80)
-    elbow = LANDMARKS.index("l_elbow")
-    for _ in range(6):
+    calls = _counting_searches(tracker, monkeypatch)
+    truth = _landmarks(subj, true)
+    for t in range(6):
         r = tracker.step(obs)
         assert r.valid and not bool(r.blobs.active[k])
-        assert float((r.output_points[elbow] - _landmarks(subj, true)[elbow]).norm()) < 0.03
-    assert tracker.hands_off == [6, 0]
+        for name in ("l_elbow", "l_wrist"):
+            j = LANDMARKS.index(name)
+            assert float((r.output_points[j] - truth[j]).norm()) < 0.03, (t, name)
+    assert len(calls) == 2 * 3  # searched on the 2nd, 4th and 6th frames
+
+
+def test_the_lost_hands_count_starts_again_after_a_frame_with_nobody(skel, monkeypatch):
+    """Two frames with the hand off, a frame with nobody (the count starts again), the re-acquisition (not
+    counted), then the third accepted frame with the hand off is the first searched (``lost_hand_frames`` 3)."""
+    subj, true, obs, k = _raised_arm_without_hand(skel)
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=3))
+    tracker.initialize_from_pose(true, 1.80)
+    calls = _counting_searches(tracker, monkeypatch)
+    empty = VoxelObservation(obs.points[:0], obs.sizes[:0], obs.weights[:0], obs.colours[:0], obs.cameras_valid)
+    for o in (obs, obs):
+        tracker.step(o)
+    assert tracker.hands_off == [2, 0]
+    assert not tracker.step(empty).valid and tracker.hands_off == [0, 0]
+    assert tracker.step(obs).reinitialised and tracker.hands_off == [0, 0]
+    for _ in range(2):
+        tracker.step(obs)
+    assert tracker.hands_off == [2, 0] and not calls
+    tracker.step(obs)
+    assert len(calls) == 2 and tracker.hands_off == [0, 0]
 
 
 def test_the_floor_is_the_initial_poses_lower_sole_or_the_configured_height(skel):
@@ -882,6 +927,10 @@ def test_tracker_config_from_dict_names_unknown_keys():
         TrackerConfig.from_dict({"nonsense": 1}, "x.yaml")
     with pytest.raises(InputError):
         TrackerConfig.from_dict({"em": {"iterations": 0}})
+    assert TrackerConfig.from_dict({"lost_hand_frames": 0}).lost_hand_frames == 0
+    for bad in ("10", True, -1, 2.5, float("nan")):  # the file and the field named, the value shown
+        with pytest.raises(InputError, match=r"x\.yaml: TrackerConfig\.lost_hand_frames must be a whole number"):
+            TrackerConfig.from_dict({"lost_hand_frames": bad}, "x.yaml")
 
 
 # --------------------------------------------------------------------------------------------------- CLI

@@ -17,9 +17,9 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
    re-initialises from the voxels (several heading hypotheses around the last good pose, the best EM fit wins)
    instead of drifting. A frame without enough voxels (nobody there, unreadable cameras) is not tracked and is
    returned ``valid = False``.
-5. in an accepted frame, an arm whose hand's blob has been de-activated for ``lost_hand_frames`` frames in a row
-   is searched again from hanging (the frame tracked once more with it at rest), which is kept where it finds
-   the hand and fits better.
+5. (off by default) in an accepted frame, an arm whose hand's blob has been de-activated for ``lost_hand_frames``
+   accepted frames is searched for again from hanging (the frame tracked once more with it at rest), which is kept
+   where it fits better than the frame tracked once more as it is and does not diverge.
 
 Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic from the starfish pose (Caillette §4.2):
 position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms lie
@@ -211,14 +211,15 @@ class TrackerConfig:
             cameras: the ghost volumes of four views bend the thigh blobs' axes (the kick with 4 cameras put the
             hips 47-53 mm low where 8 put them 6-9 mm high, README).
         lost_hand_frames: a hand whose blob has been de-activated (empty, Caillette §4.3) for this many accepted
-            frames in a row has lost its arm: from then on, each accepted frame is tracked once more with that
-            arm's five DOFs (``ARM_DOFS``) at rest, hanging beside the body, and the search is kept if the hand's
-            blob is active again, the fit's cost (:meth:`MarkerlessTracker._fit_cost`) is lower and the frame
-            does not diverge (0: off). De-activation alone only waits for the hand to fill again where the arm
-            predicts it, which it does not once the arm has drifted off its voxels: on the 4-camera hull's CMU
-            131_01 the left forearm stayed folded behind the body with its hand off in 73 of 105 frames (left
-            wrist 176 mm; with the search 54.9 -> 53.2 mm, the wrist 79, the other 27 sequences of the table as they
-            were; scripts/eval_tracking.py --blob-activity).
+            frames has lost its arm, which is searched for again: the frame is tracked once more from its solution
+            with that arm's five DOFs (``ARM_DOFS``) at rest, hanging beside the body, and once more as it is; the
+            search is kept if its fit's cost (:meth:`MarkerlessTracker._fit_cost`) is the lower and it does not
+            diverge, and the arm's DOFs then carry no velocity into the next frame. Found or not, the next search is
+            this many frames on (a hand no view shows costs two more passes per this many frames); a frame with
+            nobody and a re-acquisition start the count again (0: off). De-activation alone only waits for the hand
+            to fill again where the arm predicts it, which it does not once the arm has drifted off its voxels
+            (README; scripts/eval_tracking.py --blob-activity). Off by default: on the Pose2Sim demo one search
+            kept in the first pass moved the refinement's chain of passes, 60.7 -> 65.6 mm (README).
         rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
             straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
             axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
@@ -252,7 +253,7 @@ class TrackerConfig:
     hold_lost_feet: float = 2.0
     hold_min_confidence: float = 0.3
     hold_max_step_m: float = 0.02
-    lost_hand_frames: int = 10
+    lost_hand_frames: int = 0
     rigid_trunk: bool = True
     functional_hips: float = 5.0
     functional_hips_min_cameras: int = 7
@@ -263,8 +264,10 @@ class TrackerConfig:
         if self.functional_hips_min_cameras < 0:
             raise InputError(f"TrackerConfig.functional_hips_min_cameras must be >= 0, got "
                              f"{self.functional_hips_min_cameras}")
-        if self.lost_hand_frames < 0:
-            raise InputError(f"TrackerConfig.lost_hand_frames must be >= 0 (0: off), got {self.lost_hand_frames}")
+        if isinstance(self.lost_hand_frames, bool) or not isinstance(self.lost_hand_frames, int) or \
+                self.lost_hand_frames < 0:
+            raise InputError(f"TrackerConfig.lost_hand_frames must be a whole number of frames >= 0 (0: off), got "
+                             f"{self.lost_hand_frames!r}")
         if self.ghost_max_cameras < 0:
             raise InputError(f"TrackerConfig.ghost_max_cameras must be >= 0, got {self.ghost_max_cameras}")
         if not 0.0 <= self.ghost_weight <= 1.0:
@@ -305,7 +308,7 @@ class TrackerConfig:
             if "ccd" in kw:
                 kw["ccd"] = CCDConfig(**kw["ccd"])
             return cls(**kw)
-        except TypeError as exc:
+        except (TypeError, InputError) as exc:
             raise InputError(f"{source}: {exc}") from None
 
 
@@ -374,6 +377,9 @@ class _Subject:
         rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
         self.ankle_height = rest[self.feet[:, 0], 2] - rest[self.feet[:, 1], 2]  # (2,) ankle above the sole
         self.body_volume_m3 = float(blob_volumes(self.blobs).sum())
+        # lost_hand_frames: each arm's DOFs (left, right) and their rest values, (2, len(ARM_DOFS))
+        self.arm_dofs = torch.stack([skeleton.dof_index([f"{side}_{d}" for d in ARM_DOFS]) for side in ("l", "r")])
+        self.arm_rest = skeleton.rest_angles()[self.arm_dofs]
         self.output_joint = torch.tensor([JOINT_FRAMES.index(LANDMARK_FRAMES.get(n, n)) if
                                           LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
                                           for n in skeleton.output_names])
@@ -383,6 +389,7 @@ class _Subject:
             m.to(device)
         self.output_joint, self.spine_dofs = self.output_joint.to(device), self.spine_dofs.to(device)
         self.feet, self.ankle_height = self.feet.to(device), self.ankle_height.to(device)
+        self.arm_dofs, self.arm_rest = self.arm_dofs.to(device), self.arm_rest.to(device)
         return self
 
 
@@ -892,6 +899,7 @@ class MarkerlessTracker:
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap
             self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back
+            self.hands_off = [0, 0]
             return self._invalid()
         if self.config.em_cell_m > 0:
             obs = obs.pooled(self.config.em_cell_m)
@@ -920,10 +928,10 @@ class MarkerlessTracker:
     def _search_lost_arms(self, obs: VoxelObservation, res: FrameResult) -> tuple[FrameResult, list[torch.Tensor]]:
         """``lost_hand_frames``: an accepted frame's result, or the frame tracked again with a lost arm at rest
         where that fits better (see :class:`TrackerConfig`), and the DOF indices of each arm so found. Counts each
-        hand's de-activated frames."""
+        hand's de-activated frames since it went off or was last searched for."""
         n = self.config.lost_hand_frames
         found_arms: list[torch.Tensor] = []
-        if n <= 0 or res.blobs is None:
+        if n <= 0:
             return res, found_arms
         sub = self.subject
         for i, side in enumerate(("l", "r")):
@@ -931,23 +939,30 @@ class MarkerlessTracker:
             self.hands_off[i] = 0 if bool(res.blobs.active[k]) else self.hands_off[i] + 1
             if self.hands_off[i] < n:
                 continue
-            arm = sub.skeleton.dof_index([f"{side}_{d}" for d in ARM_DOFS]).to(res.angles.device)
+            self.hands_off[i] = 0  # the next search n frames on: a hand no view shows costs 2 passes per n frames
             hanging = res.angles.clone()
-            hanging[arm] = sub.skeleton.rest_angles().to(hanging)[arm]
-            kept = self.angles, self.previous
-            self.angles = self.previous = sub.skeleton.clamp(hanging[None])[0]  # from there, without velocity
-            try:
-                trial = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
-            finally:
-                self.angles, self.previous = kept
-            cost, trial_cost = self._fit_cost(res), self._fit_cost(trial)
-            found = bool(trial.blobs.active[k]) and trial_cost < cost and not self._diverging(trial)
+            hanging[sub.arm_dofs[i]] = sub.arm_rest[i]
+            # both from this frame's solution, one more pass each: a second pass alone lowers the cost (the rest of
+            # the body fits again), so the search is measured against the frame tracked again as it is
+            again = self._track_again(obs, res.angles)
+            trial = self._track_again(obs, sub.skeleton.clamp(hanging[None])[0])
+            cost, trial_cost = self._fit_cost(again), self._fit_cost(trial)
+            found = trial_cost < cost and not self._diverging(trial)
             log.debug("the %s hand off for %d frames: the arm searched from hanging fits at %.1f mm against %.1f: %s",
-                      side, self.hands_off[i], 1e3 * trial_cost, 1e3 * cost, "kept" if found else "refused")
+                      side, n, 1e3 * trial_cost, 1e3 * cost, "kept" if found else "refused")
             if found:
-                res, self.hands_off[i] = trial, 0
-                found_arms.append(arm)
+                res = trial
+                found_arms.append(sub.arm_dofs[i])
         return res, found_arms
+
+    def _track_again(self, obs: VoxelObservation, angles: torch.Tensor) -> FrameResult:
+        """The frame tracked once more from ``angles``, without velocity; the tracker's pose is left as it was."""
+        kept = self.angles, self.previous
+        self.angles = self.previous = angles
+        try:
+            return self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        finally:
+            self.angles, self.previous = kept
 
     # ------------------------------------------------------------------------------------ functional hips
     @property
@@ -1065,6 +1080,7 @@ class MarkerlessTracker:
             return replace(best, valid=False, reinitialised=True)
         self.angles = self.previous = best.angles
         self.lost = 0
+        self.hands_off = [0, 0]
         if self.feet_seen is not None and best.feet is not None:  # a held foot the new pose left is let go
             far = (best.feet[0] - self.feet_seen).norm(dim=-1) > REACQUIRED_FOOT_M
             self.feet_still = self.feet_still & ~far
