@@ -311,6 +311,8 @@ def main() -> None:
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
+    ap.add_argument("--log-searches", action="store_true",
+                    help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
     if args.scale_only and not (args.init_from_reference or args.reference_fit):
         raise SystemExit("--scale-only changes the body of --init-from-reference or --reference-fit: give one")
@@ -323,6 +325,8 @@ def main() -> None:
     if args.save_poses is not None and not args.save_poses.parent.is_dir():  # before minutes of tracking
         raise SystemExit(f"--save-poses {args.save_poses}: the folder {args.save_poses.parent} does not exist")
     logging.basicConfig(level=logging.WARNING)
+    if args.log_searches:
+        logging.getLogger("torchtrack.tracking.markerless").setLevel(logging.DEBUG)
     torch.set_grad_enabled(False)
     if not (args.demo / "videos").is_dir():
         raise SystemExit(f"{args.demo}: the Pose2Sim demo is not there")

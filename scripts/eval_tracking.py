@@ -16,6 +16,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 4 --models hull --fit-rounds 10
     .venv/bin/python scripts/eval_tracking.py --cameras 8 --hips     # where the thighs pivot (functional_hips)
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --start --blob-activity
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --tracker lost_hand_frames=10 --log-searches
 """
 
 from __future__ import annotations
@@ -315,8 +316,12 @@ def main() -> None:
     ap.add_argument("--fit-rounds", type=int, default=0, metavar="N",
                     help="diagnostic, instead of tracking: N rounds of the bone fit on the first frame's voxels at "
                          "the true pose, its ridge towards the start and towards each round's body")
+    ap.add_argument("--log-searches", action="store_true",
+                    help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    if args.log_searches:
+        logging.getLogger("torchtrack.tracking.markerless").setLevel(logging.DEBUG)
     config = load_config(args.config)
     try:
         background = with_overrides(BackgroundConfig(), args.background, "--background")

@@ -934,6 +934,7 @@ class MarkerlessTracker:
         if n <= 0:
             return res, found_arms
         sub = self.subject
+        again = None  # the frame tracked once more as it is: once for both arms, until a search is kept
         for i, side in enumerate(("l", "r")):
             k = sub.blobs.names.index(f"{side}_hand")
             self.hands_off[i] = 0 if bool(res.blobs.active[k]) else self.hands_off[i] + 1
@@ -944,14 +945,15 @@ class MarkerlessTracker:
             hanging[sub.arm_dofs[i]] = sub.arm_rest[i]
             # both from this frame's solution, one more pass each: a second pass alone lowers the cost (the rest of
             # the body fits again), so the search is measured against the frame tracked again as it is
-            again = self._track_again(obs, res.angles)
+            if again is None:
+                again = self._track_again(obs, res.angles)
             trial = self._track_again(obs, sub.skeleton.clamp(hanging[None])[0])
             cost, trial_cost = self._fit_cost(again), self._fit_cost(trial)
             found = trial_cost < cost and not self._diverging(trial)
             log.debug("the %s hand off for %d frames: the arm searched from hanging fits at %.1f mm against %.1f: %s",
                       side, n, 1e3 * trial_cost, 1e3 * cost, "kept" if found else "refused")
             if found:
-                res = trial
+                res, again = trial, None
                 found_arms.append(sub.arm_dofs[i])
         return res, found_arms
 
