@@ -16,7 +16,8 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 4 --models hull --fit-rounds 10
     .venv/bin/python scripts/eval_tracking.py --cameras 8 --hips     # where the thighs pivot (functional_hips)
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --start --blob-activity
-    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --tracker lost_hand_frames=10 --log-searches
+    .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --log-searches \
+        --tracker lost_hand_frames=10
 """
 
 from __future__ import annotations
