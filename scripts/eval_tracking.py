@@ -179,8 +179,8 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     return poses, poses.num_frames / elapsed, tracker, observer
 
 
-def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: BackgroundConfig = BackgroundConfig()
-               ) -> None:
+def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: BackgroundConfig = BackgroundConfig(),
+               tracker_overrides: Sequence[str] = ()) -> None:
     """--fit-rounds: the bone fit alone, round after round, on the observation of the first frame at its true
     pose, from the template scaled to the true height: its ridge towards that start (the tracker's) and towards
     each round's own body (as before 2026-11-24). Prints the fitted proportions after each round."""
@@ -195,7 +195,8 @@ def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: Bac
     true = body.proportions()
     print("    true: " + ", ".join(f"{k} {true[k]:.3f}" for k in FIT_PROPORTIONS))
     for anchored in (True, False):
-        tracker_config = TrackerConfig.from_dict(config["tracker"], config["source"])
+        tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]),
+                                        tracker_overrides, "--tracker")
         tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
         tracker._setup(body.height(), torch.device("cpu"))
         start = tracker.subject.skeleton
@@ -340,7 +341,7 @@ def main() -> None:
             for model in args.models:
                 if args.fit_rounds:
                     print(f"{motion} {cams} cameras {model}: the bone fit at the true pose", flush=True)
-                    fit_rounds(seq, model, config, args.fit_rounds, background)
+                    fit_rounds(seq, model, config, args.fit_rounds, background, args.tracker)
                     continue
                 poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
                                                   args.oracle_margin)

@@ -646,14 +646,16 @@ def _track_body(tracker, subj, blobs, T):
     return np.array(errs)
 
 
-def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel):
+@pytest.mark.parametrize("bone_fit", ["blobs", "shape"])
+def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel, bone_fit):
     """fit_bone_lengths at the starfish frame, on the voxels of a body of other proportions than the template's:
     the torso's and legs' lengths and the neck's height move towards the body's, and the track is better than
-    with one scale for the body."""
+    with one scale for the body; with either bone fit (the blobs EM fits, or the body's ellipsoids fitted to the
+    voxels)."""
     subj, blobs, T = _proportioned_body(skel)
     errs, bones = {}, {}
     for fit in (False, True):
-        tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=fit))
+        tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=fit, bone_fit=bone_fit))
         errs[fit] = _track_body(tracker, subj, blobs, T).mean()
         bones[fit] = dict(zip(subj.bone_names, tracker.subject.skeleton.bone_lengths.tolist()))
         fitted = tracker.subject.skeleton
@@ -931,6 +933,9 @@ def test_tracker_config_from_dict_names_unknown_keys():
     for bad in ("10", True, -1, 2.5, float("nan")):  # the file and the field named, the value shown
         with pytest.raises(InputError, match=r"x\.yaml: TrackerConfig\.lost_hand_frames must be a whole number"):
             TrackerConfig.from_dict({"lost_hand_frames": bad}, "x.yaml")
+    assert TrackerConfig.from_dict({"bone_fit": "shape"}).bone_fit == "shape"
+    with pytest.raises(InputError, match=r"x\.yaml: TrackerConfig\.bone_fit must be one of blobs, shape, got 'e'"):
+        TrackerConfig.from_dict({"bone_fit": "e"}, "x.yaml")
 
 
 # --------------------------------------------------------------------------------------------------- CLI

@@ -61,8 +61,9 @@ def check_file(path: str | Path, what: str) -> Path:
 def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
     """A copy of the dataclass ``config`` with ``FIELD=VALUE`` items applied (command-line overrides).
 
-    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float); the dataclass's own
-    checks then run. An unknown field, a malformed item or a bad value raises ``InputError`` naming ``option``.
+    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float; str as given); the
+    dataclass's own checks then run. An unknown field, a malformed item or a bad value raises ``InputError``
+    naming ``option``.
     """
     fields = {f.name: f for f in dataclasses.fields(config)}
     changes: dict[str, Any] = {}
@@ -71,7 +72,7 @@ def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
         if not sep or name not in fields:
             raise InputError(f"{option}: expected FIELD=VALUE with FIELD one of {sorted(fields)}, got {item!r}")
         declared = fields[name].type  # a string under postponed annotations
-        kind = {"bool": bool, "int": int, "float": float}.get(getattr(declared, "__name__", declared))
+        kind = {"bool": bool, "int": int, "float": float, "str": str}.get(getattr(declared, "__name__", declared))
         if kind is None:
             raise InputError(f"{option}: field {name!r} ({declared}) cannot be set from the command line")
         try:

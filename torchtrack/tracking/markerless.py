@@ -40,6 +40,7 @@ import torch
 
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
+from torchtrack.blobs.shape import ShapeModel, fit_shape
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
@@ -99,6 +100,25 @@ MIN_FRAME_RATE, MAX_FRAME_RATE = 0.1, 10000.0
 #: shoulders with the neck's shift free: 27.9 / 26.9 and 31.9 / 26.1 (4 cameras, Bayesian grid 40.8 / 33.2 against
 #: 35.8 / 33.8).
 BONE_FIT_RIDGE = 0.02
+
+#: TrackerConfig.bone_fit's choices.
+BONE_FITS = ("blobs", "shape")
+
+#: The shape fit's ridge (bone_fit "shape"; the same form as BONE_FIT_RIDGE's, on an energy in m^2, a mean of
+#: squared distances between the voxels and the body: 2e-6 weighs a group's 10 % change like 0.14 mm of mean
+#: distance). Measured on a first version of the fit (exact distances to the nearest voxel) at 0, 2e-6 and 2e-5 on
+#: the 4-camera hull's CMU walks: 2e-5 held the torsos long (131_01 55.4 mm against 45.9 at 2e-6), 0 left them
+#: where 2e-6 did.
+SHAPE_FIT_RIDGE = 2e-6
+
+#: The shape fit's starts, (the neck's shift in NECK_STEP_M, the head's relative change): the union's energy has
+#: local minima along the neck's height against the head's length. At the true pose of CMU 131_01's starfish
+#: (8-camera hull; scripts/eval_tracking.py --fit-rounds 3 --tracker bone_fit=shape) three rounds end at torso
+#: 0.274 m, neck 0.061 below the shoulders, head 0.245 with these starts (true 0.248, 0.079 below, 0.272); from the
+#: template's neck alone at 0.281, 0.054 below, 0.234, but at 0.341, 0.004 above, 0.160 with the distance field's
+#: margin at 0.25 m instead of 0.5 (and a first version of the fit found the head 0.096 m with the neck 8 cm above
+#: the shoulders): which minimum one start falls into is fragile.
+SHAPE_FIT_STARTS = ((0.0, 0.0), (-0.75, 0.0), (-0.75, 0.25), (-1.5, 0.0), (-1.5, 0.25))
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
 #: change, or at a round that fits worse). Three left the CMU bodies' torsos halfway (measured before that guard:
@@ -173,6 +193,14 @@ class TrackerConfig:
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37); BONE_GROUPS has figures.
+        bone_fit: what the bone fit fits. ``"blobs"``: the means and lengths of blobs EM fitted to the voxels
+            without priors, by linear least squares; ``"shape"``: the union of the body's ellipsoids to the voxels
+            themselves (:mod:`torchtrack.blobs.shape`), which EM's sharing of the voxels between overlapping blobs
+            does not bias (the pelvis' over the thighs' tops, the head's over the neck), but which takes
+            silhouette holes and ghost volume as the body's shape. On the synthetic table it helps the CMU walks
+            (4 cameras, Bayesian grid 40.5 / 32.0 -> 28.0 / 22.0 mm, hull 54.9 / 47.8 -> 53.6 / 31.2) and costs
+            the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera
+            squat its target (39.1 -> 48.7, 44.3 -> 59.8; README), so it is not the default.
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
@@ -241,6 +269,7 @@ class TrackerConfig:
     lost_frames: int = 3
     init_passes: int = 12
     fit_bone_lengths: bool = True
+    bone_fit: str = "blobs"
     em_cell_m: float = 0.0
     blobs: str = "blobs.yaml"
     floor_contact: bool = False
@@ -264,6 +293,8 @@ class TrackerConfig:
         if self.functional_hips_min_cameras < 0:
             raise InputError(f"TrackerConfig.functional_hips_min_cameras must be >= 0, got "
                              f"{self.functional_hips_min_cameras}")
+        if self.bone_fit not in BONE_FITS:
+            raise InputError(f"TrackerConfig.bone_fit must be one of {', '.join(BONE_FITS)}, got {self.bone_fit!r}")
         if isinstance(self.lost_hand_frames, bool) or not isinstance(self.lost_hand_frames, int) or \
                 self.lost_hand_frames < 0:
             raise InputError(f"TrackerConfig.lost_hand_frames must be a whole number of frames >= 0 (0: off), got "
@@ -682,18 +713,20 @@ class MarkerlessTracker:
         return float((w * (f - cf) * (m - cm)).sum() / (w * (m - cm) ** 2).sum().clamp(min=1e-12))
 
     def _fit_bone_lengths(self, obs: VoxelObservation, res: FrameResult, start_body: Skeleton,
-                          ridge: float = BONE_FIT_RIDGE) -> tuple[Skeleton, float]:
-        """Bone lengths from the blobs of a frame fitted without priors, by linear least squares.
+                          ridge: float | None = None) -> tuple[Skeleton, float]:
+        """Bone lengths fitted to a frame's voxels at its solved pose (``TrackerConfig.bone_fit``).
 
-        At fixed joint angles every blob mean is affine in the bones' scale factors (a bone's length scales its
-        blobs' offsets and every joint origin it carries), so the effect of each bone group (left and right
+        At fixed joint angles every blob's centre is affine in the bones' scale factors (a bone's length scales
+        its blobs' offsets and every joint origin it carries), so the effect of each bone group (left and right
         tied) is one finite difference, as is the neck's height on the torso (NECK_JOINT; the torso's scale
-        moves it and the shoulders, the shift the neck alone); and each elongated blob's semi-axis along its
-        bone (sqrt(5) times the standard deviation of its voxels along it) is affine in them too (read off the
-        same edited blob models). Solves for the group scales, the neck shift and a root shift, with a ridge
-        towards the ``start_body`` skeleton's lengths and neck (the fit's first body; BONE_FIT_RIDGE); returns the new
-        skeleton and the largest relative change. ``obs``: the
-        frame's voxels split to ``BONE_FIT_VOXEL_M`` (the caller splits them once for all rounds).
+        moves it and the shoulders, the shift the neck alone); each blob's semi-axis along its bone is affine in
+        them too (read off the same edited blob models). Solves for the group scales, the neck shift and a root
+        shift, with a ridge towards the ``start_body`` skeleton's lengths and neck (the fit's first body; ``ridge``,
+        by default BONE_FIT_RIDGE or SHAPE_FIT_RIDGE), by linear least squares on the means and lengths of blobs
+        that EM fitted without priors (``"blobs"``) or by fitting the union of the ellipsoids to the voxels
+        (``"shape"``, :func:`~torchtrack.blobs.shape.fit_shape`); returns the new skeleton and the largest relative
+        change. ``obs``: the frame's voxels split to ``BONE_FIT_VOXEL_M`` (the caller splits them once for all
+        rounds).
         """
         sub = self.subject
         skel = sub.skeleton
@@ -702,9 +735,8 @@ class MarkerlessTracker:
         fk = skel.forward(angles)
         base, base_cov = sub.blobs.gaussians(fk.bone_frames)
         base, base_cov = base[0], base_cov[0]  # (K, 3), (K, 3, 3)
-        raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
         start = prior_blobs(base, base_cov)
-        fitted, _ = fit_blobs(obs.points, self._ghost_weights(obs, start), obs.sizes, None, start, raw)
+        weights = self._ghost_weights(obs, start)  # (N,)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
         K, G = base.shape[0], len(BONE_GROUPS) + 1
         neck = skel.joint_origin(NECK_JOINT)
@@ -717,32 +749,48 @@ class MarkerlessTracker:
             cols.append(blobs2.gaussians(edited.forward(angles).bone_frames)[0][0] - base)  # (K, 3) per step
             size_cols.append(blobs2.semi_axes[:, 0].to(base) - semi_now)  # (K,)
         eye = torch.eye(3, dtype=base.dtype, device=base.device).expand(K, 3, 3)
-        A_pos = torch.cat([torch.stack(cols, -1), eye], -1).reshape(3 * K, G + 3)
-        r_pos = (fitted.mean - base).reshape(3 * K)
-        w_blob = (fitted.active & self._inside_volume(obs, start)).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
-        # sizes along the bone
-        _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
-        along = R_wb[0, :, :, 0]  # (K, 3)
-        semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
-        A_size = torch.cat([torch.stack(size_cols, -1), base.new_zeros(K, 3)], -1)  # (K, G + 3); the root: none
-        w_size = w_blob  # the variance along the bone axis is defined for round blobs too
-        A = torch.cat([A_pos, A_size]).double()
-        r = torch.cat([r_pos, semi_fit - semi_now]).double()
-        w = torch.cat([w_blob.repeat_interleave(3), w_size]).double()
+        d_centres = torch.cat([torch.stack(cols, -1), eye], -1).double()  # (K, 3, G + 3); the root shift: eye
+        d_along = torch.cat([torch.stack(size_cols, -1), base.new_zeros(K, 3)], -1).double()  # (K, G + 3)
         # the ridge: ridge * (c_g (1 + x_g) - 1)^2 per group, c_g its current length over the start's (a relative
         # change from the start). The torso's length is the neck's height on it, which the neck's shifts move too:
         # so the neck's height is what is pulled back, and the neck's shift then has nothing to pull back to (its
         # target is 0, a damping towards this round's body), which leaves the shoulders' height to the voxels
+        shape = self.config.bone_fit == "shape"
+        ridge = (SHAPE_FIT_RIDGE if shape else BONE_FIT_RIDGE) if ridge is None else ridge
         start_len = dict(zip(start_body.bone_names, start_body.bone_lengths.tolist()))
-        c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=A.dtype)
+        c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=base.dtype)
         start_neck_z = start_body.joint_origin(NECK_JOINT)[2] * float(c[BONE_GROUPS.index(("torso",))])
-        ridge_w = ridge * torch.cat([c * c, c.new_ones(1), c.new_zeros(3)]).to(A)  # (G + 3,) the root: none
+        ridge_w = (ridge * torch.cat([c * c, c.new_ones(1), c.new_zeros(3)])).to(d_centres)  # (G + 3,) root: none
         target = torch.cat([1.0 / c - 1.0, c.new_tensor([(start_neck_z - neck[2]) / NECK_STEP_M]),
-                            c.new_zeros(3)]).to(A)
-        reg = torch.diag(ridge_w)
-        rhs = A.T @ (w * r) + ridge_w * target
-        x = torch.linalg.solve(A.T @ (w[:, None] * A) + reg + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device),
-                               rhs)
+                            c.new_zeros(3)]).to(d_centres)
+        if shape:
+            _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
+            model = ShapeModel(base.double(), R_wb[0].double(), sub.blobs.semi_axes.to(base).double(), d_centres,
+                               d_along)
+            head = BONE_GROUPS.index(("head",))
+            starts = []
+            for neck_x, head_x in SHAPE_FIT_STARTS:
+                x0 = target.new_zeros(G + 3)
+                x0[G - 1], x0[head] = neck_x, head_x
+                starts.append(x0)
+            x, _ = fit_shape(model, obs.points, obs.sizes, weights, ridge_w, target, starts, obs.volume_m)
+        else:
+            raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
+            fitted, _ = fit_blobs(obs.points, weights, obs.sizes, None, start, raw)
+            r_pos = (fitted.mean - base).reshape(3 * K)
+            inside = self._inside_volume(obs, start)
+            w_blob = (fitted.active & inside).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
+            # sizes along the bone
+            _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
+            along = R_wb[0, :, :, 0]  # (K, 3)
+            semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
+            A = torch.cat([d_centres.reshape(3 * K, G + 3), d_along])
+            r = torch.cat([r_pos, semi_fit - semi_now]).double()
+            w = torch.cat([w_blob.repeat_interleave(3), w_blob]).double()  # the variance along the bone axis is
+            # defined for round blobs too
+            rhs = A.T @ (w * r) + ridge_w * target
+            x = torch.linalg.solve(A.T @ (w[:, None] * A) + torch.diag(ridge_w)
+                                   + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device), rhs)
         scale = (1.0 + x[:G - 1]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
         fitted_skel = skel.with_bone_lengths(new)
