@@ -758,7 +758,7 @@ class MarkerlessTracker:
         shape = self.config.bone_fit == "shape"
         ridge = (SHAPE_FIT_RIDGE if shape else BONE_FIT_RIDGE) if ridge is None else ridge
         start_len = dict(zip(start_body.bone_names, start_body.bone_lengths.tolist()))
-        c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=base.dtype)
+        c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=torch.float64)
         start_neck_z = start_body.joint_origin(NECK_JOINT)[2] * float(c[BONE_GROUPS.index(("torso",))])
         ridge_w = (ridge * torch.cat([c * c, c.new_ones(1), c.new_zeros(3)])).to(d_centres)  # (G + 3,) root: none
         target = torch.cat([1.0 / c - 1.0, c.new_tensor([(start_neck_z - neck[2]) / NECK_STEP_M]),
