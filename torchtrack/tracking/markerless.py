@@ -114,10 +114,11 @@ SHAPE_FIT_RIDGE = 2e-6
 #: The shape fit's starts, (the neck's shift in NECK_STEP_M, the head's relative change): the union's energy has
 #: local minima along the neck's height against the head's length. At the true pose of CMU 131_01's starfish
 #: (8-camera hull; scripts/eval_tracking.py --fit-rounds 3 --tracker bone_fit=shape) three rounds end at torso
-#: 0.274 m, neck 0.061 below the shoulders, head 0.245 with these starts (true 0.248, 0.079 below, 0.272); from the
-#: template's neck alone at 0.281, 0.054 below, 0.234, but at 0.341, 0.004 above, 0.160 with the distance field's
-#: margin at 0.25 m instead of 0.5 (and a first version of the fit found the head 0.096 m with the neck 8 cm above
-#: the shoulders): which minimum one start falls into is fragile.
+#: 0.276 m, neck 0.061 below the shoulders, head 0.242 with these starts (true 0.248, 0.079 below, 0.272), and from
+#: the template's neck alone at 0.275, 0.059 below, 0.237; but one start fell elsewhere in two variants: with the
+#: distance field's margin at 0.25 m instead of 0.5 at 0.341, 0.004 above, 0.160 (measured with the ridge's factors
+#: in single precision), and a first version of the fit found the head 0.096 m with the neck 8 cm above the
+#: shoulders. Which minimum one start falls into is fragile.
 SHAPE_FIT_STARTS = ((0.0, 0.0), (-0.75, 0.0), (-0.75, 0.25), (-1.5, 0.0), (-1.5, 0.25))
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
@@ -198,9 +199,9 @@ class TrackerConfig:
             themselves (:mod:`torchtrack.blobs.shape`), which EM's sharing of the voxels between overlapping blobs
             does not bias (the pelvis' over the thighs' tops, the head's over the neck), but which takes
             silhouette holes and ghost volume as the body's shape. On the synthetic table it helps the CMU walks
-            (4 cameras, Bayesian grid 40.5 / 32.0 -> 28.0 / 22.0 mm, hull 54.9 / 47.8 -> 53.6 / 31.2) and costs
-            the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera
-            squat its target (39.1 -> 48.7, 44.3 -> 59.8; README), so it is not the default.
+            (4 cameras, Bayesian grid 40.5 / 32.0 -> 27.9 / 23.6 mm, hull 54.9 / 47.8 -> 52.9 / 32.5) and costs
+            the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera squat its target
+            (39.1 -> 49.5, 44.3 -> 61.9; README), so it is not the default.
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
