@@ -18,6 +18,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --start --blob-activity
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --log-searches \
         --tracker lost_hand_frames=10
+    .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --models hull --coverage  # what voxels miss
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ import numpy as np
 import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError, with_overrides
 from torchtrack.conventions import LANDMARKS
 from torchtrack.eval import evaluate
@@ -80,6 +82,7 @@ class AgainstTruth(torch.nn.Module):
         self.inner, self.truth, self.margin = observer, truth, margin
         self.rig, self.model = observer.rig, observer.model
         self.frame, self.outside = 0, []
+        self.first: VoxelObservation | None = None  # the first frame's observation (--coverage)
 
     def _inside(self, obs: VoxelObservation, t: int, grow: float) -> torch.Tensor:
         g = self.truth
@@ -91,6 +94,8 @@ class AgainstTruth(torch.nn.Module):
         out = []
         for obs in self.inner(images, cameras_valid):
             t, self.frame = self.frame, self.frame + 1
+            if t == 0:
+                self.first = obs
             w = obs.weights.double()
             self.outside.append(float(w[~self._inside(obs, t, OUTSIDE_M)].sum() / w.sum().clamp(min=1e-30)))
             if self.margin is not None:
@@ -99,6 +104,45 @@ class AgainstTruth(torch.nn.Module):
                                        obs.cameras_valid, camera_centres=obs.camera_centres, volume_m=obs.volume_m)
             out.append(obs)
         return out
+
+
+#: --coverage: a sample of a rendered blob's inside counts as missed farther than this from every voxel cube (m),
+#: and the blobs listed are those missed by more than COVERAGE_LIST of their inside.
+COVERAGE_M, COVERAGE_LIST = 0.01, 0.05
+
+
+def coverage(obs: VoxelObservation, truth: dict, t: int = 0, samples: int = 500) -> tuple[dict[str, float], float]:
+    """--coverage: what a frame's voxels miss of the rendered body. Returns each blob's share of its solid ellipsoid
+    (``samples`` points uniform inside it, those in the observed volume) farther than COVERAGE_M from every voxel
+    cube (the exact distance, over all cubes), and how far the highest voxel centre within the head's ellipsoid
+    grown by OUTSIDE_M lies under the ellipsoid's top (m; NaN without such a voxel). The shape fit
+    (``bone_fit: shape``) takes what is missed for the body's shape."""
+    names = [str(n) for n in truth["blob_names"]]
+    c = torch.from_numpy(truth["blob_centres"][t]).double()  # (K, 3)
+    R = torch.from_numpy(truth["blob_R_world"][t]).double()  # (K, 3, 3)
+    a = torch.from_numpy(truth["blob_semi_axes"]).double()  # (K, 3)
+    p, size = obs.points.double(), obs.sizes.double()
+    q = c[:, None, :] + torch.einsum("kij,kmj->kmi", R, a[:, None, :] * unit_ball_samples(samples)[None])  # (K, M, 3)
+    q = q.reshape(-1, 3)
+    d = torch.cat([((x[:, None, :] - p[None]).abs() - size[None, :, None] / 2).clamp(min=0).norm(dim=-1).amin(1)
+                   for x in q.split(64)]).reshape(len(names), samples)  # (K, M) to the nearest cube
+    seen = torch.ones_like(d, dtype=torch.bool)
+    if obs.volume_m is not None:  # the observed box's sides and top (nothing stands below the floor)
+        lower, upper = (q.new_tensor(v) for v in obs.volume_m)
+        seen = ((q[:, :2] >= lower[:2]).all(-1) & (q <= upper).all(-1)).reshape(d.shape)
+    missed = ((d > COVERAGE_M) & seen).sum(1) / seen.sum(1).clamp(min=1)
+    h = names.index("head")
+    top = float(c[h, 2] + (R[h, 2] * a[h]).norm())  # the ellipsoid's highest point
+    near = inside_ellipsoids(p, c[h:h + 1], R[h:h + 1], a[h:h + 1] + OUTSIDE_M)
+    under = top - float(p[near, 2].max()) if bool(near.any()) else float("nan")
+    return dict(zip(names, missed.tolist())), under
+
+
+def coverage_line(missed: dict[str, float], head_under: float) -> str:
+    listed = ", ".join(f"{n} {100 * v:.1f}" for n, v in missed.items() if v > COVERAGE_LIST) or "none"
+    return (f"first frame, the rendered blobs' inside farther than {100 * COVERAGE_M:g} cm from the voxels (%, over "
+            f"{100 * COVERAGE_LIST:g}): {listed}; the head's highest voxel centre {100 * head_under:.1f} cm under "
+            "its top")
 
 
 class RecordingTracker(MarkerlessTracker):
@@ -318,6 +362,10 @@ def main() -> None:
     ap.add_argument("--fit-rounds", type=int, default=0, metavar="N",
                     help="diagnostic, instead of tracking: N rounds of the bone fit on the first frame's voxels at "
                          "the true pose, its ridge towards the start and towards each round's body")
+    ap.add_argument("--coverage", action="store_true",
+                    help="also print the share of each rendered blob's inside that the first frame's voxels miss "
+                         "and how far under the head's top its highest voxel lies (what the shape fit takes for "
+                         "the body's shape)")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
@@ -369,6 +417,8 @@ def main() -> None:
                         if n in ("pelvis", "l_hip", "r_hip")), flush=True)
                 if args.start:
                     print("    " + start_heights(poses, truth), flush=True)
+                if args.coverage and seen.first is not None:
+                    print("    " + coverage_line(*coverage(seen.first, seen.truth)), flush=True)
                 if args.blob_activity:
                     print("\n".join("    " + line for line in blob_activity(tracker)), flush=True)
                 if args.proportions and tracker.subject is not None:

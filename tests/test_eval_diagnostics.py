@@ -13,6 +13,7 @@ from pathlib import Path
 from types import ModuleType, SimpleNamespace
 
 import numpy as np
+import torch
 import pytest
 from scipy.spatial.transform import Rotation
 
@@ -209,3 +210,38 @@ def test_start_heights_are_the_first_frames_height_differences(eval_tracking):
     line = eval_tracking.start_heights(SimpleNamespace(landmarks=lambda: tracked),
                                        SimpleNamespace(landmarks=lambda: true))
     assert "pelvis -5.8," in line and "l_ankle +2.8," in line and "head +0.0," in line
+
+
+def test_coverage_of_a_ball_with_its_top_cut_off(eval_tracking):
+    """--coverage against closed forms: a 'head' ball of radius 0.1 m whose voxels (1 cm cubes, centres inside
+    it) stop at centres 5 cm above its middle (the highest at 4.5 cm) misses the cap beyond the cubes' tops and the
+    1 cm tolerance, 6 cm above the middle: (1 - 0.6)^2 (2 + 0.6) / 4 = 10.4 % of the ball; its highest voxel
+    centre lies 5.5 cm under the top. A second ball, wholly voxelised, misses nothing; a box that cuts the first
+    one's cap off counts the cap as unobserved, not missed."""
+    from torchtrack.tracking.observation import VoxelObservation
+
+    g = (torch.arange(-12, 12, dtype=torch.float64) + 0.5) * 0.01  # 1 cm cube centres
+    grid = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    ball = grid[grid.norm(dim=1) <= 0.1]
+    head = ball[ball[:, 2] <= 0.05] + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    other = ball + torch.tensor([0.5, 0.0, 1.0], dtype=torch.float64)
+    pts = torch.cat([head, other])
+    truth = {"blob_names": np.array(["head", "other"]),
+             "blob_centres": np.array([[[0.0, 0.0, 1.0], [0.5, 0.0, 1.0]]]),
+             "blob_R_world": np.tile(np.eye(3), (1, 2, 1, 1)), "blob_semi_axes": np.full((2, 3), 0.1)}
+
+    def obs(volume):
+        n = pts.shape[0]
+        return VoxelObservation(pts, torch.full((n,), 0.01, dtype=torch.float64), torch.ones(n, dtype=torch.float64),
+                                torch.zeros(n, 1, 3), torch.ones(1, dtype=torch.bool), volume_m=volume)
+
+    missed, under = eval_tracking.coverage(obs(None), truth, samples=4000)
+    cap = (1 - 0.6) ** 2 * (2 + 0.6) / 4
+    assert missed["head"] == pytest.approx(cap, abs=0.015), missed  # 4000 samples: sd 0.4 %
+    assert missed["other"] < 0.005, missed
+    assert under == pytest.approx(0.055, abs=1e-9)
+    line = eval_tracking.coverage_line({"head": 0.104, "other": 0.0, "hand": 0.06}, 0.055)
+    assert line.endswith("(%, over 5): head 10.4, hand 6.0; the head's highest voxel centre 5.5 cm under its top")
+    # a volume whose top is at 1.04 m: the cap is out of view, so not counted as missed
+    boxed, _ = eval_tracking.coverage(obs(((-1.0, -1.0, 0.0), (1.0, 1.0, 1.04))), truth, samples=4000)
+    assert boxed["head"] < 0.01, boxed

@@ -19,7 +19,8 @@ fixed joint angles, a bone's length scales its blobs' offsets and every joint it
 columns), the rotations and cross semi-axes fixed. The samples' distances to the voxels are read off a distance
 field of the voxels (:class:`VoxelDistance`), so that the objective is smooth in ``x`` (holding each sample's
 nearest voxel for a round of L-BFGS, as in ICP, tied the samples to them and crept: a limb 25 % longer than the
-model was fitted 3, 7, 9 and 11 % longer after one to four rounds). Shapes: N voxels, K ellipsoids, P parameters, M samples per ellipsoid.
+model was fitted 3, 7, 9 and 11 % longer after one to four rounds). Shapes: N voxels, K ellipsoids, P
+parameters, M samples per ellipsoid.
 """
 
 from __future__ import annotations

@@ -736,6 +736,7 @@ class MarkerlessTracker:
         fk = skel.forward(angles)
         base, base_cov = sub.blobs.gaussians(fk.bone_frames)
         base, base_cov = base[0], base_cov[0]  # (K, 3), (K, 3, 3)
+        R_wb = sub.blobs.ellipsoids(fk.bone_frames)[1][0]  # (K, 3, 3) the blobs' axes, the first along the bone
         start = prior_blobs(base, base_cov)
         weights = self._ghost_weights(obs, start)  # (N,)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
@@ -765,8 +766,7 @@ class MarkerlessTracker:
         target = torch.cat([1.0 / c - 1.0, c.new_tensor([(start_neck_z - neck[2]) / NECK_STEP_M]),
                             c.new_zeros(3)]).to(d_centres)
         if shape:
-            _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
-            model = ShapeModel(base.double(), R_wb[0].double(), sub.blobs.semi_axes.to(base).double(), d_centres,
+            model = ShapeModel(base.double(), R_wb.double(), sub.blobs.semi_axes.to(base).double(), d_centres,
                                d_along)
             head = BONE_GROUPS.index(("head",))
             starts = []
@@ -782,8 +782,7 @@ class MarkerlessTracker:
             inside = self._inside_volume(obs, start)
             w_blob = (fitted.active & inside).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
             # sizes along the bone
-            _, R_wb = sub.blobs.ellipsoids(fk.bone_frames)
-            along = R_wb[0, :, :, 0]  # (K, 3)
+            along = R_wb[:, :, 0]  # (K, 3)
             semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
             A = torch.cat([d_centres.reshape(3 * K, G + 3), d_along])
             r = torch.cat([r_pos, semi_fit - semi_now]).double()
