@@ -19,6 +19,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --log-searches \
         --tracker lost_hand_frames=10
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --models hull --coverage  # what voxels miss
+    .venv/bin/python scripts/eval_tracking.py --cameras 4 --models hull --refit-passes 2   # body refitted on the track
 """
 
 from __future__ import annotations
@@ -203,11 +204,12 @@ def _observer(seq: Path, model: str, config: dict, background: BackgroundConfig)
 
 
 def track(seq: Path, model: str, config: dict, background: BackgroundConfig = BackgroundConfig(),
-          tracker_overrides: Sequence[str] = (), true_body: bool = False, oracle_margin: float | None = None
-          ) -> tuple[object, float, MarkerlessTracker, AgainstTruth]:
+          tracker_overrides: Sequence[str] = (), true_body: bool = False, oracle_margin: float | None = None,
+          start: tuple[torch.Tensor, Skeleton] | None = None) -> tuple[object, float, MarkerlessTracker, AgainstTruth]:
     """Track ``seq``; with ``true_body`` on the rendered body (its body.urdf) from the first ground-truth pose,
-    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error.
-    The observer is wrapped in :class:`AgainstTruth` (``oracle_margin``: its margin)."""
+    without the starfish initialisation or the bone fit: what is left is the observation's and EM/IK's error;
+    with ``start`` (angles (D,), skeleton) from that pose and body. The observer is wrapped in
+    :class:`AgainstTruth` (``oracle_margin``: its margin)."""
     folder, observer = _observer(seq, model, config, background)
     observer = AgainstTruth(observer, dict(np.load(seq / "gt.npz")), oracle_margin)
     tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), tracker_overrides,
@@ -219,8 +221,28 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
         tracker.initialize_from_pose(angles, body.height())
     else:
         tracker = RecordingTracker(Skeleton.from_urdf(), tracker_config)
+        if start is not None:
+            tracker.initialize_from_pose(start[0], skeleton=start[1])
     poses, elapsed = track_sequence(folder, observer, tracker, progress=False)  # in this process, frames in order
     return poses, poses.num_frames / elapsed, tracker, observer
+
+
+def refit_body(seq: Path, model: str, config: dict, background: BackgroundConfig, poses, tracker: MarkerlessTracker,
+               frames: int) -> Skeleton:
+    """--refit-passes: the tracked body refitted on ``frames`` of the track's valid frames, evenly spaced, at
+    their tracked poses (:meth:`MarkerlessTracker.refit_bone_lengths`)."""
+    folder, observer = _observer(seq, model, config, background)
+    W, H = (int(v) for v in observer.rig.image_size_wh[0].tolist())
+    ok = np.flatnonzero(np.asarray(poses.valid))
+    if ok.size == 0:
+        raise SystemExit(f"{seq}: --refit-passes: no valid frame in the track")
+    picked = np.unique(ok[np.linspace(0, ok.size - 1, min(frames, ok.size)).round().astype(int)])
+    observations = []
+    for t in picked.tolist():
+        fb = next(iter(folder.iter_batches(1, t, t + 1, size_wh=(W, H))))
+        observations.append(observer(fb.images, fb.valid)[0])
+    angles = torch.from_numpy(np.asarray(poses.angles)[picked]).float()
+    return tracker.refit_bone_lengths(observations, angles)[0]
 
 
 def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: BackgroundConfig = BackgroundConfig(),
@@ -366,6 +388,12 @@ def main() -> None:
                     help="also print the share of each rendered blob's inside that the first frame's voxels miss "
                          "and how far under the head's top its highest voxel lies (what the shape fit takes for "
                          "the body's shape)")
+    ap.add_argument("--refit-passes", type=int, default=0, metavar="N",
+                    help="after the track, N times: the body refitted on --refit-frames of the track's frames at "
+                         "once (the shape fit, MarkerlessTracker.refit_bone_lengths) and the sequence tracked "
+                         "again with it from the track's first pose; the table's row is the last pass's")
+    ap.add_argument("--refit-frames", type=int, default=8, metavar="F",
+                    help="--refit-passes: how many of the track's valid frames, evenly spaced")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
@@ -376,6 +404,9 @@ def main() -> None:
     try:
         background = with_overrides(BackgroundConfig(), args.background, "--background")
         with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker, "--tracker")
+        if args.refit_passes < 0 or args.refit_frames < 1:
+            raise InputError(f"--refit-passes must be >= 0 and --refit-frames >= 1, got {args.refit_passes} and "
+                             f"{args.refit_frames}")
     except InputError as exc:
         raise SystemExit(str(exc)) from None
     torch.set_grad_enabled(False)
@@ -393,6 +424,16 @@ def main() -> None:
                     continue
                 poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
                                                   args.oracle_margin)
+                true_props = Skeleton.from_urdf(seq / "body.urdf").proportions()
+                for k in range(args.refit_passes):
+                    before = evaluate(poses, truth).mpjpe_mm
+                    body = refit_body(seq, model, config, background, poses, tracker, args.refit_frames)
+                    fit = body.proportions()
+                    print(f"    {motion} {cams} {model}: pass {k + 1} {before:.1f} mm; refitted (true) m: "
+                          + ", ".join(f"{n} {fit[n]:.3f} ({true_props[n]:.3f})" for n in PROPORTIONS), flush=True)
+                    start = (torch.from_numpy(np.asarray(poses.angles[0])).float(), body)
+                    poses, fps, tracker, seen = track(seq, model, config, background, args.tracker,
+                                                      oracle_margin=args.oracle_margin, start=start)
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")

@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from torchtrack.blobs import BlobModel
 from torchtrack.blobs.em import EMConfig, e_step, fit_blobs, prior_blobs
-from torchtrack.checks import InputError
+from torchtrack.checks import InputError, ShapeError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton
@@ -674,6 +674,32 @@ def test_fitted_bone_lengths_move_towards_a_differently_proportioned_body(skel, 
         assert abs(bones[True][bone] - true[bone]) < (1 - part) * abs(bones[False][bone] - true[bone]), (bone, bones)
     # the track's mean error: 0.58 of the single scale's with the shanks' blobs at half the bone, 0.60 at 0.45
     assert errs[True] < 0.65 * errs[False], errs
+
+
+def test_refit_bone_lengths_on_several_frames_moves_the_body_towards_the_truth(skel):
+    """refit_bone_lengths: the template scaled to the subject's height, refitted at once on three frames of the
+    proportioned body's walk (at their true poses, the voxels of the second and third shifted by a few cm as a
+    track's root would be off): the torso, the legs and the neck's height move at least half way to the truth.
+    Bad input: no subject yet, angles of the wrong shape, no frames."""
+    subj, blobs, T = _proportioned_body(skel)
+    tracker = MarkerlessTracker(skel)
+    with pytest.raises(InputError, match="no subject"):
+        tracker.refit_bone_lengths([_observation(subj, blobs, T[0])], T[:1])
+    tracker.initialize_from_pose(T[0], 1.80)
+    start = tracker.subject.skeleton
+    frames = [0, 3, 5]
+    shifts = [(0.0, 0.0, 0.0), (0.02, -0.01, 0.0), (-0.01, 0.0, 0.02)]
+    observations = [_observation(subj, blobs, T[t], shift=s) for t, s in zip(frames, shifts)]
+    fitted, change = tracker.refit_bone_lengths(observations, T[frames])
+    assert change > 0.05
+    true_p, start_p, got_p = subj.proportions(), start.proportions(), fitted.proportions()
+    for part in ("torso", "l_thigh", "l_shank", "neck_above_shoulders"):
+        assert abs(got_p[part] - true_p[part]) < 0.5 * abs(start_p[part] - true_p[part]), (part, got_p, true_p)
+    assert tracker.subject.skeleton is start  # the subject is the caller's to change
+    with pytest.raises(ShapeError, match="angles"):
+        tracker.refit_bone_lengths(observations, T[:2])
+    with pytest.raises(InputError, match="no frames"):
+        tracker.refit_bone_lengths([], T[:0])
 
 
 def test_initial_pose_with_the_subjects_skeleton_tracks_its_proportions(skel):

@@ -33,7 +33,8 @@ import torch
 
 from torchtrack.checks import InputError, check_shape
 
-__all__ = ["ShapeModel", "VoxelDistance", "fit_shape", "outside_distance", "shape_energy", "unit_ball_samples"]
+__all__ = ["ShapeFrame", "ShapeModel", "VoxelDistance", "fit_shape", "fit_shape_frames", "outside_distance",
+           "shape_energy", "unit_ball_samples"]
 
 
 def unit_ball_samples(n: int, dtype: torch.dtype = torch.float64, device: torch.device | None = None,
@@ -196,7 +197,8 @@ def fit_shape(model: ShapeModel, points: torch.Tensor, sizes: torch.Tensor, weig
               volume_m: tuple[Sequence[float], Sequence[float]] | None = None, samples: int = 96,
               tau: float = 0.05, rounds: int = 4, iterations: int = 60, cell: float = 0.015
               ) -> tuple[torch.Tensor, float]:
-    """Parameters ``x`` (P,) of least :func:`shape_energy` plus ``sum(ridge * (x - target)^2)``.
+    """Parameters ``x`` (P,) of least :func:`shape_energy` plus ``sum(ridge * (x - target)^2)``: one frame's
+    :func:`fit_shape_frames` with every parameter its own.
 
     Each start (default: only zeros) is refined by ``rounds`` of L-BFGS (``iterations`` each); the start whose
     result has the least objective wins (the union's energy has local minima along what the voxels hardly tell
@@ -211,31 +213,87 @@ def fit_shape(model: ShapeModel, points: torch.Tensor, sizes: torch.Tensor, weig
     Returns:
         x (P,) and its objective (m^2).
     """
-    P = model.num_params
-    check_shape(points, ("N", 3), "points")
-    N = points.shape[0]
-    check_shape(sizes, (N,), "sizes")
-    check_shape(weights, (N,), "weights")
-    check_shape(ridge, (P,), "ridge")
-    check_shape(target, (P,), "target")
-    total = float(weights.sum())
-    if N == 0 or not total > 0 or not math.isfinite(total):
-        raise InputError(f"fit_shape: the voxels' weights must be finite with a positive sum, got {total} over {N}")
-    dt = model.centres.dtype
-    points, sizes, weights = points.to(dt), sizes.to(dt), (weights / total).to(dt)
-    ridge, target = ridge.to(dt), target.to(dt)
-    unit = unit_ball_samples(samples, dt, points.device)
+    x, _, energy = fit_shape_frames([ShapeFrame(model, points, sizes, weights, volume_m)], ridge, target, starts,
+                                    local=0, samples=samples, tau=tau, rounds=rounds, iterations=iterations,
+                                    cell=cell)
+    return x, energy
 
-    distance = VoxelDistance.of(points, sizes, cell)
+
+@dataclass(frozen=True)
+class ShapeFrame:
+    """One frame of :func:`fit_shape_frames`: its ellipsoids (at the frame's pose) and its voxels.
+
+    Attributes:
+        model: K ellipsoids in P parameters. points: (N, 3) voxel centres; sizes: (N,) edges; weights: (N,) >= 0,
+        not all 0. volume_m: the observed box (lower, upper) or None.
+    """
+
+    model: ShapeModel
+    points: torch.Tensor
+    sizes: torch.Tensor
+    weights: torch.Tensor
+    volume_m: tuple[Sequence[float], Sequence[float]] | None = None
+
+
+def fit_shape_frames(frames: Sequence[ShapeFrame], ridge: torch.Tensor, target: torch.Tensor,
+                     starts: Sequence[torch.Tensor] = (), local: int = 0, samples: int = 96, tau: float = 0.05,
+                     rounds: int = 4, iterations: int = 60, cell: float = 0.015
+                     ) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """One body fitted to several frames' voxels at once: the parameters shared by every frame (each model's
+    first ``S = P - local``, e.g. the bones' scales) and ``local`` more per frame (each model's last, e.g. a root
+    shift that the frame's pose error leaves to it) of least mean :func:`shape_energy` over the frames plus
+    ``sum(ridge * (shared - target)^2)``. A pose that bends a joint shows where it is, which a union of ellipsoids
+    in one straight pose hides (the hip's height under the pelvis against the legs' length).
+
+    Each start (of the shared parameters; default only zeros; the local ones start at 0) is refined by ``rounds``
+    of L-BFGS (``iterations`` each), the least objective winning; see :func:`fit_shape`.
+
+    Args:
+        frames: F >= 1 frames whose models have the same P. ridge: (S,) >= 0; target: (S,). starts: (S,) tensors.
+
+    Returns:
+        the shared parameters (S,), the local ones (F, local), and the objective (m^2).
+    """
+    if not frames:
+        raise InputError("fit_shape_frames: no frames")
+    P = frames[0].model.num_params
+    if not 0 <= local <= P:
+        raise InputError(f"fit_shape_frames: local must be in [0, {P}] (the models' parameters), got {local}")
+    S, F = P - local, len(frames)
+    check_shape(ridge, (S,), "ridge")
+    check_shape(target, (S,), "target")
+    dt = frames[0].model.centres.dtype
+    device = frames[0].points.device
+    unit = unit_ball_samples(samples, dt, device)
+    prepared = []
+    for f, fr in enumerate(frames):
+        if fr.model.num_params != P:
+            raise InputError(f"fit_shape_frames: frame {f}'s model has {fr.model.num_params} parameters, frame 0's "
+                             f"{P}")
+        check_shape(fr.points, ("N", 3), f"frames[{f}].points")
+        N = fr.points.shape[0]
+        check_shape(fr.sizes, (N,), f"frames[{f}].sizes")
+        check_shape(fr.weights, (N,), f"frames[{f}].weights")
+        total = float(fr.weights.sum())
+        if N == 0 or not total > 0 or not math.isfinite(total):
+            raise InputError(f"fit_shape: the voxels' weights must be finite with a positive sum, got {total} over "
+                             f"{N} (frame {f})")
+        points, sizes = fr.points.to(dt), fr.sizes.to(dt)
+        prepared.append((fr.model, points, sizes, (fr.weights / total).to(dt), VoxelDistance.of(points, sizes, cell),
+                         fr.volume_m))
+    ridge, target = ridge.to(dt), target.to(dt)
 
     def objective(x: torch.Tensor) -> torch.Tensor:
-        return (shape_energy(model, x, points, sizes, weights, unit, distance, tau, volume_m)
-                + (ridge * (x - target) ** 2).sum())
+        shared, own = x[:S], x[S:].reshape(F, local)
+        energy = sum(shape_energy(model, torch.cat([shared, own[f]]), points, sizes, weights, unit, distance, tau,
+                                  volume_m)
+                     for f, (model, points, sizes, weights, distance, volume_m) in enumerate(prepared))
+        return energy / F + (ridge * (shared - target) ** 2).sum()
 
     best: tuple[float, torch.Tensor] | None = None
-    for x0 in (list(starts) or [torch.zeros(P, dtype=dt, device=points.device)]):
-        check_shape(x0, (P,), "start")
-        x = x0.detach().to(dt).clone().requires_grad_(True)
+    for x0 in (list(starts) or [torch.zeros(S, dtype=dt, device=device)]):
+        check_shape(x0, (S,), "start")
+        x = torch.cat([x0.detach().to(dt), x0.new_zeros(F * local, dtype=dt)]).requires_grad_(True)
         opt = torch.optim.LBFGS([x], lr=1, max_iter=iterations, line_search_fn="strong_wolfe")
 
         def closure() -> torch.Tensor:
@@ -250,4 +308,5 @@ def fit_shape(model: ShapeModel, points: torch.Tensor, sizes: torch.Tensor, weig
             e = float(objective(x))
         if best is None or e < best[0]:
             best = (e, x.detach())
-    return best[1], best[0]
+    x = best[1]
+    return x[:S], x[S:].reshape(F, local), best[0]

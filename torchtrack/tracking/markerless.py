@@ -34,13 +34,14 @@ import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field, fields, replace
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
-from torchtrack.blobs.shape import ShapeModel, fit_shape
+from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
@@ -366,6 +367,19 @@ class StartCheck:
     arm_fill: tuple[float, float]
     toe_ahead_m: float = math.nan
     headings: tuple[tuple[float, float], ...] = ()
+
+
+@dataclass(frozen=True)
+class _BoneFitProblem:
+    """One frame's bone fit (:meth:`MarkerlessTracker._bone_fit_problem`): the blobs' ellipsoids affine in the
+    parameters (the bone groups' relative changes, the neck's shift in NECK_STEP_M, a root shift in m), the voxels'
+    weights, the ridge's weights and target (per parameter) and the blobs at the pose (EM's start)."""
+
+    model: ShapeModel
+    weights: torch.Tensor
+    ridge_w: torch.Tensor
+    target: torch.Tensor
+    start: Blobs
 
 
 @dataclass(frozen=True)
@@ -729,9 +743,85 @@ class MarkerlessTracker:
         change. ``obs``: the frame's voxels split to ``BONE_FIT_VOXEL_M`` (the caller splits them once for all
         rounds).
         """
+        shape = self.config.bone_fit == "shape"
+        ridge = (SHAPE_FIT_RIDGE if shape else BONE_FIT_RIDGE) if ridge is None else ridge
+        p = self._bone_fit_problem(obs, res.angles, start_body, ridge)
+        if shape:
+            x, _ = fit_shape(p.model, obs.points, obs.sizes, p.weights, p.ridge_w, p.target,
+                             self._shape_starts(p.target.device), obs.volume_m)
+        else:
+            K, G = p.model.centres.shape[0], len(BONE_GROUPS) + 1
+            base, R_wb = p.model.centres.to(p.start.mean.dtype), p.model.R_world
+            raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
+            fitted, _ = fit_blobs(obs.points, p.weights, obs.sizes, None, p.start, raw)
+            r_pos = (fitted.mean - base).reshape(3 * K)
+            inside = self._inside_volume(obs, p.start)
+            w_blob = (fitted.active & inside).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
+            # sizes along the bone
+            along = R_wb[:, :, 0].to(base)  # (K, 3)
+            semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
+            A = torch.cat([p.model.d_centres.reshape(3 * K, G + 3), p.model.d_along])
+            r = torch.cat([r_pos, semi_fit - p.model.semi_axes[:, 0].to(base)]).double()
+            w = torch.cat([w_blob.repeat_interleave(3), w_blob]).double()  # the variance along the bone axis is
+            # defined for round blobs too
+            rhs = A.T @ (w * r) + p.ridge_w * p.target
+            x = torch.linalg.solve(A.T @ (w[:, None] * A) + torch.diag(p.ridge_w)
+                                   + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device), rhs)
+        return self._apply_bone_fit(x, res.angles.device)
+
+    def refit_bone_lengths(self, observations: Sequence[VoxelObservation], angles: torch.Tensor,
+                           start_body: Skeleton | None = None) -> tuple[Skeleton, float]:
+        """The subject's bone lengths fitted to several frames' voxels at once, each at its tracked pose: the
+        shape fit (:func:`~torchtrack.blobs.shape.fit_shape_frames`) with the bone groups' scales and the neck's
+        shift shared and a root shift per frame. A pose that bends a joint shows where it is, which the one
+        starfish frame of the initialisation leaves to the union's width: after a first track, the body refitted
+        on its frames and tracked again (``scripts/eval_tracking.py --refit-passes N``).
+
+        Args:
+            observations: F frames' voxels (split to ``BONE_FIT_VOXEL_M`` here). angles: (F, D) their poses under
+            the current subject. start_body: the ridge's target (default: the current subject's skeleton).
+
+        Returns:
+            the new skeleton and its largest relative change.
+        """
+        if self.subject is None:
+            raise InputError("refit_bone_lengths: the tracker has no subject yet (initialise it first)")
+        check_shape(angles, (len(observations), self.generic.num_dofs), "angles")
+        if not observations:
+            raise InputError("refit_bone_lengths: no frames")
+        start_body = self.subject.skeleton if start_body is None else start_body
+        frames = []
+        colour, self.colour = self.colour, None  # every blob may explain a ghost's ray, as at initialisation
+        try:
+            for obs, a in zip(observations, angles):
+                obs = obs.split(BONE_FIT_VOXEL_M)
+                p = self._bone_fit_problem(obs, a.to(self.subject.blobs.semi_axes), start_body, SHAPE_FIT_RIDGE)
+                frames.append(ShapeFrame(p.model, obs.points, obs.sizes, p.weights, obs.volume_m))
+        finally:
+            self.colour = colour
+        shared, _, _ = fit_shape_frames(frames, p.ridge_w[:-3], p.target[:-3],
+                                        [x0[:-3] for x0 in self._shape_starts(p.target.device)], local=3)
+        return self._apply_bone_fit(torch.cat([shared, shared.new_zeros(3)]), angles.device)
+
+    @staticmethod
+    def _shape_starts(device: torch.device) -> list[torch.Tensor]:
+        """The shape fit's starts (SHAPE_FIT_STARTS) as parameter vectors (the groups', the neck's, the root's)."""
+        G = len(BONE_GROUPS) + 1
+        head = BONE_GROUPS.index(("head",))
+        starts = []
+        for neck_x, head_x in SHAPE_FIT_STARTS:
+            x0 = torch.zeros(G + 3, dtype=torch.float64, device=device)
+            x0[G - 1], x0[head] = neck_x, head_x
+            starts.append(x0)
+        return starts
+
+    def _bone_fit_problem(self, obs: VoxelObservation, angles: torch.Tensor, start_body: Skeleton, ridge: float
+                          ) -> _BoneFitProblem:
+        """The bone fit's affine model of the blobs at the pose ``angles (D,)`` (:meth:`_fit_bone_lengths`), the
+        voxels' ghost weights and the ridge towards ``start_body``."""
         sub = self.subject
         skel = sub.skeleton
-        angles = res.angles[None]
+        angles = angles[None]
         specs, ref = self.blob_specs
         fk = skel.forward(angles)
         base, base_cov = sub.blobs.gaussians(fk.bone_frames)
@@ -740,7 +830,7 @@ class MarkerlessTracker:
         start = prior_blobs(base, base_cov)
         weights = self._ghost_weights(obs, start)  # (N,)
         lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
-        K, G = base.shape[0], len(BONE_GROUPS) + 1
+        K = base.shape[0]
         neck = skel.joint_origin(NECK_JOINT)
         semi_now = sub.blobs.semi_axes[:, 0].to(base)  # (K,) each blob's semi-axis along its bone
         cols, size_cols = [], []
@@ -757,47 +847,29 @@ class MarkerlessTracker:
         # change from the start). The torso's length is the neck's height on it, which the neck's shifts move too:
         # so the neck's height is what is pulled back, and the neck's shift then has nothing to pull back to (its
         # target is 0, a damping towards this round's body), which leaves the shoulders' height to the voxels
-        shape = self.config.bone_fit == "shape"
-        ridge = (SHAPE_FIT_RIDGE if shape else BONE_FIT_RIDGE) if ridge is None else ridge
         start_len = dict(zip(start_body.bone_names, start_body.bone_lengths.tolist()))
         c = torch.tensor([lengths[group[0]] / start_len[group[0]] for group in BONE_GROUPS], dtype=torch.float64)
         start_neck_z = start_body.joint_origin(NECK_JOINT)[2] * float(c[BONE_GROUPS.index(("torso",))])
         ridge_w = (ridge * torch.cat([c * c, c.new_ones(1), c.new_zeros(3)])).to(d_centres)  # (G + 3,) root: none
         target = torch.cat([1.0 / c - 1.0, c.new_tensor([(start_neck_z - neck[2]) / NECK_STEP_M]),
                             c.new_zeros(3)]).to(d_centres)
-        if shape:
-            model = ShapeModel(base.double(), R_wb.double(), sub.blobs.semi_axes.to(base).double(), d_centres,
-                               d_along)
-            head = BONE_GROUPS.index(("head",))
-            starts = []
-            for neck_x, head_x in SHAPE_FIT_STARTS:
-                x0 = target.new_zeros(G + 3)
-                x0[G - 1], x0[head] = neck_x, head_x
-                starts.append(x0)
-            x, _ = fit_shape(model, obs.points, obs.sizes, weights, ridge_w, target, starts, obs.volume_m)
-        else:
-            raw = dataclasses.replace(self.config.em, position_prior=0.0, shape_prior=0.0, min_fill=0.05)
-            fitted, _ = fit_blobs(obs.points, weights, obs.sizes, None, start, raw)
-            r_pos = (fitted.mean - base).reshape(3 * K)
-            inside = self._inside_volume(obs, start)
-            w_blob = (fitted.active & inside).to(base.dtype) * fitted.fill.clamp(0, 1)  # (K,)
-            # sizes along the bone
-            along = R_wb[:, :, 0]  # (K, 3)
-            semi_fit = (5.0 * torch.einsum("ki,kij,kj->k", along, fitted.cov, along)).clamp(min=0).sqrt()
-            A = torch.cat([d_centres.reshape(3 * K, G + 3), d_along])
-            r = torch.cat([r_pos, semi_fit - semi_now]).double()
-            w = torch.cat([w_blob.repeat_interleave(3), w_blob]).double()  # the variance along the bone axis is
-            # defined for round blobs too
-            rhs = A.T @ (w * r) + ridge_w * target
-            x = torch.linalg.solve(A.T @ (w[:, None] * A) + torch.diag(ridge_w)
-                                   + 1e-9 * torch.eye(G + 3, dtype=A.dtype, device=A.device), rhs)
+        model = ShapeModel(base.double(), R_wb.double(), sub.blobs.semi_axes.to(base).double(), d_centres, d_along)
+        return _BoneFitProblem(model, weights, ridge_w, target, start)
+
+    def _apply_bone_fit(self, x: torch.Tensor, device: torch.device) -> tuple[Skeleton, float]:
+        """The bone fit's parameters (the groups' relative changes, the neck's shift in NECK_STEP_M, ...) -> the
+        subject's skeleton with them and the largest relative change."""
+        skel = self.subject.skeleton
+        G = len(BONE_GROUPS) + 1
+        lengths = dict(zip(skel.bone_names, skel.bone_lengths.tolist()))
+        neck = skel.joint_origin(NECK_JOINT)
         scale = (1.0 + x[:G - 1]).clamp(0.6, 1.6)
         new = {b: lengths[b] * float(scale[g]) for g, group in enumerate(BONE_GROUPS) for b in group}
         fitted_skel = skel.with_bone_lengths(new)
         shift = float(x[G - 1].clamp(-1.0, 1.0)) * NECK_STEP_M
         fitted_skel = fitted_skel.with_joints_raised({NECK_JOINT: shift})  # on the neck the torso's scale moved
         change = max(float((scale - 1).abs().max()), abs(shift) / max(neck[2], 1e-6))
-        return fitted_skel.to(angles.device), change
+        return fitted_skel.to(device), change
 
     # ------------------------------------------------------------------------------------------ tracking
     def _remember_feet(self) -> None:
