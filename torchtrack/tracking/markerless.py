@@ -799,6 +799,7 @@ class MarkerlessTracker:
                 frames.append(ShapeFrame(p.model, obs.points, obs.sizes, p.weights, obs.volume_m))
         finally:
             self.colour = colour
+        # the ridge depends only on the current and the start body, the same for every frame: the last frame's
         shared, _, _ = fit_shape_frames(frames, p.ridge_w[:-3], p.target[:-3],
                                         [x0[:-3] for x0 in self._shape_starts(p.target.device)], local=3)
         return self._apply_bone_fit(torch.cat([shared, shared.new_zeros(3)]), angles.device)
