@@ -61,6 +61,7 @@ from torchtrack.tracking.goals import weighted_kabsch
 from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
+from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
 from torchtrack.tracking.refine import (RefineConfig, background_from_track, track_change_m, tracked_body,
                                        track_with_background_refinement)
 
@@ -296,6 +297,10 @@ def main() -> None:
     ap.add_argument("--refine-passes", type=int, default=None,
                     help="background re-estimations from the track, each followed by a new track (default: the "
                          "config's background_refinement.passes; 0 with the reference diagnostics)")
+    ap.add_argument("--refit", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="BodyRefitConfig overrides of the config's body_refit section, e.g. passes=0 (no body refit "
+                         "after the background refinement) or given_body=true (refit the body --init-from-reference "
+                         "or --continue-from gives too)")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
@@ -362,6 +367,8 @@ def main() -> None:
                                     args.refine, "--refine")
             if args.refine_passes is not None:
                 refine = replace(refine, passes=args.refine_passes)
+            refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,
+                                   "--refit")
         except InputError as e:
             raise SystemExit(str(e)) from None
         if args.reference_silhouettes or args.reference_background:
@@ -412,17 +419,35 @@ def main() -> None:
                           f"{int((~poses.valid).sum())} lost{moved}", flush=True)
                     passes.append(poses)
 
+            def make_observer(b):
+                return observer if b is bg else observer_from_config(rig, b, config["observation"], args.model,
+                                                                     args.voxel)
+
+            def report_refit(p: int, poses: Poses, kept: bool) -> None:  # each body refit's error
+                r = evaluate(poses, truth, landmarks=names)
+                print(f"body refit {p} (of at most {refit.passes}): MPJPE {r.mpjpe_mm:.1f} mm, IK residual "
+                      f"{1e3 * mean_ik_residual_m(poses):.1f} mm, {int((~poses.valid).sum())} lost, "
+                      f"{'kept' if kept else 'turned down'}", flush=True)
+                refits.append(kept)
+
+            refits: list[bool] = []
             try:
-                poses, elapsed, _ = track_with_background_refinement(
-                    folder, bg, lambda b: observer if b is bg else observer_from_config(
-                        rig, b, config["observation"], args.model, args.voxel),
-                    tracker, refine, bg_config, progress=False, on_pass=report_pass)
+                poses, elapsed, last_bg = track_with_background_refinement(
+                    folder, bg, make_observer, tracker, refine, bg_config, progress=False, on_pass=report_pass)
+                if refit.for_start(body_given=start is not None or args.init_from_reference).passes:
+                    print(f"first track: IK residual {1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
+                # a body fitted to the reference or continued from a track came with the start (given_body)
+                run_refit = refit.for_start(body_given=start is not None or args.init_from_reference)
+                poses, refit_s = track_with_body_refit(folder, lambda: make_observer(last_bg), tracker, poses,
+                                                       run_refit, progress=False, on_pass=report_refit)
+                elapsed += refit_s
             except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
             rep = evaluate(poses, truth, landmarks=names)
             print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
-                  f"{max(len(passes) - 1, 0)} times, {poses.num_frames * max(len(passes), 1) / elapsed:.1f} "
-                  f"frames/s, subject height {float(poses.extra['subject_height_m']):.2f} m")
+                  f"{max(len(passes) - 1, 0)} times, body refitted {sum(refits)} of {len(refits)} times, "
+                  f"{poses.num_frames * (max(len(passes), 1) + len(refits)) / elapsed:.1f} frames/s, subject "
+                  f"height {float(poses.extra['subject_height_m']):.2f} m")
             if args.reference_silhouettes:
                 print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
                       "(a body is about 0.07)")

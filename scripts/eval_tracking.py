@@ -19,7 +19,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_01 --cameras 4 --models hull --log-searches \
         --tracker lost_hand_frames=10
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --models hull --coverage  # what voxels miss
-    .venv/bin/python scripts/eval_tracking.py --cameras 4 --models hull --refit-passes 2   # body refitted on the track
+    .venv/bin/python scripts/eval_tracking.py --cameras 4 --models hull --refit passes=0  # without the body refit
 """
 
 from __future__ import annotations
@@ -43,6 +43,7 @@ from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
+from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
 from torchtrack.tracking.cli import load_config, observer_from_config
 from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult, MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
@@ -163,6 +164,10 @@ class RecordingTracker(MarkerlessTracker):
         self.active.append(None)
         return super().skip()
 
+    def initialize_from_pose(self, *args, **kwargs) -> None:
+        self.active = []  # a new track of the sequence (the body refit's)
+        super().initialize_from_pose(*args, **kwargs)
+
 
 def frame_ranges(frames: Sequence[int]) -> str:
     """Sorted frame indices -> runs of consecutive ones, e.g. [3, 4, 5, 9] -> '3-5, 9'."""
@@ -227,22 +232,27 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
     return poses, poses.num_frames / elapsed, tracker, observer
 
 
-def refit_body(seq: Path, model: str, config: dict, background: BackgroundConfig, poses, tracker: MarkerlessTracker,
-               frames: int) -> Skeleton:
-    """--refit-passes: the tracked body refitted on ``frames`` of the track's valid frames, evenly spaced, at
-    their tracked poses (:meth:`MarkerlessTracker.refit_bone_lengths`)."""
-    folder, observer = _observer(seq, model, config, background)
-    W, H = (int(v) for v in observer.rig.image_size_wh[0].tolist())
-    ok = np.flatnonzero(np.asarray(poses.valid))
-    if ok.size == 0:
-        raise SystemExit(f"{seq}: --refit-passes: no valid frame in the track")
-    picked = np.unique(ok[np.linspace(0, ok.size - 1, min(frames, ok.size)).round().astype(int)])
-    observations = []
-    for t in picked.tolist():
-        fb = next(iter(folder.iter_batches(1, t, t + 1, size_wh=(W, H))))
-        observations.append(observer(fb.images, fb.valid)[0])
-    angles = torch.from_numpy(np.asarray(poses.angles)[picked]).float()
-    return tracker.refit_bone_lengths(observations, angles)[0]
+def refit_passes(seq: Path, model: str, config: dict, background: BackgroundConfig, poses, tracker: MarkerlessTracker,
+                 refit: BodyRefitConfig, oracle_margin: float | None, truth, label: str):
+    """The body refit's passes after the first track (:func:`track_with_body_refit`, as ``torchtrack track``),
+    each pass's error, IK residual and refitted proportions printed; returns the kept track."""
+    if refit.passes == 0:
+        return poses
+    folder, inner = _observer(seq, model, config, background)
+    true_props = Skeleton.from_urdf(seq / "body.urdf").proportions()
+    gt = dict(np.load(seq / "gt.npz"))
+
+    def show(p: int, new, kept: bool) -> None:
+        fit = tracker.subject.skeleton.proportions()
+        print(f"    {label}: body refit {p}: {evaluate(new, truth).mpjpe_mm:.1f} mm, IK residual "
+              f"{1e3 * mean_ik_residual_m(new):.1f} mm, {'kept' if kept else 'turned down'}; body (true) m: "
+              + ", ".join(f"{n} {fit[n]:.3f} ({true_props[n]:.3f})" for n in PROPORTIONS), flush=True)
+
+    print(f"    {label}: first track {evaluate(poses, truth).mpjpe_mm:.1f} mm, IK residual "
+          f"{1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
+    kept, _ = track_with_body_refit(folder, lambda: AgainstTruth(inner, gt, oracle_margin), tracker, poses, refit,
+                                    progress=False, on_pass=show)
+    return kept
 
 
 def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: BackgroundConfig = BackgroundConfig(),
@@ -388,12 +398,10 @@ def main() -> None:
                     help="also print the share of each rendered blob's inside that the first frame's voxels miss "
                          "and how far under the head's top its highest voxel lies (what the shape fit takes for "
                          "the body's shape)")
-    ap.add_argument("--refit-passes", type=int, default=0, metavar="N",
-                    help="after the track, N times: the body refitted on --refit-frames of the track's frames at "
-                         "once (the shape fit, MarkerlessTracker.refit_bone_lengths) and the sequence tracked "
-                         "again with it from the track's first pose; the table's row is the last pass's")
-    ap.add_argument("--refit-frames", type=int, default=8, metavar="F",
-                    help="--refit-passes: how many of the track's valid frames, evenly spaced")
+    ap.add_argument("--refit", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="overrides of the config's body_refit section (BodyRefitConfig), e.g. passes=0 (the first "
+                         "track alone) or min_gain=0 (every pass that lowers the IK residual kept); each pass's "
+                         "error, IK residual and refitted proportions are printed, the row is the kept track's")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
@@ -404,9 +412,8 @@ def main() -> None:
     try:
         background = with_overrides(BackgroundConfig(), args.background, "--background")
         with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker, "--tracker")
-        if args.refit_passes < 0 or args.refit_frames < 1:
-            raise InputError(f"--refit-passes must be >= 0 and --refit-frames >= 1, got {args.refit_passes} and "
-                             f"{args.refit_frames}")
+        refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,
+                               "--refit")
     except InputError as exc:
         raise SystemExit(str(exc)) from None
     torch.set_grad_enabled(False)
@@ -424,16 +431,9 @@ def main() -> None:
                     continue
                 poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
                                                   args.oracle_margin)
-                true_props = Skeleton.from_urdf(seq / "body.urdf").proportions()
-                for k in range(args.refit_passes):
-                    before = evaluate(poses, truth).mpjpe_mm
-                    body = refit_body(seq, model, config, background, poses, tracker, args.refit_frames)
-                    fit = body.proportions()
-                    print(f"    {motion} {cams} {model}: pass {k + 1} {before:.1f} mm; refitted (true) m: "
-                          + ", ".join(f"{n} {fit[n]:.3f} ({true_props[n]:.3f})" for n in PROPORTIONS), flush=True)
-                    start = (torch.from_numpy(np.asarray(poses.angles[0])).float(), body)
-                    poses, fps, tracker, seen = track(seq, model, config, background, args.tracker,
-                                                      oracle_margin=args.oracle_margin, start=start)
+                if not args.true_body:
+                    poses = refit_passes(seq, model, config, background, poses, tracker, refit, args.oracle_margin,
+                                         truth, f"{motion} {cams} {model}")
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")

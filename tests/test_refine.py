@@ -247,7 +247,7 @@ def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
     for passes in (1, 0):
         out = tmp_path / f"out{passes}"
         assert main(["track", str(seq), "--out", str(out), "--scale", "1", "--refine-passes", str(passes),
-                     "--start", "2", "--log-every", "0"]) == 0
+                     "--start", "2", "--log-every", "0", "--refit-passes", "0"]) == 0
         assert ("over 2 passes" in capsys.readouterr().out) == (passes == 1)
         poses = load_poses(out / "poses.npz")
         assert poses.num_frames == gt.num_frames - 2 and poses.valid.all()

@@ -983,7 +983,8 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
     assert poses.num_frames == gt.num_frames and poses.valid.all()
     err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
     assert err < 0.045, err
-    capsys.readouterr()
+    refits = re.search(r"\((\d) body refits?, (\d) kept\)", capsys.readouterr().out)
+    assert refits, "the default config refits the body after the track"
     assert main(["eval", str(out / "poses.npz"), str(seq / "gt.npz")]) == 0
     printed = capsys.readouterr().out
     assert f"{1e3 * err:.1f}" in printed
@@ -993,12 +994,16 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
     acc.Reload()
     assert {"ik_residual_mm", "voxels", "fps"} <= set(acc.Tags()["scalars"])
     assert any(t.startswith("cameras/pose") for t in acc.Tags()["images"])
+    for k in range(1, int(refits.group(1)) + 1):  # each body refit's track logged beside the first one
+        acc = EventAccumulator(str(out / "tb" / f"body_refit_{k}"))
+        acc.Reload()
+        assert len(acc.Scalars("voxels")) == poses.num_frames
 
 
 def test_track_cli_output_restarts_with_its_fitted_body(seq, tmp_path):
     """poses.npz carries the subject's body (body_urdf); --init-pose of it starts from that body (not re-fitted,
-    so the next output carries it unchanged, here a body with longer legs than the template's), and --height
-    replaces it by the template scaled to that height."""
+    nor refitted on the track by default, body_refit.given_body: so the next output carries it unchanged, here a
+    body with longer legs than the template's), and --height replaces it by the template scaled to that height."""
     from torchtrack.cli import main
     from torchtrack.io.poses import load_poses, save_poses
 
@@ -1015,7 +1020,9 @@ def test_track_cli_output_restarts_with_its_fitted_body(seq, tmp_path):
     assert main(["track", str(seq), "--out", str(tmp_path / "b"), *common, *init]) == 0
     again = Skeleton(str(load_poses(tmp_path / "b" / "poses.npz").extra["body_urdf"]))
     np.testing.assert_allclose(again.bone_lengths.numpy(), legs.bone_lengths.numpy(), atol=1e-6)
-    assert main(["track", str(seq), "--out", str(tmp_path / "c"), *common, *init, "--height", "1.6"]) == 0
+    # the template scaled to --height is no given body: the refit would change it (off here to see the scaling)
+    assert main(["track", str(seq), "--out", str(tmp_path / "c"), *common, *init, "--height", "1.6",
+                 "--refit-passes", "0"]) == 0
     scaled = Skeleton(str(load_poses(tmp_path / "c" / "poses.npz").extra["body_urdf"]))
     np.testing.assert_allclose(scaled.bone_lengths.numpy(), Skeleton.from_urdf().scaled_to_height(1.6).bone_lengths
                                .numpy(), atol=1e-5)

@@ -48,6 +48,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="without background/ frames: re-estimate the background from the track and track again, "
                         "at most this many times (stopping once the track settles: background_refinement."
                         "min_change_m; overrides the config's background_refinement.passes; 0: off)")
+    p.add_argument("--refit-passes", type=int, default=None,
+                   help="refit the body on several tracked frames at once and track again, at most this many "
+                        "times, keeping each pass whose track fits the blobs better (lower mean IK residual; "
+                        "overrides the config's body_refit.passes, also for a body given with --init-pose, which "
+                        "is otherwise refitted only with body_refit.given_body; 0: off)")
     p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                    help="start from the background re-estimated from an earlier track of this sequence (its "
                         "poses.npz; with --init-pose of the same file and --refine-passes 0, nearly one more "
@@ -63,8 +68,8 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The YAML tracking config as a dict with ``observation``, ``tracker`` and ``background_refinement``
-    sections (and ``source``).
+    """The YAML tracking config as a dict with ``observation``, ``tracker``, ``background_refinement`` and
+    ``body_refit`` sections (and ``source``).
 
     A file may start from another with ``extends: NAME`` and override some settings.
     """
@@ -78,9 +83,10 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
         doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
-    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "background_refinement", "extends"}:
-        raise InputError(f"{path}: expected the sections 'observation', 'tracker' and 'background_refinement' "
-                         "(and 'extends') only")
+    if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "background_refinement", "body_refit",
+                                                 "extends"}:
+        raise InputError(f"{path}: expected the sections 'observation', 'tracker', 'background_refinement' and "
+                         "'body_refit' (and 'extends') only")
     if "extends" in doc:
         if str(path) in _seen:
             raise InputError(f"{path}: 'extends' loops back to itself")
@@ -90,6 +96,7 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
     doc.setdefault("observation", {})
     doc.setdefault("tracker", {})
     doc.setdefault("background_refinement", {})
+    doc.setdefault("body_refit", {})
     doc["source"] = str(path)
     return doc
 
@@ -148,6 +155,7 @@ def _run(args: argparse.Namespace) -> int:
     from torchtrack.logging import RunLogger
     from torchtrack.skeleton import Skeleton
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+    from torchtrack.tracking.body_refit import BodyRefitConfig, track_with_body_refit
     from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
 
     cfg = load_config(args.config)
@@ -168,6 +176,9 @@ def _run(args: argparse.Namespace) -> int:
     rcfg = RefineConfig.from_dict(cfg["background_refinement"], cfg["source"])
     if args.refine_passes is not None:
         rcfg = replace(rcfg, passes=args.refine_passes)
+    bcfg = BodyRefitConfig.from_dict(cfg["body_refit"], cfg["source"])
+    if args.refit_passes is not None:
+        bcfg = replace(bcfg, passes=args.refit_passes)
 
     folder = SequenceFolder(args.seq)
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
@@ -188,6 +199,8 @@ def _run(args: argparse.Namespace) -> int:
         angles = torch.as_tensor(angles, dtype=torch.float32, device=device)
         if body is not None and args.height is None:  # the file's own subject (e.g. an earlier run's fitted body)
             tracker.initialize_from_pose(angles, skeleton=body.to(device))
+            if args.refit_passes is None:  # refitted only when asked (body_refit.given_body, --refit-passes)
+                bcfg = bcfg.for_start(body_given=True)
         else:
             height = args.height or height or folder.meta.subject_height_m or 1.75
             tracker.initialize_from_pose(angles, height)
@@ -196,17 +209,27 @@ def _run(args: argparse.Namespace) -> int:
                  args.seq)
         rcfg = replace(rcfg, passes=0)
 
+    def make_observer(background: BackgroundModel) -> Any:
+        return observer_from_config(rig, background, ocfg, model, voxel).to(device)
+
     args.out.mkdir(parents=True, exist_ok=True)
     with RunLogger(args.out / "tb") as tb:
         passes: list[int] = []  # the passes run (the refinement may stop early)
-        poses, elapsed, _ = track_with_background_refinement(
-            folder, bg, lambda b: observer_from_config(rig, b, ocfg, model, voxel).to(device), tracker, rcfg,
-            bg_config, args.start, args.stop, args.batch, device, logger=tb, log_every=args.log_every,
-            workers=workers, on_pass=lambda p, _: passes.append(p))
+        poses, elapsed, bg = track_with_background_refinement(
+            folder, bg, make_observer, tracker, rcfg, bg_config, args.start, args.stop, args.batch, device,
+            logger=tb, log_every=args.log_every, workers=workers, on_pass=lambda p, _: passes.append(p))
+        refits: list[bool] = []  # whether each body refit pass was kept
+        poses, refit_s = track_with_body_refit(
+            folder, lambda: make_observer(bg), tracker, poses, bcfg, args.start, args.stop, args.batch, device,
+            log_dir=args.out / "tb", log_every=args.log_every, workers=workers,
+            on_pass=lambda p, _, kept: refits.append(kept))
+        elapsed += refit_s
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
-    n = len(passes)
+    n = len(passes) + len(refits)
     rate = f"{T * n / elapsed:.1f} frames/s" + (f" over {n} passes" if n > 1 else "")
+    if refits:
+        rate += f" ({len(refits)} body refit{'s' * (len(refits) > 1)}, {sum(refits)} kept)"
     print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
           f"{reinit.sum()} (re)initialisations), {rate}; TensorBoard logs in {args.out / 'tb'}")
     return 0

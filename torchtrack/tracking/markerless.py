@@ -775,7 +775,7 @@ class MarkerlessTracker:
         shape fit (:func:`~torchtrack.blobs.shape.fit_shape_frames`) with the bone groups' scales and the neck's
         shift shared and a root shift per frame. A pose that bends a joint shows where it is, which the one
         starfish frame of the initialisation leaves to the union's width: after a first track, the body refitted
-        on its frames and tracked again (``scripts/eval_tracking.py --refit-passes N``).
+        on its frames and tracked again (:func:`~torchtrack.tracking.body_refit.track_with_body_refit`).
 
         Args:
             observations: F frames' voxels (split to ``BONE_FIT_VOXEL_M`` here). angles: (F, D) their poses under
