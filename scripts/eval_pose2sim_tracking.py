@@ -434,10 +434,12 @@ def main() -> None:
             try:
                 poses, elapsed, last_bg = track_with_background_refinement(
                     folder, bg, make_observer, tracker, refine, bg_config, progress=False, on_pass=report_pass)
-                if refit.for_start(body_given=start is not None or args.init_from_reference).passes:
-                    print(f"first track: IK residual {1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
                 # a body fitted to the reference or continued from a track came with the start (given_body)
                 run_refit = refit.for_start(body_given=start is not None or args.init_from_reference)
+                if args.reference_silhouettes:  # its observer counts the frames it has seen: one track only
+                    run_refit = replace(run_refit, passes=0)
+                if run_refit.passes:
+                    print(f"first track: IK residual {1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
                 poses, refit_s = track_with_body_refit(folder, lambda: make_observer(last_bg), tracker, poses,
                                                        run_refit, progress=False, on_pass=report_refit)
                 elapsed += refit_s

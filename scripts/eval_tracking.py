@@ -235,14 +235,24 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
 def refit_passes(seq: Path, model: str, config: dict, background: BackgroundConfig, poses, tracker: MarkerlessTracker,
                  refit: BodyRefitConfig, oracle_margin: float | None, truth, label: str):
     """The body refit's passes after the first track (:func:`track_with_body_refit`, as ``torchtrack track``),
-    each pass's error, IK residual and refitted proportions printed; returns the kept track."""
+    each pass's error, IK residual and refitted proportions printed; returns the kept track. --outside,
+    --coverage and the fps column describe the first track (the observation is the same), --blob-activity the
+    kept one; --hips the tracker as the refit leaves it (a given body: no hips learnt)."""
     if refit.passes == 0:
+        return poses
+    if oracle_margin is not None:  # the refit observes single frames, which AgainstTruth's counter cannot place
+        print(f"    {label}: no body refit with --oracle-margin", flush=True)
         return poses
     folder, inner = _observer(seq, model, config, background)
     true_props = Skeleton.from_urdf(seq / "body.urdf").proportions()
-    gt = dict(np.load(seq / "gt.npz"))
+
+    actives = {0: tracker.active}  # --blob-activity: each track's, the kept one's put back at the end
+    last_kept = 0
 
     def show(p: int, new, kept: bool) -> None:
+        nonlocal last_kept
+        actives[p] = tracker.active
+        last_kept = p if kept else last_kept
         fit = tracker.subject.skeleton.proportions()
         print(f"    {label}: body refit {p}: {evaluate(new, truth).mpjpe_mm:.1f} mm, IK residual "
               f"{1e3 * mean_ik_residual_m(new):.1f} mm, {'kept' if kept else 'turned down'}; body (true) m: "
@@ -250,8 +260,8 @@ def refit_passes(seq: Path, model: str, config: dict, background: BackgroundConf
 
     print(f"    {label}: first track {evaluate(poses, truth).mpjpe_mm:.1f} mm, IK residual "
           f"{1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
-    kept, _ = track_with_body_refit(folder, lambda: AgainstTruth(inner, gt, oracle_margin), tracker, poses, refit,
-                                    progress=False, on_pass=show)
+    kept, _ = track_with_body_refit(folder, lambda: inner, tracker, poses, refit, progress=False, on_pass=show)
+    tracker.active = actives[last_kept]
     return kept
 
 

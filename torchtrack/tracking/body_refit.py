@@ -118,13 +118,15 @@ def refit_frames(poses: Poses, count: int) -> np.ndarray:
 
 
 def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, poses: Poses,
-                        frames: int, size_wh: tuple[int, int] | None = None) -> tuple[Skeleton, float]:
+                        frames: int, size_wh: tuple[int, int] | None = None,
+                        device: torch.device | str | None = None) -> tuple[Skeleton, float]:
     """The tracker's body refitted on ``frames`` of the track's valid frames (:func:`refit_frames`) at their
     tracked poses, which must be under the tracker's current subject (as :func:`track_sequence` leaves them).
 
     Args:
         folder: the sequence; ``poses.frame_index`` are its frame numbers. observer: observes one frame.
-        size_wh: the images' size the observer wants (None: the folder's own).
+        size_wh: the images' size the observer wants (None: the folder's own). device: where the frames are
+            decoded to (the observer's).
 
     Returns:
         the refitted skeleton and its largest relative change (:meth:`MarkerlessTracker.refit_bone_lengths`).
@@ -139,7 +141,7 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
     observations = []
     for k in picked.tolist():
         t = int(poses.frame_index[k])
-        batch = next(iter(folder.iter_batches(1, t, t + 1, size_wh=size_wh)))
+        batch = next(iter(folder.iter_batches(1, t, t + 1, device=device, size_wh=size_wh)))
         if not bool(batch.valid.any()):
             raise InputError(f"{folder.root}: frame {t}, tracked before, cannot be read for the body refit")
         observations.append(observer(batch.images, batch.valid)[0])
@@ -177,12 +179,13 @@ def track_with_body_refit(
     if int(np.asarray(poses.valid).sum()) < 2:
         log.warning("%s: the body is not refitted: the track has fewer than 2 valid frames", folder.root)
         return poses, 0.0
-    size_wh = tuple(int(v) for v in make_observer().rig.image_size_wh[0].tolist())
     floor_z = tracker.floor_z
     kept, kept_body = poses, tracker.subject.skeleton
     kept_res = mean_ik_residual_m(poses)
     for p in range(1, config.passes + 1):
-        body, change = refit_body_on_track(folder, make_observer(), tracker, kept, config.frames, size_wh)
+        observer = make_observer()
+        size_wh = tuple(int(v) for v in observer.rig.image_size_wh[0].tolist())
+        body, change = refit_body_on_track(folder, observer, tracker, kept, config.frames, size_wh, device)
         first = int(np.flatnonzero(np.asarray(kept.valid))[0])
         tracker.initialize_from_pose(torch.as_tensor(kept.angles[first]).to(tracker.angles), skeleton=body,
                                      floor_z_m=floor_z)
@@ -196,8 +199,8 @@ def track_with_body_refit(
             if logger is not None:
                 logger.close()
         res = mean_ik_residual_m(new)
-        better = (res <= (1.0 - config.min_gain) * kept_res
-                  and int(np.asarray(new.valid).sum()) >= int(np.asarray(kept.valid).sum()))
+        lost = np.asarray(kept.valid, bool) & ~np.asarray(new.valid, bool)  # frames the kept track had
+        better = res <= (1.0 - config.min_gain) * kept_res and not lost.any()
         log.info("body refit: pass %d IK residual %.1f mm against %.1f kept: %s", p, 1e3 * res, 1e3 * kept_res,
                  "kept" if better else "turned down")
         if on_pass is not None:
