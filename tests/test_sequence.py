@@ -280,6 +280,21 @@ def test_sample_frames_spread_over_a_range_as_float16(two_cams, device, monkeypa
         seq.sample_frames(0)
 
 
+def test_read_frames_are_the_pngs_of_those_frames(two_cams, device):
+    """Frames 1, 4 and 9 in one batch: the PNGs' own pixels (the reference conversion); bad index lists named."""
+    root, data = two_cams
+    seq = SequenceFolder(root, rig(["cam_a", "cam_b"]))
+    batch = seq.read_frames([1, 4, 9], device=device)
+    assert batch.frame_index.tolist() == [1, 4, 9] and bool(batch.valid.all()) and batch.valid.shape == (3, 2)
+    assert batch.images.shape == (3, 2, 3, H, W) and batch.images.device.type == device.type
+    for c, name in enumerate(["cam_a", "cam_b"]):
+        torch.testing.assert_close(batch.images[:, c].cpu(), as_images(data[name][[1, 4, 9]]), rtol=0, atol=0)
+    for bad, match in (([4, 1], "sorted, distinct"), ([2, 2], "sorted, distinct"), ([], "sorted, distinct"),
+                       ([3, 10], r"outside \[0, 10\)"), ([-1, 3], "outside")):
+        with pytest.raises(InputError, match=match):
+            seq.read_frames(bad)
+
+
 def test_partial_background_is_ignored_with_warning(two_cams):
     root, _ = two_cams
     add_png(root, "cam_a", frames(4, 11), folder="background")

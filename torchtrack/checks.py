@@ -58,6 +58,21 @@ def check_file(path: str | Path, what: str) -> Path:
     return p
 
 
+def config_section(cls: type, doc: Any, source: str, section: str, hint: str = "") -> dict[str, Any]:
+    """A config file's ``section`` (a YAML mapping, None: empty) checked against the dataclass ``cls``'s fields:
+    a copy of it, or ``InputError`` naming ``source`` and the section for a non-mapping (with ``hint``) or unknown
+    keys."""
+    if doc is None:
+        return {}
+    if not isinstance(doc, dict):
+        raise InputError(f"{source}: {section} must be a mapping of settings{hint}, got {doc!r}")
+    known = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(doc) - known
+    if unknown:
+        raise InputError(f"{source}: unknown {section} settings {sorted(unknown)}; known: {sorted(known)}")
+    return dict(doc)
+
+
 def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
     """A copy of the dataclass ``config`` with ``FIELD=VALUE`` items applied (command-line overrides).
 

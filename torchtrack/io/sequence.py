@@ -32,7 +32,7 @@ import logging
 import math
 import re
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -410,6 +410,21 @@ class SequenceFolder:
             images = self._to_images(buf, valid, device)
             yield FrameBatch(torch.tensor(indices, dtype=torch.int64, device=images.device), images,
                              torch.from_numpy(valid).to(images.device))
+
+    def read_frames(self, indices: Sequence[int], device: torch.device | str | None = None,
+                    size_wh: tuple[int, int] | None = None) -> FrameBatch:
+        """The frames ``indices`` (sorted, distinct: each camera decodes them in one forward sweep) of every
+        camera, as one batch (all held at once): frame_index (B,), images (B, C, 3, H, W) float32 RGB [0, 1]
+        (NaN where invalid), valid (B, C) bool."""
+        indices = [int(i) for i in indices]
+        if not indices or any(b <= a for a, b in zip(indices, indices[1:])):
+            raise InputError(f"{self.root}: read_frames wants sorted, distinct frame indices, got {indices}")
+        if indices[0] < 0 or indices[-1] >= self.num_frames:
+            raise InputError(f"{self.root}: frames {indices} outside [0, {self.num_frames})")
+        buf, valid = self._read_block(self.sources, indices, size_wh)
+        images = self._to_images(buf, valid, device)
+        return FrameBatch(torch.tensor(indices, dtype=torch.int64, device=images.device), images,
+                          torch.from_numpy(valid).to(images.device))
 
     def read_frame(self, index: int, device: torch.device | str | None = None,
                    size_wh: tuple[int, int] | None = None) -> torch.Tensor:

@@ -24,16 +24,16 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 import torch
 
-from torchtrack.checks import InputError
+from torchtrack.checks import InputError, config_section
 from torchtrack.io.poses import Poses
-from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.sequence import SequenceFolder, evenly_spaced
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
@@ -89,16 +89,7 @@ class BodyRefitConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str = "<config>") -> BodyRefitConfig:
         """Build from the YAML section (None: the defaults), naming unknown keys."""
-        if doc is None:
-            doc = {}
-        if not isinstance(doc, dict):
-            raise InputError(f"{source}: body_refit must be a mapping of settings (passes: 0 turns it off), got "
-                             f"{doc!r}")
-        known = {f.name for f in fields(cls)}
-        unknown = set(doc) - known
-        if unknown:
-            raise InputError(f"{source}: unknown body_refit settings {sorted(unknown)}; known: {sorted(known)}")
-        return cls(**doc)
+        return cls(**config_section(cls, doc, source, "body_refit", " (passes: 0 turns it off)"))
 
 
 def mean_ik_residual_m(poses: Poses) -> float:
@@ -112,9 +103,7 @@ def refit_frames(poses: Poses, count: int) -> np.ndarray:
     """Indices into ``poses`` of up to ``count`` of its valid frames, evenly spaced from the first to the last
     (sorted, distinct)."""
     ok = np.flatnonzero(np.asarray(poses.valid, bool))
-    if ok.size == 0:
-        return ok
-    return np.unique(ok[np.linspace(0, ok.size - 1, min(count, ok.size)).round().astype(int)])
+    return ok[evenly_spaced(ok.size, count)] if ok.size else ok
 
 
 def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, poses: Poses,
@@ -124,7 +113,8 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
     tracked poses, which must be under the tracker's current subject (as :func:`track_sequence` leaves them).
 
     Args:
-        folder: the sequence; ``poses.frame_index`` are its frame numbers. observer: observes one frame.
+        folder: the sequence; ``poses.frame_index`` are its frame numbers. observer: observes the picked
+            frames.
         size_wh: the images' size the observer wants (None: the folder's own). device: where the frames are
             decoded to (the observer's).
 
@@ -138,13 +128,11 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
     if picked.size < 2:
         raise InputError(f"{folder.root}: the body refit needs at least 2 tracked frames, the track has "
                          f"{picked.size}")
-    observations = []
-    for k in picked.tolist():
-        t = int(poses.frame_index[k])
-        batch = next(iter(folder.iter_batches(1, t, t + 1, device=device, size_wh=size_wh)))
-        if not bool(batch.valid.any()):
-            raise InputError(f"{folder.root}: frame {t}, tracked before, cannot be read for the body refit")
-        observations.append(observer(batch.images, batch.valid)[0])
+    batch = folder.read_frames(np.asarray(poses.frame_index)[picked].tolist(), device=device, size_wh=size_wh)
+    unread = batch.frame_index[~batch.valid.any(dim=1)].tolist()
+    if unread:
+        raise InputError(f"{folder.root}: frames {unread}, tracked before, cannot be read for the body refit")
+    observations = observer(batch.images, batch.valid)  # the picked frames observed as one batch
     angles = torch.as_tensor(np.asarray(poses.angles)[picked], dtype=torch.float32)
     return tracker.refit_bone_lengths(observations, angles)
 

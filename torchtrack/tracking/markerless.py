@@ -33,7 +33,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from collections.abc import Sequence
 from typing import Any
 
@@ -42,7 +42,7 @@ import torch
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
-from torchtrack.checks import InputError, check_shape
+from torchtrack.checks import InputError, check_shape, config_section
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
 from torchtrack.tracking.functional import AxisPivot
@@ -330,11 +330,7 @@ class TrackerConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any], source: str = "<config>") -> TrackerConfig:
         """Build from a mapping (the YAML file's ``tracker`` section), naming unknown keys."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(doc) - known
-        if unknown:
-            raise InputError(f"{source}: unknown tracker settings {sorted(unknown)}; known: {sorted(known)}")
-        kw = dict(doc)
+        kw = config_section(cls, doc, source, "tracker")
         try:
             if "em" in kw:
                 kw["em"] = EMConfig(**kw["em"])

@@ -34,7 +34,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -46,7 +46,7 @@ from torchtrack.background.estimate import MIN_CLEAN_FRAMES
 from torchtrack.background.model import MIN_SEQUENCE_FRAMES
 from torchtrack.blobs import BlobModel
 from torchtrack.cameras import CameraRig
-from torchtrack.checks import InputError, ShapeError, check_shape
+from torchtrack.checks import InputError, ShapeError, check_shape, config_section
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
@@ -120,17 +120,7 @@ class RefineConfig:
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str = "<config>") -> RefineConfig:
         """Build from the YAML section (None: the defaults), naming unknown keys."""
-        if doc is None:
-            doc = {}
-        if not isinstance(doc, dict):
-            raise InputError(f"{source}: background_refinement must be a mapping of settings (passes: 0 turns it "
-                             f"off), got {doc!r}")
-        known = {f.name for f in fields(cls)}
-        unknown = set(doc) - known
-        if unknown:
-            raise InputError(f"{source}: unknown background_refinement settings {sorted(unknown)}; "
-                             f"known: {sorted(known)}")
-        return cls(**doc)
+        return cls(**config_section(cls, doc, source, "background_refinement", " (passes: 0 turns it off)"))
 
 
 def track_change_m(poses: Poses, before: Poses) -> float:
