@@ -33,11 +33,11 @@ def _problem(skel, B, seed=0, spread=0.4, near=None, goals=GOALS, dtype=torch.fl
     g = torch.Generator().manual_seed(seed)
     target = skel.rest_angles().expand(B, -1).clone()
     lo, hi = skel.lower[6:], skel.upper[6:]
-    target[:, 6:] = lo + (hi - lo) * (0.5 - spread / 2 + spread * torch.rand(B, 26, generator=g))
+    target[:, 6:] = lo + (hi - lo) * (0.5 - spread / 2 + spread * torch.rand(B, 26, generator=g).to(lo))
     idx = [skel.joint_names.index(j) for j in goals]
     init = skel.rest_angles().expand(B, -1).clone()
     if near is not None:
-        init[:, 6:] = torch.clamp(target[:, 6:] + near * torch.randn(B, 26, generator=g), lo, hi)
+        init[:, 6:] = torch.clamp(target[:, 6:] + near * torch.randn(B, 26, generator=g).to(lo), lo, hi)
     target, init = target.to(dtype), init.to(dtype)
     return init, skel(target).joints[:, idx], idx, target
 

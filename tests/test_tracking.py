@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -998,6 +999,33 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
         acc = EventAccumulator(str(out / "tb" / f"body_refit_{k}"))
         acc.Reload()
         assert len(acc.Scalars("voxels")) == poses.num_frames
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("background", ["measured", "estimated"])
+def test_track_cli_on_cuda(seq, tmp_path, background, capsys):
+    """`torchtrack track --device cuda` end to end: the observation, the tracker, the shape fit and the body
+    refit on the GPU; without background/ frames also the background's estimate, its static-subject fill and a
+    refinement pass. Held to the CPU run's bound against the ground truth."""
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses
+
+    src = seq
+    extra = ["--refine-passes", "0"]
+    if background == "estimated":
+        src = tmp_path / "bare"
+        shutil.copytree(seq, src)
+        shutil.rmtree(src / "background")
+        extra = ["--refine-passes", "1", "--fill-static-subject"]
+    out = tmp_path / "out"
+    assert main(["track", str(src), "--out", str(out), "--device", "cuda", "--scale", "1", "--voxel", "0.03",
+                 "--log-every", "5", "--refit-passes", "1", *extra]) == 0
+    assert re.search(r"\(1 body refit, [01] kept\)", capsys.readouterr().out)
+    poses, gt = load_poses(out / "poses.npz"), load_poses(seq / "gt.npz")
+    assert poses.num_frames == gt.num_frames and poses.valid.all()
+    err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
+    assert err < (0.045 if background == "measured" else 0.08), err
 
 
 def test_track_cli_output_restarts_with_its_fitted_body(seq, tmp_path):

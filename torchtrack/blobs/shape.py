@@ -88,6 +88,8 @@ class VoxelDistance:
         over their box grown by ``margin`` (m)."""
         from scipy.ndimage import distance_transform_edt
 
+        out = points  # the field's device and dtype; the lattice is built on the CPU (scipy's distance transform)
+        points, sizes = points.detach().cpu(), sizes.detach().cpu()
         lo = (points - sizes[:, None] / 2).amin(0) - margin
         hi = (points + sizes[:, None] / 2).amax(0) + margin
         shape = torch.ceil((hi - lo) / cell).long() + 1  # (3,) nodes along x, y, z
@@ -102,14 +104,13 @@ class VoxelDistance:
             block = torch.stack(torch.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)  # (k^3, 3)
             idx = first[sel][:, None, :] + block[None]  # (n, k^3, 3)
             inside = (idx <= last[sel][:, None, :]).all(-1)
-            idx = idx[inside].clamp(min=0).cpu()
-            idx = torch.minimum(idx, shape.cpu() - 1)
+            idx = torch.minimum(idx[inside].clamp(min=0), shape - 1)
             occupied[idx[:, 0], idx[:, 1], idx[:, 2]] = True
-        near = torch.round((points - lo) / cell).long().cpu()  # and each cube's nearest node (cubes under a cell
+        near = torch.round((points - lo) / cell).long()  # and each cube's nearest node (cubes under a cell
         occupied[near[:, 0], near[:, 1], near[:, 2]] = True  # may hold none)
         dist = torch.from_numpy(distance_transform_edt(~occupied.numpy())) * cell - cell
-        field = dist.clamp(min=0).permute(2, 1, 0)[None, None].to(points)  # (1, 1, Z, Y, X) for grid_sample
-        return cls(field, lo, cell)
+        field = dist.clamp(min=0).permute(2, 1, 0)[None, None].to(out)  # (1, 1, Z, Y, X) for grid_sample
+        return cls(field, lo.to(out), cell)
 
     def __call__(self, query: torch.Tensor) -> torch.Tensor:
         """(Q, 3) points -> (Q,) their distances to the voxels (m)."""
