@@ -29,7 +29,7 @@ background an estimator that knew where the subject is would find in this clip.
 Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxel 0.03] [--model bayes] [--no-fill]
        [--init-from-reference [--scale-only]] [--fill-prior-log-odds 0]
        [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
-       [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...]
+       [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...] [--smoothing cutoff_hz=0]
        [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
        [--velocities 0.5 0.47 0.53 0.45 0.55]
 """
@@ -62,6 +62,7 @@ from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
 from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
+from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
 from torchtrack.tracking.refine import (RefineConfig, background_from_track, track_change_m, tracked_body,
                                        track_with_background_refinement)
 
@@ -301,6 +302,9 @@ def main() -> None:
                     help="BodyRefitConfig overrides of the config's body_refit section, e.g. passes=0 (no body refit "
                          "after the background refinement) or given_body=true (refit the body --init-from-reference "
                          "or --continue-from gives too)")
+    ap.add_argument("--smoothing", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="SmoothingConfig overrides of the config's smoothing section, e.g. cutoff_hz=0 (the track "
+                         "as tracked; otherwise its figure before the smoothing is printed too)")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
@@ -369,6 +373,8 @@ def main() -> None:
                 refine = replace(refine, passes=args.refine_passes)
             refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,
                                    "--refit")
+            smoothing = with_overrides(SmoothingConfig.from_dict(config["smoothing"], config["source"]),
+                                       args.smoothing, "--smoothing")
         except InputError as e:
             raise SystemExit(str(e)) from None
         if args.reference_silhouettes or args.reference_background:
@@ -445,6 +451,13 @@ def main() -> None:
                 elapsed += refit_s
             except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
+            if smoothing.cutoff_hz:  # the finished track smoothed in time, as torchtrack track writes it
+                r = evaluate(poses, truth, landmarks=names)
+                line = f"before smoothing: MPJPE {r.mpjpe_mm:.1f} mm, worst frame {r.max_frame_mm:.1f} mm"
+                if filtered is not None:
+                    line += f"; {evaluate(poses, filtered, landmarks=names_f).mpjpe_mm:.1f} mm from the filtered"
+                print(line, flush=True)
+            poses = smooth_track(poses, tracker.subject.skeleton, smoothing)
             rep = evaluate(poses, truth, landmarks=names)
             print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
                   f"{max(len(passes) - 1, 0)} times, body refitted {sum(refits)} of {len(refits)} times, "

@@ -984,8 +984,10 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, capsys):
     assert poses.num_frames == gt.num_frames and poses.valid.all()
     err = np.linalg.norm(poses.landmarks() - gt.landmarks(), axis=-1).mean()
     assert err < 0.045, err
-    refits = re.search(r"\((\d) body refits?, (\d) kept\)", capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    refits = re.search(r"\((\d) body refits?, (\d) kept\)", printed)
     assert refits, "the default config refits the body after the track"
+    assert "smoothed at 6 Hz" in printed and float(poses.extra["smoothing_cutoff_hz"]) == 6.0
     assert main(["eval", str(out / "poses.npz"), str(seq / "gt.npz")]) == 0
     printed = capsys.readouterr().out
     assert f"{1e3 * err:.1f}" in printed
@@ -1082,6 +1084,9 @@ def test_track_cli_bad_input(tmp_path, seq, capsys):
     assert "missing" in capsys.readouterr().err
     assert main(["track", str(seq), "--out", str(tmp_path / "o"), "--init-pose", str(tmp_path / "none.npz")]) == 2
     assert "none.npz" in capsys.readouterr().err
+    assert main(["track", str(seq), "--out", str(tmp_path / "o"), "--smooth-hz", "-1"]) == 2
+    assert "smoothing.cutoff_hz must be a number >= 0" in capsys.readouterr().err
+    assert not (tmp_path / "o" / "poses.npz").exists()
 
 
 def test_config_extends_overrides_its_base(tmp_path):

@@ -53,6 +53,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "times, keeping each pass whose track fits the blobs better (lower mean IK residual; "
                         "overrides the config's body_refit.passes, also for a body given with --init-pose, which "
                         "is otherwise refitted only with body_refit.given_body; 0: off)")
+    p.add_argument("--smooth-hz", type=float, default=None, metavar="HZ",
+                   help="low-pass filter the finished track's joint angles in time at this cut-off (zero-phase "
+                        "Butterworth; overrides the config's smoothing.cutoff_hz, 6 Hz by default; 0: off)")
     p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
                    help="start from the background re-estimated from an earlier track of this sequence (its "
                         "poses.npz; with --init-pose of the same file and --refine-passes 0, nearly one more "
@@ -68,8 +71,8 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The YAML tracking config as a dict with ``observation``, ``tracker``, ``background_refinement`` and
-    ``body_refit`` sections (and ``source``).
+    """The YAML tracking config as a dict with ``observation``, ``tracker``, ``background_refinement``,
+    ``body_refit`` and ``smoothing`` sections (and ``source``).
 
     A file may start from another with ``extends: NAME`` and override some settings.
     """
@@ -84,9 +87,9 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(doc, dict) or set(doc) - {"observation", "tracker", "background_refinement", "body_refit",
-                                                 "extends"}:
-        raise InputError(f"{path}: expected the sections 'observation', 'tracker', 'background_refinement' and "
-                         "'body_refit' (and 'extends') only")
+                                                 "smoothing", "extends"}:
+        raise InputError(f"{path}: expected the sections 'observation', 'tracker', 'background_refinement', "
+                         "'body_refit' and 'smoothing' (and 'extends') only")
     if "extends" in doc:
         if str(path) in _seen:
             raise InputError(f"{path}: 'extends' loops back to itself")
@@ -97,6 +100,7 @@ def load_config(name: str, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
     doc.setdefault("tracker", {})
     doc.setdefault("background_refinement", {})
     doc.setdefault("body_refit", {})
+    doc.setdefault("smoothing", {})
     doc["source"] = str(path)
     return doc
 
@@ -157,6 +161,7 @@ def _run(args: argparse.Namespace) -> int:
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
     from torchtrack.tracking.body_refit import BodyRefitConfig, track_with_body_refit
     from torchtrack.tracking.refine import RefineConfig, track_with_background_refinement
+    from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
 
     cfg = load_config(args.config)
     ocfg = dict(cfg["observation"])
@@ -179,6 +184,9 @@ def _run(args: argparse.Namespace) -> int:
     bcfg = BodyRefitConfig.from_dict(cfg["body_refit"], cfg["source"])
     if args.refit_passes is not None:
         bcfg = replace(bcfg, passes=args.refit_passes)
+    scfg = SmoothingConfig.from_dict(cfg["smoothing"], cfg["source"])
+    if args.smooth_hz is not None:
+        scfg = replace(scfg, cutoff_hz=args.smooth_hz)
 
     folder = SequenceFolder(args.seq)
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
@@ -224,12 +232,16 @@ def _run(args: argparse.Namespace) -> int:
             log_dir=args.out / "tb", log_every=args.log_every, workers=workers,
             on_pass=lambda p, _, kept: refits.append(kept))
         elapsed += refit_s
+    if tracker.subject is not None:  # no subject: nothing was tracked
+        poses = smooth_track(poses, tracker.subject.skeleton, scfg)
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
     n = len(passes) + len(refits)
     rate = f"{T * n / elapsed:.1f} frames/s" + (f" over {n} passes" if n > 1 else "")
     if refits:
         rate += f" ({len(refits)} body refit{'s' * (len(refits) > 1)}, {sum(refits)} kept)"
+    smoothed = float(poses.extra.get("smoothing_cutoff_hz", 0.0))
+    rate += f", smoothed at {smoothed:g} Hz" if smoothed else ""
     print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
           f"{reinit.sum()} (re)initialisations), {rate}; TensorBoard logs in {args.out / 'tb'}")
     return 0
