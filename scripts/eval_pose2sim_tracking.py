@@ -451,13 +451,15 @@ def main() -> None:
                 elapsed += refit_s
             except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
-            if smoothing.cutoff_hz:  # the finished track smoothed in time, as torchtrack track writes it
-                r = evaluate(poses, truth, landmarks=names)
-                line = f"before smoothing: MPJPE {r.mpjpe_mm:.1f} mm, worst frame {r.max_frame_mm:.1f} mm"
-                if filtered is not None:
-                    line += f"; {evaluate(poses, filtered, landmarks=names_f).mpjpe_mm:.1f} mm from the filtered"
-                print(line, flush=True)
-            poses = smooth_track(poses, tracker.subject.skeleton, smoothing)
+            if tracker.subject is not None:  # the finished track smoothed in time, as torchtrack track writes it
+                smoothed = smooth_track(poses, tracker.subject.skeleton, smoothing)
+                if float(smoothed.extra["smoothing_cutoff_hz"]):
+                    r = evaluate(poses, truth, landmarks=names)
+                    line = f"before smoothing: MPJPE {r.mpjpe_mm:.1f} mm, worst frame {r.max_frame_mm:.1f} mm"
+                    if filtered is not None:
+                        line += f"; {evaluate(poses, filtered, landmarks=names_f).mpjpe_mm:.1f} mm from the filtered"
+                    print(line, flush=True)
+                poses = smoothed
             rep = evaluate(poses, truth, landmarks=names)
             print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
                   f"{max(len(passes) - 1, 0)} times, body refitted {sum(refits)} of {len(refits)} times, "

@@ -101,7 +101,6 @@ def test_points_are_the_skeletons_pose_runs_are_filtered_apart_and_short_runs_an
         run = track.angles[a:b].astype(np.float64)
         run[:, rot] = np.unwrap(run[:, rot], axis=0)
         ref = sosfiltfilt(sos, run, axis=0, padlen=min(15, b - a - 1))
-        ref[:, rot[0]] = (ref[:, rot[0]] + np.pi) % (2 * np.pi) - np.pi
         ref[:, 6:] = np.clip(ref[:, 6:], lo[6:], hi[6:])
         np.testing.assert_allclose(out.angles[a:b], ref, atol=2e-6)
     short = slice(30, 30 + MIN_RUN_FRAMES - 1)
@@ -132,16 +131,43 @@ def test_noise_on_a_true_track_is_removed(skel):
 
 
 def test_a_turn_through_180_degrees_has_no_jump(skel):
-    """The heading turning at a constant rate through +-180 deg (wrapped by the tracker): a line, which the filter
-    keeps as it is; filtering the wrapped values would smear a 2 pi step."""
+    """The heading turning at a constant rate through +-180 deg, kept continuous (as the tracker writes it) or
+    wrapped to (-pi, pi] (another tool's track): a line, which the filter keeps as it is, on the branch of the first
+    frame and without a 2 pi step (filtering the wrapped values would smear one)."""
     fps, T = 30.0, 90
     angles = np.repeat(skel.rest_angles().numpy()[None].astype(np.float64), T, 0)
     k = skel.dof_names.index("root_rz")
     heading = 2.0 + 0.05 * np.arange(T)  # 2 .. 6.45 rad
-    angles[:, k] = (heading + np.pi) % (2 * np.pi) - np.pi
-    out = smooth_track(_track(skel, angles, fps), skel, SmoothingConfig())
-    diff = np.angle(np.exp(1j * (out.angles[:, k] - angles[:, k])))
-    assert np.abs(diff).max() < 1e-4 and (np.abs(out.angles[:, k]) <= np.pi + 1e-6).all()
+    for given in (heading, (heading + np.pi) % (2 * np.pi) - np.pi):
+        angles[:, k] = given
+        out = smooth_track(_track(skel, angles, fps), skel, SmoothingConfig())
+        np.testing.assert_allclose(out.angles[:, k], heading, atol=1e-4)
+        assert out.angles.dtype == np.float32 and out.joints3d.dtype == np.float32
+
+
+def test_only_short_runs_nan_frames_and_bad_frame_rates(skel):
+    """Nothing filtered is recorded as 0 Hz; a valid frame with NaN angles splits its run instead of spreading
+    over it; a frame rate that is not a positive number is named."""
+    fps = 30.0
+    angles = procedural_motion(skel, "walk", 1.0, fps, starfish_s=0.2).double().numpy()  # (36, D)
+    T = angles.shape[0]
+    valid = np.ones(T, bool)
+    valid[::MIN_RUN_FRAMES - 1] = False  # runs of MIN_RUN_FRAMES - 2 frames only
+    track = _track(skel, angles, fps, valid)
+    out = smooth_track(track, skel, SmoothingConfig())
+    assert float(out.extra["smoothing_cutoff_hz"]) == 0.0
+    np.testing.assert_array_equal(out.angles, track.angles)
+    none = _track(skel, angles, fps, np.zeros(T, bool))
+    assert float(smooth_track(none, skel, SmoothingConfig()).extra["smoothing_cutoff_hz"]) == 0.0
+    track = _track(skel, angles, fps)
+    track.angles[15, 10] = np.nan  # a valid frame the filter cannot take: runs 0-14 and 16-35
+    out = smooth_track(track, skel, SmoothingConfig())
+    assert float(out.extra["smoothing_cutoff_hz"]) == 6.0 and np.isfinite(out.angles[:15]).all()
+    assert np.isfinite(out.angles[16:]).all() and np.isnan(out.angles[15, 10])
+    for fps_bad in (float("nan"), 0.0):
+        bad = Poses(**{**track.__dict__, "fps": fps_bad})
+        with pytest.raises(InputError, match="frame rate must be a positive number"):
+            smooth_track(bad, skel, SmoothingConfig())
 
 
 def test_off_and_over_nyquist_leave_the_track_and_a_foreign_skeleton_is_named(skel):

@@ -9,15 +9,20 @@ its points, so the smoothed landmarks stay a pose of the subject's skeleton (bon
 kept, ``joints3d`` the forward kinematics of ``angles``):
 
 * the root translation and the joint angles are filtered as they are; the root's three Euler angles are first
-  unwrapped along time (a subject turning past +-180 deg has no jump), the heading wrapped back to (-pi, pi]
-  after; the joint angles are clamped to their limits after (the filter's ringing can overshoot them);
-* each run of consecutive valid frames is filtered on its own, and a re-initialisation starts a new run (the
-  pose jumps there on purpose); runs shorter than :data:`MIN_RUN_FRAMES` are left as they are;
-* invalid frames are left as they are (NaN).
+  unwrapped along time (the tracker keeps the heading continuous, a turning subject's past +-180 deg; a track
+  that wraps it has no jump either) and stay on the branch of each run's first frame; the joint angles are
+  clamped to their limits after (the filter's ringing can overshoot them). Near ``root_ry`` = +-90 deg (a
+  subject lying down) the Euler angles themselves jump, which unwrapping does not mend;
+* each run of consecutive valid frames with finite angles is filtered on its own (frame numbers are taken as
+  consecutive), and a re-initialisation starts a new run (the pose jumps there on purpose); runs shorter than
+  :data:`MIN_RUN_FRAMES` are left as they are;
+* invalid frames are left as they are: NaN before the tracker's start, the held last pose after it (which the
+  smoothed frame before them no longer quite matches).
 
-It is off-line: it needs the frames after each one, so it runs on the finished track (``torchtrack track``, the
-``smoothing`` section of the config, ``--smooth-hz``), not in :class:`~torchtrack.tracking.markerless.
-MarkerlessTracker`, whose own next frame starts from the unfiltered pose.
+The confidences and the per-frame diagnostics (``extra['ik_residual_m']``, ``extra['explained']``) stay those of
+the tracked poses. It is off-line: it needs the frames after each one, so it runs on the finished track
+(``torchtrack track``, the ``smoothing`` section of the config, ``--smooth-hz``), not in the tracker
+(:class:`~torchtrack.tracking.markerless.MarkerlessTracker`), whose next frame starts from the unfiltered pose.
 """
 
 from __future__ import annotations
@@ -95,18 +100,21 @@ def smooth_track(poses: Poses, skeleton: Skeleton, config: SmoothingConfig) -> P
     """``poses`` with its angles low-pass filtered in time and its points re-stated from them.
 
     Args:
-        poses: a track of ``skeleton`` (``dof_names`` its degrees of freedom; ``extra['reinitialised'] (T,)``,
-            where present, starts a new run at each True frame).
-        skeleton: the subject's body the track was made with (``joints3d`` is re-computed as its forward
-            kinematics: its ``output_names`` must be the track's ``joint_names``).
-        config: the filter; ``cutoff_hz`` 0, or at or over half ``poses.fps``, returns ``poses`` itself.
+        poses: a track of ``skeleton``: ``angles (T, D)`` in its ``dof_names``, ``joints3d (T, J, 3)`` in its
+            ``output_names``; ``extra['reinitialised'] (T,)`` bool, where present, starts a new run at each True
+            frame.
+        skeleton: the subject's body the track was made with (``joints3d`` of the filtered frames is re-computed
+            as its forward kinematics, on its device).
+        config: the filter.
 
     Returns:
-        a new :class:`Poses` (the same frames, validity and confidences) whose ``extra['smoothing_cutoff_hz']``
-        records the cut-off (0: not filtered).
+        a new :class:`Poses`: ``angles (T, D)`` and ``joints3d (T, J, 3)`` filtered (their dtypes kept), the
+        rest as in ``poses``, and ``extra['smoothing_cutoff_hz']`` the cut-off, 0 where no frame was filtered
+        (``cutoff_hz`` 0 or at or over half ``poses.fps``, or no run of :data:`MIN_RUN_FRAMES` valid frames).
 
     Raises:
-        InputError: the skeleton's degrees of freedom or outputs are not the track's.
+        InputError: the skeleton's degrees of freedom or outputs are not the track's; a frame rate that is not a
+            positive number.
     """
     from scipy.signal import butter, sosfiltfilt
 
@@ -115,41 +123,44 @@ def smooth_track(poses: Poses, skeleton: Skeleton, config: SmoothingConfig) -> P
                          f"skeleton's {list(skeleton.dof_names)}")
     if list(skeleton.output_names) != list(poses.joint_names):
         raise InputError("smoothing: the track's joints are not the skeleton's outputs")
+    if not (math.isfinite(poses.fps) and poses.fps > 0):
+        raise InputError(f"smoothing: the track's frame rate must be a positive number, got {poses.fps!r}")
+    unfiltered = replace(poses, extra={**poses.extra, "smoothing_cutoff_hz": np.float64(0.0)})
     nyquist = poses.fps / 2
-    if config.cutoff_hz == 0 or config.cutoff_hz >= nyquist:
-        if config.cutoff_hz:
-            log.info("smoothing: cut-off %.1f Hz at or over half the frame rate (%.1f fps): not filtered",
-                     config.cutoff_hz, poses.fps)
-        return replace(poses, extra={**poses.extra, "smoothing_cutoff_hz": np.float64(0.0)})
+    if config.cutoff_hz == 0:
+        return unfiltered
+    if config.cutoff_hz >= nyquist:
+        log.warning("smoothing: the cut-off %.1f Hz is at or over half the frame rate (%.1f fps): not filtered",
+                    config.cutoff_hz, poses.fps)
+        return unfiltered
     sos = butter(config.order, config.cutoff_hz / nyquist, output="sos")
     names = list(poses.dof_names)
     rot = [names.index(n) for n in ROOT_ROTATION_DOFS]
-    heading = names.index("root_rz")
-    lower = skeleton.lower.detach().cpu().double().numpy()  # (D,) limits (-inf/inf for the root)
+    lower = skeleton.lower.detach().cpu().double().numpy()  # (D,) (the root's are wide bounds: +-50 m, +-100 rad)
     upper = skeleton.upper.detach().cpu().double().numpy()
     limited = np.isfinite(lower) & np.isfinite(upper)
-    limited[rot] = False
+    limited[rot] = False  # the root's Euler angles are unwrapped, not bounded
 
-    angles = poses.angles.astype(np.float64).copy()  # (T, D)
-    reinit = poses.extra.get("reinitialised")
-    done = np.zeros(poses.num_frames, bool)
-    for a, b in valid_runs(poses.valid, reinit):
+    angles = poses.angles.astype(np.float64)  # (T, D) a copy
+    usable = np.asarray(poses.valid, bool) & np.isfinite(angles).all(1)  # (T,)
+    done = np.zeros(poses.num_frames, bool)  # (T,) the frames filtered
+    for a, b in valid_runs(usable, poses.extra.get("reinitialised")):
         if b - a < MIN_RUN_FRAMES:
             continue
-        run = angles[a:b].copy()  # (n, D)
-        run[:, rot] = np.unwrap(run[:, rot], axis=0)
+        run = angles[a:b]  # (n, D)
+        run[:, rot] = np.unwrap(run[:, rot], axis=0)  # on the branch of the run's first frame
         run = sosfiltfilt(sos, run, axis=0, padlen=min(3 * (2 * sos.shape[0] + 1), b - a - 1))
-        run[:, heading] = np.angle(np.exp(1j * run[:, heading]))  # back to (-pi, pi]
         run[:, limited] = np.clip(run[:, limited], lower[limited], upper[limited])
         angles[a:b] = run
         done[a:b] = True
-    joints3d = poses.joints3d.copy()
-    if done.any():
-        p = skeleton.lower
-        with torch.no_grad():
-            fk = skeleton.forward(torch.as_tensor(angles[done], dtype=p.dtype, device=p.device))
-        joints3d[done] = fk.output_points.cpu().numpy()
-    out_angles = poses.angles.copy()
+    if not done.any():
+        return unfiltered
+    p = skeleton.lower
+    with torch.no_grad():
+        fk = skeleton.forward(torch.as_tensor(angles[done], dtype=p.dtype, device=p.device))  # (n, J, 3) points
+    joints3d = poses.joints3d.copy()  # (T, J, 3)
+    joints3d[done] = fk.output_points.cpu().numpy()
+    out_angles = poses.angles.copy()  # (T, D)
     out_angles[done] = angles[done]
-    return replace(poses, angles=out_angles.astype(poses.angles.dtype), joints3d=joints3d.astype(poses.joints3d.dtype),
+    return replace(poses, angles=out_angles, joints3d=joints3d,
                    extra={**poses.extra, "smoothing_cutoff_hz": np.float64(config.cutoff_hz)})
