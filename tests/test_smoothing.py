@@ -58,6 +58,19 @@ def test_valid_runs_split_at_invalid_frames_and_breaks():
     breaks[[2, 8, 9]] = True  # a break on a run's first frame changes nothing; 8 and 9 cut it twice
     assert valid_runs(np.array(valid, bool), breaks) == [(1, 2), (2, 4), (6, 8), (8, 9), (9, 11), (12, 13)]
     assert valid_runs(np.zeros(3, bool)) == [] and valid_runs(np.ones(3, bool)) == [(0, 3)]
+    assert valid_runs(np.zeros(0, bool)) == []
+    rng = np.random.default_rng(3)
+    for _ in range(50):  # against a plain loop over the frames
+        valid, breaks = rng.random(40) < 0.8, rng.random(40) < 0.1
+        runs, start = [], None
+        for t in range(40):
+            if start is not None and (not valid[t] or breaks[t]):
+                runs.append((start, t))
+                start = None
+            if valid[t] and start is None:
+                start = t
+        runs += [] if start is None else [(start, 40)]
+        assert valid_runs(valid, breaks) == runs
 
 
 @pytest.mark.parametrize("freq_hz", [2.0, 4.5, 9.0])

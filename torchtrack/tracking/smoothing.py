@@ -83,17 +83,9 @@ def valid_runs(valid: np.ndarray, breaks: np.ndarray | None = None) -> list[tupl
     ``breaks (T,)`` is True (a run starts there)."""
     valid = np.asarray(valid, bool)
     cut = np.zeros_like(valid) if breaks is None else np.asarray(breaks, bool)
-    runs: list[tuple[int, int]] = []
-    start = None
-    for t, ok in enumerate(valid.tolist()):
-        if start is not None and (not ok or cut[t]):
-            runs.append((start, t))
-            start = None
-        if ok and start is None:
-            start = t
-    if start is not None:
-        runs.append((start, valid.size))
-    return runs
+    first = valid & (~np.r_[False, valid[:-1]] | cut)  # (T,) a run starts here
+    last = valid & (~np.r_[valid[1:], False] | np.r_[cut[1:], False])  # (T,) a run ends here
+    return list(zip(np.flatnonzero(first).tolist(), (np.flatnonzero(last) + 1).tolist()))
 
 
 def smooth_track(poses: Poses, skeleton: Skeleton, config: SmoothingConfig) -> Poses:
