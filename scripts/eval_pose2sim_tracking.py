@@ -30,6 +30,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--init-from-reference [--scale-only]] [--fill-prior-log-odds 0]
        [--reference-silhouettes | --reference-background] [--reference-fit [--scale-only]]
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...] [--smoothing cutoff_hz=0]
+       [--cutoffs 3 4 5 6 8 10]
        [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
        [--velocities 0.5 0.47 0.53 0.45 0.55]
 """
@@ -229,8 +230,9 @@ def knee_bend(points: np.ndarray, names: list[str], side: str) -> np.ndarray:
 def print_alignment(poses: Poses, names: list[str], ref: np.ndarray) -> None:
     """--bias: the mean error per landmark (mm) after aligning each frame's landmarks to the reference rigidly,
     as one body and as an upper and a lower body apart (what a trunk that bends and twists freely would gain at
-    most), and after removing each landmark's mean offset (what is left that varies with time); and how much
-    more the track bends each knee than the reference."""
+    most), after removing each landmark's mean offset (what is left that varies with time) and after removing
+    the offset common to all of them (a shift of the whole track); and how much more the track bends each knee
+    than the reference."""
     ref = ref[:poses.num_frames]
     idx = [list(poses.joint_names).index(n) for n in names]
     ok = poses.valid & np.isfinite(ref).all((1, 2))
@@ -240,9 +242,11 @@ def print_alignment(poses: Poses, names: list[str], ref: np.ndarray) -> None:
     apart = np.concatenate([rigid_residuals(x[:, up], y[:, up]), rigid_residuals(x[:, low], y[:, low])], 1).mean()
     d = x - y
     debiased = np.linalg.norm(d - d.mean(0), axis=-1).mean()
+    shift = d.mean((0, 1))  # (3,) the offset common to every landmark and frame
     print(f"error after a rigid alignment per frame: {1e3 * whole:.1f} mm as one body, {1e3 * apart:.1f} mm with the "
           f"upper and the lower body aligned apart; after removing each landmark's mean offset: "
-          f"{1e3 * debiased:.1f} mm")
+          f"{1e3 * debiased:.1f} mm; after removing their common offset ({', '.join(f'{1e3 * v:.0f}' for v in shift)}"
+          f" mm, x y z): {1e3 * np.linalg.norm(d - shift, axis=-1).mean():.1f} mm")
     more = {side: knee_bend(x, names, side) - knee_bend(y, names, side) for side in ("l", "r")}
     print("knee bend, track - reference (deg): " + ", ".join(
         f"{side} mean {m.mean():.1f} (median {np.median(m):.1f})" for side, m in more.items()))
@@ -305,6 +309,8 @@ def main() -> None:
     ap.add_argument("--smoothing", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="SmoothingConfig overrides of the config's smoothing section, e.g. cutoff_hz=0 (the track "
                          "as tracked; otherwise its figure before the smoothing is printed too)")
+    ap.add_argument("--cutoffs", nargs="*", type=float, default=[], metavar="HZ",
+                    help="also print the finished track smoothed at each of these cut-offs (0: not smoothed)")
     ap.add_argument("--refine", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
@@ -451,6 +457,13 @@ def main() -> None:
                 elapsed += refit_s
             except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
+            if tracker.subject is not None and args.cutoffs:  # the same track smoothed at other cut-offs
+                line = []
+                for hz in args.cutoffs:
+                    other = smooth_track(poses, tracker.subject.skeleton, replace(smoothing, cutoff_hz=hz))
+                    f_mm = "" if filtered is None else f" / {evaluate(other, filtered, landmarks=names_f).mpjpe_mm:.1f}"
+                    line.append(f"{hz:g} Hz {evaluate(other, truth, landmarks=names).mpjpe_mm:.1f}{f_mm}")
+                print("cut-offs (MPJPE mm, raw / filtered reference): " + ", ".join(line), flush=True)
             if tracker.subject is not None:  # the finished track smoothed in time, as torchtrack track writes it
                 smoothed = smooth_track(poses, tracker.subject.skeleton, smoothing)
                 if float(smoothed.extra["smoothing_cutoff_hz"]):

@@ -21,6 +21,7 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --models hull --coverage  # what voxels miss
     .venv/bin/python scripts/eval_tracking.py --cameras 4 --models hull --refit passes=0  # without the body refit
     .venv/bin/python scripts/eval_tracking.py --smoothing cutoff_hz=0   # the track as tracked, not smoothed
+    .venv/bin/python scripts/eval_tracking.py --motions kick --cameras 4 --models hull --cutoffs 3 4 6 10
 
 The row is the finished track as `torchtrack track` writes it: after the body refit, smoothed in time (the
 config's ``smoothing`` section); the column ``unsm.`` is its MPJPE before the smoothing.
@@ -31,6 +32,7 @@ from __future__ import annotations
 import argparse
 import logging
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -419,6 +421,8 @@ def main() -> None:
                          "error, IK residual and refitted proportions are printed, the row is the kept track's")
     ap.add_argument("--smoothing", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="overrides of the config's smoothing section (SmoothingConfig), e.g. cutoff_hz=0 (off)")
+    ap.add_argument("--cutoffs", nargs="*", type=float, default=[], metavar="HZ",
+                    help="also print each finished track smoothed at these cut-offs (0: not smoothed)")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
@@ -454,6 +458,12 @@ def main() -> None:
                     poses = refit_passes(seq, model, config, background, poses, tracker, refit, args.oracle_margin,
                                          truth, f"{motion} {cams} {model}")
                 unsmoothed = evaluate(poses, truth).mpjpe_mm
+                if tracker.subject is not None and args.cutoffs:  # the same track smoothed at other cut-offs
+                    sweep = []
+                    for hz in args.cutoffs:
+                        other = smooth_track(poses, tracker.subject.skeleton, replace(smoothing, cutoff_hz=hz))
+                        sweep.append(f"{hz:g} Hz {evaluate(other, truth).mpjpe_mm:.1f}")
+                    print("    cut-offs (MPJPE mm): " + ", ".join(sweep), flush=True)
                 if tracker.subject is not None:
                     poses = smooth_track(poses, tracker.subject.skeleton, smoothing)
                 rep = evaluate(poses, truth)
