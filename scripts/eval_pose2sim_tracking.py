@@ -13,7 +13,10 @@ saves a picture of one tracked frame in the four views.
 the trunk; de Bem's saved initialisation); ``--scale-only``: the template scaled to the subject's height instead.
 
 Without empty frames the background is refined from the track (``torchtrack.tracking.refine``: the config's
-``background_refinement.passes`` re-estimations, each followed by a new track; ``--refine-passes N``).
+``background_refinement.passes`` re-estimations at most, each followed by a new track; ``--refine-passes N``); each
+pass prints its error, lost frames, mean IK residual and how far it moved the track, and the result is the pass
+``background_refinement.keep`` names (``fit``: the refined pass with the fewest lost frames and then the lowest
+residual, tracked once more at the end; ``--refine keep=last``: the last).
 
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
 each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
@@ -324,7 +327,7 @@ def main() -> None:
                          "left after aligning each frame rigidly, as one body and as upper and lower body apart, "
                          "and how much more the track bends the knees")
     ap.add_argument("--save-poses", type=Path, default=None,
-                    help="write the last pass's poses.npz (with the fitted body) here, e.g. for "
+                    help="write the kept track's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
@@ -421,14 +424,21 @@ def main() -> None:
                 print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
                       f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
             passes: list[Poses] = []
+            again: list[Poses] = []  # the kept pass tracked once more
 
             def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
                 if refine.passes:
                     r = evaluate(poses, truth, landmarks=names)
+                    if "refinement_pass" in poses.extra:  # the kept pass, tracked once more
+                        print(f"kept pass {int(poses.extra['refinement_pass'])} (the best fit), tracked "
+                              f"again: MPJPE {r.mpjpe_mm:.1f} mm", flush=True)
+                        again.append(poses)
+                        return
                     moved = (f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before"
                              if passes else "")
                     print(f"pass {p + 1} (of at most {refine.passes + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
-                          f"{int((~poses.valid).sum())} lost{moved}", flush=True)
+                          f"{int((~poses.valid).sum())} lost, IK residual {1e3 * mean_ik_residual_m(poses):.2f} mm"
+                          f"{moved}", flush=True)
                     passes.append(poses)
 
             def make_observer(b):
@@ -476,7 +486,8 @@ def main() -> None:
             rep = evaluate(poses, truth, landmarks=names)
             print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
                   f"{max(len(passes) - 1, 0)} times, body refitted {sum(refits)} of {len(refits)} times, "
-                  f"{poses.num_frames * (max(len(passes), 1) + len(refits)) / elapsed:.1f} frames/s, subject "
+                  f"{poses.num_frames * (max(len(passes), 1) + len(again) + len(refits)) / elapsed:.1f} frames/s, "
+                  f"subject "
                   f"height {float(poses.extra['subject_height_m']):.2f} m")
             if args.reference_silhouettes:
                 print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "

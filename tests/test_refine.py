@@ -206,7 +206,8 @@ def test_refine_config_names_bad_settings():
         RefineConfig.from_dict({"pases": 2}, "my.yaml")
     for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0},
                 {"near_fraction": -0.01}, {"near_fraction": 1.0},
-                {"passes": 2.5}, {"passes": True}, {"blob_scale": "big"}):
+                {"passes": 2.5}, {"passes": True}, {"blob_scale": "big"}, {"keep": "best"}, {"keep": 1},
+                {"patience": 0}, {"patience": 1.5}):
         with pytest.raises(InputError, match=next(iter(bad))):
             RefineConfig.from_dict(bad)
     for section in (False, 0, "off"):
@@ -227,8 +228,9 @@ def test_initial_pose_needs_one_of_height_and_skeleton(skel):
 
 
 def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
-    """A synthetic sequence without background/ frames, from frame 2: the CLI tracks it twice (one refinement),
-    writes complete poses and logs the last pass only."""
+    """A synthetic sequence without background/ frames, from frame 2: the CLI tracks it three times (the first
+    pass, one refinement, and the kept refined pass again for its logs), writes complete poses that name the kept
+    pass and logs that pass only."""
 
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
@@ -248,10 +250,13 @@ def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
         out = tmp_path / f"out{passes}"
         assert main(["track", str(seq), "--out", str(out), "--scale", "1", "--refine-passes", str(passes),
                      "--start", "2", "--log-every", "0", "--refit-passes", "0"]) == 0
-        assert ("over 2 passes" in capsys.readouterr().out) == (passes == 1)
+        out_text = capsys.readouterr().out
+        # one refinement: the first pass, the refined one, and the kept (refined) pass once more for the logs
+        assert ("over 3 passes (track 2 of the background refinement kept)" in out_text) == (passes == 1), out_text
         poses = load_poses(out / "poses.npz")
         assert poses.num_frames == gt.num_frames - 2 and poses.valid.all()
         assert poses.frame_index.tolist() == list(range(2, gt.num_frames))
+        assert int(poses.extra.get("refinement_pass", 0)) == (2 if passes == 1 else 0)
         errors[passes] = float(np.linalg.norm(poses.landmarks() - gt.landmarks()[2:], axis=-1).mean())
         acc = EventAccumulator(str(out / "tb"))
         acc.Reload()
@@ -480,15 +485,16 @@ def test_track_cli_starts_from_the_background_of_an_earlier_track(standing_then_
     assert "missing.npz" in capsys.readouterr().err
 
 
-def _poses_at(landmarks: np.ndarray, valid: np.ndarray, skel):
-    """A track whose 16 landmarks are ``landmarks (T, 16, 3)``."""
+def _poses_at(landmarks: np.ndarray, valid: np.ndarray, skel, residual_m: float = 0.02):
+    """A track whose 16 landmarks are ``landmarks (T, 16, 3)``, its IK residual ``residual_m`` in every frame."""
     from torchtrack.conventions import LANDMARKS
     from torchtrack.io.poses import Poses
 
     T = landmarks.shape[0]
     return Poses(fps=10.0, frame_index=np.arange(T), joint_names=list(LANDMARKS), joints3d=landmarks,
                  dof_names=list(skel.dof_names), angles=np.zeros((T, skel.num_dofs), np.float32), valid=valid,
-                 confidence=np.ones((T, len(LANDMARKS)), np.float32))
+                 confidence=np.ones((T, len(LANDMARKS)), np.float32),
+                 extra={"ik_residual_m": np.full(T, residual_m)})
 
 
 def test_track_change_is_the_mean_landmark_distance_over_frames_both_tracked(skel):
@@ -541,24 +547,99 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     observer = SimpleNamespace(rig=_rig())
     logger = object()
     poses, _, bg = refine.track_with_background_refinement(
-        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015),
+        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015, keep="last"),
         BackgroundConfig(), logger=logger)
     assert len(calls) == 5 and calls[-1] is logger and all(c is None for c in calls[:-1])
     assert bg == "refined" and poses.joints3d[0, 0, 0] == pytest.approx(0.04 + 0.02 + 0.01 + 0.005)
     calls.clear()
     refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker,
-                                            RefineConfig(passes=8, min_change_m=0.0), BackgroundConfig(),
+                                            RefineConfig(passes=8, min_change_m=0.0, keep="last"),
+                                            BackgroundConfig(),
                                             logger=logger)
     assert len(calls) == 9 and calls[-1] is logger  # min_change_m 0: every pass
     # a pass that settles where both tracked but loses a frame the one before tracked has not settled
     calls.clear()
     lose_at.append(3)
     refine.track_with_background_refinement(
-        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015), BackgroundConfig(),
-        logger=logger)
+        folder, "first", lambda b: observer, tracker, RefineConfig(passes=8, min_change_m=0.015, keep="last"),
+        BackgroundConfig(), logger=logger)
     assert len(calls) == 6 and calls[-1] is logger
     with pytest.raises(InputError, match="min_change_m"):
         RefineConfig(min_change_m=-1.0)
+
+
+def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel):
+    """``keep: fit``: of the passes after the first, the one with the fewest lost frames and then the lowest mean IK
+    residual is the result, with its background; the passes stop ``patience`` passes after it, and with a logger
+    it is tracked once more, on its own background, for the logs."""
+    from types import SimpleNamespace
+
+    from torchtrack.tracking import refine
+
+    T = 8
+    # each pass's mean IK residual (m); pass 0, on the plain background, is no candidate however low its residual;
+    # pass 5 fits better than pass 3 but loses a frame
+    residuals = [0.001, 0.030, 0.025, 0.020, 0.024, 0.010, 0.021, 0.019, 0.018]
+    calls, backgrounds = [], []
+
+    def fake_track(folder, observer, *args, **kwargs):
+        p = backgrounds.index(observer.background)  # the pass whose background this is: its track
+        calls.append((p, kwargs.get("logger")))
+        valid = np.ones(T, bool)
+        valid[0] = p != 5
+        return _poses_at(np.full((T, 16, 3), float(p)), valid, skel, residuals[p]), 1.0
+
+    def fake_background(*args, **kwargs):
+        backgrounds.append(f"background {len(backgrounds)}")
+        return backgrounds[-1]
+
+    monkeypatch.setattr(refine, "track_sequence", fake_track)
+    monkeypatch.setattr(refine, "refined_background", fake_background)
+    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+                             sample_frames=lambda *a, **k: (list(range(T)), None))
+    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
+                              subject=SimpleNamespace(skeleton=skel, blobs=None),
+                              initialize_from_pose=lambda *a, **k: None)
+    rig = _rig()
+    logger = object()
+    for log in (None, logger):
+        calls.clear()
+        backgrounds[:] = ["background 0"]
+        poses, _, bg = refine.track_with_background_refinement(
+            folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+            RefineConfig(passes=16, patience=3), BackgroundConfig(), logger=log)
+        # pass 3 is the best; passes 4, 5 and 6 do not better it, so pass 6 is the last; pass 3 is tracked again
+        # (the tracker ends in its state), with the logger when there is one
+        assert [p for p, _ in calls] == list(range(7)) + [3]
+        assert [c for _, c in calls] == [None] * 7 + [log]
+        assert poses.joints3d[0, 0, 0] == 3.0 and bg == "background 3" and int(poses.extra["refinement_pass"]) == 4
+    # the best pass is the last (residuals falling to the end): no logger, so it is not tracked again
+    residuals[:] = [0.05, 0.04, 0.03, 0.02]
+    calls.clear()
+    backgrounds[:] = ["background 0"]
+    seen = []
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+        RefineConfig(passes=3), BackgroundConfig(), on_pass=lambda p, tr: seen.append(p))
+    assert [p for p, _ in calls] == [0, 1, 2, 3] and seen == [0, 1, 2, 3] and bg == "background 3"
+    assert int(poses.extra["refinement_pass"]) == 4
+    # with a logger it is tracked again, and on_pass hears of that track too
+    calls.clear()
+    backgrounds[:] = ["background 0"]
+    seen.clear()
+    refine.track_with_background_refinement(
+        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+        RefineConfig(passes=3), BackgroundConfig(), logger=logger, on_pass=lambda p, tr: seen.append(p))
+    assert [p for p, _ in calls] == [0, 1, 2, 3, 3] and calls[-1][1] is logger and seen == [0, 1, 2, 3, 4]
+    residuals[:] = [0.001, 0.030, 0.025, 0.020, 0.024, 0.010, 0.021, 0.019, 0.018]
+    # keep: last is the last pass run, the passes stopping at min_change_m (off here: every pass)
+    calls.clear()
+    backgrounds[:] = ["background 0"]
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+        RefineConfig(passes=8, min_change_m=0.0, keep="last"), BackgroundConfig(), logger=logger)
+    assert [p for p, _ in calls] == list(range(9)) and calls[-1][1] is logger and bg == "background 8"
+    assert poses.joints3d[0, 0, 0] == 8.0 and "refinement_pass" not in poses.extra
 
 
 def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
@@ -593,7 +674,7 @@ def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
     observer = SimpleNamespace(rig=_rig())
     refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker,
                                             RefineConfig(passes=2, min_change_m=0.0), BackgroundConfig())
-    assert len(starts) == 2
+    assert len(starts) == 3  # the two refined passes, and the first of them again (kept: no better fit after it)
     moved_up = start.clone()
     moved_up[2] += 0.03  # upright: the pelvis' z axis is the world's
     for angles, body in starts:

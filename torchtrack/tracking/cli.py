@@ -46,8 +46,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "estimated background (a subject balancing in place; overrides config)")
     p.add_argument("--refine-passes", type=int, default=None,
                    help="without background/ frames: re-estimate the background from the track and track again, "
-                        "at most this many times (stopping once the track settles: background_refinement."
-                        "min_change_m; overrides the config's background_refinement.passes; 0: off)")
+                        "at most this many times; with background_refinement.keep: fit (the default) the refined "
+                        "pass whose track fits its observation best is kept (fewest lost frames, then lowest mean "
+                        "IK residual; stopping background_refinement.patience passes after it); overrides the "
+                        "config's background_refinement.passes; 0: off)")
     p.add_argument("--refit-passes", type=int, default=None,
                    help="refit the body on several tracked frames at once and track again, at most this many "
                         "times, keeping each pass whose track fits the blobs better (lower mean IK residual; "
@@ -227,17 +229,22 @@ def _run(args: argparse.Namespace) -> int:
             folder, bg, make_observer, tracker, rcfg, bg_config, args.start, args.stop, args.batch, device,
             logger=tb, log_every=args.log_every, workers=workers, on_pass=lambda p, _: passes.append(p))
         refits: list[bool] = []  # whether each body refit pass was kept
+        kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
         poses, refit_s = track_with_body_refit(
             folder, lambda: make_observer(bg), tracker, poses, bcfg, args.start, args.stop, args.batch, device,
             log_dir=args.out / "tb", log_every=args.log_every, workers=workers,
             on_pass=lambda p, _, kept: refits.append(kept))
         elapsed += refit_s
+        if kept_pass is not None:
+            poses.extra["refinement_pass"] = kept_pass
     if tracker.subject is not None:  # no subject: nothing was tracked
         poses = smooth_track(poses, tracker.subject.skeleton, scfg)
     save_poses(poses, args.out / "poses.npz")
     T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
     n = len(passes) + len(refits)
     rate = f"{T * n / elapsed:.1f} frames/s" + (f" over {n} passes" if n > 1 else "")
+    if "refinement_pass" in poses.extra:  # the refinement kept its best-fitting pass (tracked again for the logs)
+        rate += f" (track {int(poses.extra['refinement_pass'])} of the background refinement kept)"
     if refits:
         rate += f" ({len(refits)} body refit{'s' * (len(refits) > 1)}, {sum(refits)} kept)"
     smoothed = float(poses.extra.get("smoothing_cutoff_hz", 0.0))

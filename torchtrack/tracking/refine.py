@@ -14,7 +14,8 @@ where the body is in every frame, even when it is imperfect, and that is what ea
    frame at least ``clear_fraction`` of the image's larger side away from the body, or, where fewer than
    ``clear_frames`` are, its ``clear_frames`` clearest ones
    (``BackgroundModel.from_sequence(..., subject_masks=...)``);
-4. the sequence is tracked again from the same start.
+4. the sequence is tracked again from the same start;
+5. of the refined passes, the track that fits its own observation best (``RefineConfig.keep``) is the result.
 
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
 limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them. On the
@@ -23,7 +24,9 @@ the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four trac
 (with the velocity factor 0.5 at the demo's 60 fps; 62.6 mm after eight at the 0.2 the frame rate now gives),
 where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
 background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown
-masks as they are oscillated between 160 and 260 mm.
+masks as they are oscillated between 160 and 260 mm. Nor does the loop settle on one track: run on, the demo's
+passes 7-14 wander between two tracks (59.7-60.7 and 64.3-65.4 mm from the reference), which their mean IK
+residual tells apart (21.60-21.71 against 22.78-22.89 mm); hence step 5 rather than the last pass.
 
 :func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
 the sequence again with it (``torchtrack observe SEQ --background-from-track OUT/poses.npz``).
@@ -52,6 +55,7 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.render import ray_ellipsoid_intersect
+from torchtrack.tracking.body_refit import mean_ik_residual_m
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
@@ -61,6 +65,10 @@ __all__ = ["RefineConfig", "background_from_track", "body_masks", "clearance_px"
            "tracked_body"]
 
 log = logging.getLogger(__name__)
+
+
+#: ``RefineConfig.keep``: the best-fitting refined pass, or the last pass.
+KEEP_CHOICES = ("fit", "last")
 
 
 @dataclass(frozen=True)
@@ -82,20 +90,32 @@ class RefineConfig:
             (README, Observation); between tracking passes it lost (``scripts/eval_pose2sim_tracking.py --refine
             near_fraction=0.01``, with the velocity factor 0.5 at every rate: 84.1 mm against 66.4), so the tracking
             config leaves it off.
-        min_change_m: the passes stop early once a pass's track moved less than this from the one before
-            (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then the last (0:
-            all ``passes`` are run).
+        min_change_m: with ``keep: last``, the passes stop early once a pass's track moved less than this from
+            the one before (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then
+            the last (0: all ``passes`` are run).
+        keep: which pass's track is the result: ``fit``, the refined pass (after the first re-estimation) whose
+            track fits its own observation best, the fewest lost frames and then the lowest mean IK residual
+            (the goals' distance from the fitted skeleton, ``extra['ik_residual_m']``); ``last``, the last pass.
+            The passes do not settle on one track: on the Pose2Sim demo, run to 14 passes, they wander between
+            two states (each pass 3.7-13 mm from the one before, 59.7-65.4 mm from the reference), which the
+            mean IK residual tells apart (correlation 0.98 with the error over passes 5-14; README, Markerless
+            tracking).
+        patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best (fewer
+            lost frames, or as many and a lower residual), instead of at ``min_change_m``: a pass that moved
+            little can still be followed by one that moves on to a better track.
     """
 
-    passes: int = 8
+    passes: int = 16
     blob_scale: float = 1.3
     clear_frames: int = 10
     clear_fraction: float = 0.04
     near_fraction: float = 0.0
     min_change_m: float = 0.01
+    keep: str = "fit"
+    patience: int = 3
 
     def __post_init__(self) -> None:
-        for name, kind in (("passes", int), ("clear_frames", int), ("blob_scale", float),
+        for name, kind in (("passes", int), ("clear_frames", int), ("patience", int), ("blob_scale", float),
                            ("clear_fraction", float), ("near_fraction", float), ("min_change_m", float)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
@@ -103,6 +123,10 @@ class RefineConfig:
                                  f"got {value!r}")
         if self.passes < 0:
             raise InputError(f"background_refinement.passes must be >= 0, got {self.passes}")
+        if self.patience < 1:
+            raise InputError(f"background_refinement.patience must be >= 1, got {self.patience}")
+        if self.keep not in KEEP_CHOICES:
+            raise InputError(f"background_refinement.keep must be one of {list(KEEP_CHOICES)}, got {self.keep!r}")
         if not self.blob_scale >= 1.0:
             raise InputError(f"background_refinement.blob_scale must be >= 1, got {self.blob_scale}")
         if self.clear_frames < MIN_CLEAN_FRAMES:
@@ -340,8 +364,9 @@ def track_with_background_refinement(
         log_every: int = 10, progress: bool = True,
         on_pass: Callable[[int, Poses], None] | None = None, workers: int = 0
 ) -> tuple[Poses, float, BackgroundModel]:
-    """Track, then ``config.passes`` times re-estimate the background from the track and track again; with
-    ``config.min_change_m``, the pass after the first whose track moved less than that from the one before
+    """Track, then up to ``config.passes`` times re-estimate the background from the track and track again; with
+    ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting one, with ``keep: last`` and
+    ``config.min_change_m`` the pass after the first whose track moved less than that from the one before
     (:func:`track_change_m`), and tracked as many frames, is the last.
 
     Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
@@ -353,16 +378,23 @@ def track_with_background_refinement(
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
     was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes, before the ghost test:
     the first pass lost 38 of its 100 frames). Frames never tracked (before the first initialisation) are left
-    out. Only the last pass is logged. A first pass that tracks no frame ends the refinement with a warning and
-    its poses.
+    out. A first pass that tracks no frame ends the refinement with a warning and its poses.
+
+    The result is the track of the pass ``config.keep`` names: the refined pass that fits its observation best
+    (``fit``; its number in ``extra['refinement_pass']``, 1 the first pass), or the last one. The logger gets
+    the result's track: with ``fit`` that pass is tracked once more at the end, from the same start on the
+    same background (the tracker is deterministic on a CPU: the same track; on CUDA, whose scatter-adds are not,
+    a track that differs is warned about), with the logger, and so that the tracker
+    ends in that track's state (also without a logger, where the kept pass is not the last); with ``last`` (or
+    no refinement) the last pass is logged as it runs.
 
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
-        on_pass: called with the pass number (0 first) and its poses after each pass.
+        on_pass: called with the pass number (0 first) and its poses after each track, the logged one too.
         Others: as :func:`~torchtrack.tracking.run.track_sequence`.
 
     Returns:
-        the last pass's poses, the seconds all passes took (reading, refinement and tracking), and its
+        the kept pass's poses, the seconds all passes took (reading, refinement and tracking), and its
         background.
 
     Raises:
@@ -379,12 +411,15 @@ def track_with_background_refinement(
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
     indices, frames, poses = None, None, None
-    final = config.passes  # the pass that is logged and returned: the last, or the one after convergence
+    final = config.passes  # the last pass: all of them, or the one after convergence
+    select = config.keep == "fit" and config.passes > 0
+    best: tuple[tuple[int, float], int, Poses, BackgroundModel] | None = None  # (rank, pass, track, background)
     for p in range(config.passes + 1):
         last = p == final
         if p > 0:
             if not poses.valid.any():
-                warnings.warn(f"{folder.root}: the first pass tracked no frame; the background is not refined",
+                warnings.warn(f"{folder.root}: pass {p} tracked no frame; the background is not refined "
+                              f"{'' if p == 1 else 'further '}from it",
                               DataWarning, stacklevel=2)
                 break
             if frames is None:
@@ -405,15 +440,25 @@ def track_with_background_refinement(
             tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
         before = poses
+        # with the selection the logs come from the chosen pass, tracked once more at the end
         poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
-                                  logger=logger if last else None, log_every=log_every, progress=progress,
+                                  logger=logger if last and not select else None, log_every=log_every,
+                                  progress=progress,
                                   desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track",
                                   workers=workers)
+        ran = p
         if on_pass is not None:
             on_pass(p, poses)
+        if select and p > 0:
+            res = mean_ik_residual_m(poses)  # NaN: no valid frame
+            rank = (int((~poses.valid).sum()), res if np.isfinite(res) else float("inf"))
+            if best is None or rank < best[0]:
+                best = (rank, p, poses, background)
         if last:
             break
-        if p > 0 and config.min_change_m > 0:
+        if select and best is not None and p >= best[1] + config.patience:  # patience passes without a better fit
+            break
+        if not select and p > 0 and config.min_change_m > 0:
             change = track_change_m(poses, before)
             log.info("background refinement: pass %d moved the track %.1f mm", p + 1, 1e3 * change)
             # settled: it moved little where both passes tracked, and lost no frame the pass before tracked
@@ -421,4 +466,25 @@ def track_with_background_refinement(
                 # one more pass, on the newest background, is the last
                 final = p + 1
                 log.info("background refinement: converged; pass %d is the last", p + 2)
+    if best is not None:
+        _, chosen, poses, background = best
+        log.info("background refinement: pass %d fits its observation best (mean IK residual %.1f mm)",
+                 chosen + 1, 1e3 * best[0][1])
+        # tracked once more when it is not the last pass (so that the tracker ends in its state: its body, if a
+        # later pass moved the hips) or for its logs: the same start and background, so the same track
+        if logger is not None or chosen != p:
+            observer = make_observer(background)
+            tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
+            poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device, logger=logger,
+                                      log_every=log_every, progress=progress, desc=f"pass {chosen + 1} again",
+                                      workers=workers)
+            poses.extra["refinement_pass"] = np.int64(chosen + 1)
+            lost = int((~poses.valid).sum())
+            if lost != best[0][0] or track_change_m(poses, best[2]) > 1e-3:
+                log.warning("background refinement: pass %d tracked again differs from its first track (%d lost "
+                            "frames, moved %.1f mm; a non-deterministic device?)", chosen + 1, lost,
+                            1e3 * track_change_m(poses, best[2]))
+            if on_pass is not None:
+                on_pass(ran + 1, poses)
+        poses.extra["refinement_pass"] = np.int64(chosen + 1)
     return poses, time.perf_counter() - t0, background
