@@ -72,6 +72,9 @@ from torchtrack.tracking.refine import (RefineConfig, background_from_track, tra
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
+#: The refinement's passes from this one on (1 = the first track), past its approach from the first background,
+#: are compared: the correlation of their mean IK residual with their error (what ``keep: fit`` relies on).
+FIRST_COMPARED_PASS = 5
 #: Body segments of the reference silhouettes: two BODY_25B keypoints and a radius (m), an adult's limb girths.
 CAPSULES = (("RHip", "RKnee", 0.07), ("RKnee", "RAnkle", 0.05), ("RAnkle", "RBigToe", 0.035),
             ("RHeel", "RBigToe", 0.035), ("LHip", "LKnee", 0.07), ("LKnee", "LAnkle", 0.05),
@@ -467,6 +470,13 @@ def main() -> None:
                 elapsed += refit_s
             except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
+            late = passes[FIRST_COMPARED_PASS - 1:]  # how well the track's own fit ranks the passes' errors
+            if len(late) >= 3:
+                err = [evaluate(q, truth, landmarks=names).mpjpe_mm for q in late]
+                res = [1e3 * mean_ik_residual_m(q) for q in late]
+                print(f"passes {FIRST_COMPARED_PASS}-{len(passes)}: correlation of the mean IK residual with the "
+                      f"MPJPE {np.corrcoef(res, err)[0, 1]:.2f} (residual {min(res):.2f}-{max(res):.2f} mm, MPJPE "
+                      f"{min(err):.1f}-{max(err):.1f} mm)", flush=True)
             if tracker.subject is not None and args.cutoffs:  # the same track smoothed at other cut-offs
                 line = []
                 for hz in args.cutoffs:

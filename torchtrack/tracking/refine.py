@@ -472,19 +472,18 @@ def track_with_background_refinement(
                  chosen + 1, 1e3 * best[0][1])
         # tracked once more when it is not the last pass (so that the tracker ends in its state: its body, if a
         # later pass moved the hips) or for its logs: the same start and background, so the same track
-        if logger is not None or chosen != p:
+        again = logger is not None or chosen != p
+        if again:
             observer = make_observer(background)
             tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
             poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device, logger=logger,
                                       log_every=log_every, progress=progress, desc=f"pass {chosen + 1} again",
                                       workers=workers)
-            poses.extra["refinement_pass"] = np.int64(chosen + 1)
-            lost = int((~poses.valid).sum())
-            if lost != best[0][0] or track_change_m(poses, best[2]) > 1e-3:
+            lost, moved = int((~poses.valid).sum()), track_change_m(poses, best[2])
+            if lost != best[0][0] or moved > 1e-3:
                 log.warning("background refinement: pass %d tracked again differs from its first track (%d lost "
-                            "frames, moved %.1f mm; a non-deterministic device?)", chosen + 1, lost,
-                            1e3 * track_change_m(poses, best[2]))
-            if on_pass is not None:
-                on_pass(ran + 1, poses)
+                            "frames, moved %.1f mm; a non-deterministic device?)", chosen + 1, lost, 1e3 * moved)
         poses.extra["refinement_pass"] = np.int64(chosen + 1)
+        if again and on_pass is not None:
+            on_pass(ran + 1, poses)
     return poses, time.perf_counter() - t0, background
