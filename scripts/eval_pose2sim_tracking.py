@@ -18,6 +18,10 @@ pass prints its error, lost frames, mean IK residual and how far it moved the tr
 ``background_refinement.keep`` names (``fit``: the refined pass with the fewest lost frames and then the lowest
 residual, tracked once more at the end; ``--refine keep=last``: the last).
 
+``--save-passes DIR`` keeps each pass's track; ``--background-from DIR/pass_NN.npz --refine-passes 0`` then tracks
+once on the background refined from one of them, from the same start: the pass that followed it, replayed in a
+minute (it gives the same track on a CPU), to compare tracker settings on one refined background.
+
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
 each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
 between them, the trunk a rounded quadrilateral of shoulders and hips) and the Bayesian grid's voxels are carved
@@ -35,7 +39,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--refine-passes 3] [--refine blob_scale=1.3 ...] [--tracker velocity=0 ...] [--smoothing cutoff_hz=0]
        [--cutoffs 3 4 5 6 8 10]
        [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
-       [--velocities 0.5 0.47 0.53 0.45 0.55]
+       [--velocities 0.5 0.47 0.53 0.45 0.55] [--save-passes DIR] [--background-from POSES.npz]
 """
 
 from __future__ import annotations
@@ -324,6 +328,13 @@ def main() -> None:
     ap.add_argument("--continue-from", type=Path, default=None, metavar="POSES",
                     help="start from a saved track of the demo (--save-poses): its first pose and body, and the "
                          "background re-estimated from it (with --refine-passes 0: one more pass of that run)")
+    ap.add_argument("--background-from", type=Path, default=None, metavar="POSES",
+                    help="the first track's background re-estimated from this saved track (e.g. a pass of "
+                         "--save-passes) instead of the plain estimate; the start as given. With --refine-passes 0 "
+                         "it replays the pass that followed that track, in a minute: a way to compare tracker "
+                         "settings on one refined background")
+    ap.add_argument("--save-passes", type=Path, default=None, metavar="DIR",
+                    help="save each refinement pass's track as DIR/pass_NN.npz (01: the first track)")
     ap.add_argument("--bias", action="store_true",
                     help="also print each landmark's mean signed offset from the reference (forward, left, up of "
                          "the reference's hips), where the reference's Neck sits against its shoulders, and the error "
@@ -343,6 +354,14 @@ def main() -> None:
                                            or args.reference_background):
         raise SystemExit("--continue-from gives the start and the background: drop --init-from-reference and the "
                          "reference diagnostics")
+    if args.background_from is not None and (args.continue_from is not None or args.reference_silhouettes
+                                             or args.reference_background):
+        raise SystemExit("--background-from gives the background: drop --continue-from and the reference "
+                         "diagnostics")
+    if args.save_passes is not None and args.velocities:
+        raise SystemExit("--save-passes keeps one run's passes: drop --velocities")
+    if args.save_passes is not None and not args.save_passes.is_dir():
+        raise SystemExit(f"--save-passes {args.save_passes}: not a folder")
     if args.save_poses is not None and not args.save_poses.parent.is_dir():  # before minutes of tracking
         raise SystemExit(f"--save-poses {args.save_poses}: the folder {args.save_poses.parent} does not exist")
     logging.basicConfig(level=logging.WARNING)
@@ -370,6 +389,15 @@ def main() -> None:
             ever = masks.any(0)
             print(f"reference background: {used.shape[0]} frames; {100 * float((free & ever).sum() / ever.sum()):.0f} "
                   f"% of the pixels the masks ever cover are free in >= {MIN_CLEAN_FRAMES} of them")
+        elif args.background_from is not None:  # as the refinement would after that track
+            try:
+                drawn = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
+                                       args.refine, "--refine")  # blob_scale, clear_frames, ...
+                bg = background_from_track(folder, load_poses(args.background_from), bg_config, drawn, (W, H),
+                                           source=str(args.background_from))
+            except InputError as e:
+                raise SystemExit(str(e)) from None
+            print(f"the first background re-estimated from the track in {args.background_from}")
         else:
             bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H))
         observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
@@ -443,6 +471,8 @@ def main() -> None:
                           f"{int((~poses.valid).sum())} lost, IK residual {1e3 * mean_ik_residual_m(poses):.2f} mm"
                           f"{moved}", flush=True)
                     passes.append(poses)
+                    if args.save_passes is not None:
+                        save_poses(poses, args.save_passes / f"pass_{len(passes):02d}.npz")
 
             def make_observer(b):
                 return observer if b is bg else observer_from_config(rig, b, config["observation"], args.model,

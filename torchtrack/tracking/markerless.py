@@ -175,7 +175,9 @@ class TrackerConfig:
 
     Attributes:
         em, ccd: EM and CCD settings.
-        refinements: goals -> root -> CCD passes per frame.
+        refinements: goals -> root -> CCD passes per frame (1: de Bem's Algorithm 2 once; each further pass starts
+            from the bones the last one solved). Two passes, the default until 2026-11-25, fit the synthetic 4-camera
+            turn and arm raise better and the real Pose2Sim demo worse (README, Markerless tracking).
         max_root_rotation_deg: bound on the root's change of orientation per pass (no front/back flips).
         velocity: factor of the constant-velocity prediction (0 = previous pose), at ``velocity_fps``.
         velocity_fps: the frame rate ``velocity`` is set for (0: use it as it is at every rate). At another rate
@@ -260,7 +262,7 @@ class TrackerConfig:
 
     em: EMConfig = field(default_factory=EMConfig)
     ccd: CCDConfig = field(default_factory=lambda: CCDConfig(damping=0.3, sweeps=8))
-    refinements: int = 2
+    refinements: int = 1
     max_root_rotation_deg: float = 25.0
     velocity: float = 0.5
     velocity_fps: float = 30.0
