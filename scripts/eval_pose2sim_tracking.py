@@ -18,9 +18,10 @@ pass prints its error, lost frames, mean IK residual and how far it moved the tr
 ``background_refinement.keep`` names (``fit``: the refined pass with the fewest lost frames and then the lowest
 residual, tracked once more at the end; ``--refine keep=last``: the last).
 
-``--save-passes DIR`` keeps each pass's track; ``--background-from DIR/pass_NN.npz --refine-passes 0`` then tracks
-once on the background refined from one of them, from the same start: the pass that followed it, replayed in a
-minute (it gives the same track on a CPU), to compare tracker settings on one refined background.
+``--save-passes DIR`` keeps each pass's track; ``--init-from-reference --background-from DIR/pass_NN.npz
+--refine-passes 0`` then tracks once on the background refined from one of them, from the same start: the pass
+that followed it, replayed in a minute (it gives the same track on a CPU), to compare tracker settings on one
+refined background.
 
 ``--reference-silhouettes`` separates the observation from the tracker: instead of the estimated background,
 each view's silhouette is drawn from Pose2Sim's 21 keypoints of that frame (capsules of :data:`CAPSULES` radii
@@ -298,7 +299,7 @@ def main() -> None:
     ap.add_argument("--velocities", nargs="+", type=float, default=None, metavar="V",
                     help="one whole run per prediction velocity (TrackerConfig.velocity, after --tracker), then the "
                          "runs side by side with the medians of their MPJPE (the README's five: 0.5 0.47 0.53 0.45 "
-                         "0.55, 3 min each); --bias, --save-poses and --picture take the last run")
+                         "0.55, 4 min each); --bias, --save-poses and --picture take the last run")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="TrackerConfig overrides of the config's tracker section, e.g. velocity=0")
     ap.add_argument("--reference-silhouettes", action="store_true",
@@ -334,7 +335,8 @@ def main() -> None:
                          "it replays the pass that followed that track, in a minute: a way to compare tracker "
                          "settings on one refined background")
     ap.add_argument("--save-passes", type=Path, default=None, metavar="DIR",
-                    help="save each refinement pass's track as DIR/pass_NN.npz (01: the first track)")
+                    help="save each refinement pass's track as DIR/pass_NN.npz (01: the first track; files of "
+                         "those names there are replaced)")
     ap.add_argument("--bias", action="store_true",
                     help="also print each landmark's mean signed offset from the reference (forward, left, up of "
                          "the reference's hips), where the reference's Neck sits against its shoulders, and the error "
@@ -358,6 +360,9 @@ def main() -> None:
                                              or args.reference_background):
         raise SystemExit("--background-from gives the background: drop --continue-from and the reference "
                          "diagnostics")
+    if args.background_from is not None and not args.init_from_reference:
+        raise SystemExit("--background-from replays a pass of a reference-started run: give --init-from-reference "
+                         "(the demo has no starfish start for the automatic one)")
     if args.save_passes is not None and args.velocities:
         raise SystemExit("--save-passes keeps one run's passes: drop --velocities")
     if args.save_passes is not None and not args.save_passes.is_dir():
@@ -419,6 +424,9 @@ def main() -> None:
             raise SystemExit(str(e)) from None
         if args.reference_silhouettes or args.reference_background:
             refine = replace(refine, passes=0)
+        if args.save_passes is not None and refine.passes == 0:
+            raise SystemExit("--save-passes saves the refinement's passes, and this run has none (--save-poses "
+                             "keeps its one track)")
         start = None  # --continue-from: its first valid frame's pose and its body
         if args.continue_from is not None:
             try:

@@ -177,7 +177,7 @@ class TrackerConfig:
         em, ccd: EM and CCD settings.
         refinements: goals -> root -> CCD passes per frame (1: de Bem's Algorithm 2 once; each further pass starts
             from the bones the last one solved). Two passes, the default until 2026-11-25, fit the synthetic 4-camera
-            turn and arm raise better and the real Pose2Sim demo worse (README, Markerless tracking).
+            grid's turn and arm raise better and the real Pose2Sim demo worse (README, Markerless tracking).
         max_root_rotation_deg: bound on the root's change of orientation per pass (no front/back flips).
         velocity: factor of the constant-velocity prediction (0 = previous pose), at ``velocity_fps``.
         velocity_fps: the frame rate ``velocity`` is set for (0: use it as it is at every rate). At another rate
