@@ -384,6 +384,11 @@ def main() -> None:
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])
         rig = folder.rig.resized(W, H).float()
         bg_config = BackgroundConfig(fill_static_subject=not args.no_fill, fill_prior_log_odds=args.fill_prior_log_odds)
+        try:  # the refinement's settings; --background-from draws its background with them too
+            refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
+                                    args.refine, "--refine")
+        except InputError as e:
+            raise SystemExit(str(e)) from None
         if args.reference_background:
             frames = torch.cat([b.images.half() for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
             masks = dilate(reference_silhouettes(rig, *reference_keypoints(args.demo)), REFERENCE_MARGIN_PX)
@@ -396,9 +401,7 @@ def main() -> None:
                   f"% of the pixels the masks ever cover are free in >= {MIN_CLEAN_FRAMES} of them")
         elif args.background_from is not None:  # as the refinement would after that track
             try:
-                drawn = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
-                                       args.refine, "--refine")  # blob_scale, clear_frames, ...
-                bg = background_from_track(folder, load_poses(args.background_from), bg_config, drawn, (W, H),
+                bg = background_from_track(folder, load_poses(args.background_from), bg_config, refine, (W, H),
                                            source=str(args.background_from))
             except InputError as e:
                 raise SystemExit(str(e)) from None
@@ -412,8 +415,6 @@ def main() -> None:
                 raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
             observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
         try:
-            refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
-                                    args.refine, "--refine")
             if args.refine_passes is not None:
                 refine = replace(refine, passes=args.refine_passes)
             refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,

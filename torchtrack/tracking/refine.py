@@ -24,9 +24,10 @@ the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four trac
 (with the velocity factor 0.5 at the demo's 60 fps; 62.6 mm after eight at the 0.2 the frame rate now gives),
 where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
 background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown
-masks as they are oscillated between 160 and 260 mm. Nor does the loop settle on one track: run on, the demo's
-passes 7-14 wander between two tracks (59.7-60.7 and 64.3-65.4 mm from the reference), which their mean IK
-residual tells apart (21.60-21.71 against 22.78-22.89 mm); hence step 5 rather than the last pass.
+masks as they are oscillated between 160 and 260 mm. Nor did the loop settle on one track with two refinements
+per frame (the tracker's default before 2026-11-25): run on, the demo's passes 7-14 wandered between two tracks
+(59.7-60.7 and 64.3-65.4 mm from the reference), which their mean IK residual told apart (21.60-21.71 against
+22.78-22.89 mm); hence step 5 rather than the last pass.
 
 :func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
 the sequence again with it (``torchtrack observe SEQ --background-from-track OUT/poses.npz``).
@@ -96,10 +97,11 @@ class RefineConfig:
         keep: which pass's track is the result: ``fit``, the refined pass (after the first re-estimation) whose
             track fits its own observation best, the fewest lost frames and then the lowest mean IK residual
             (the goals' distance from the fitted skeleton, ``extra['ik_residual_m']``); ``last``, the last pass.
-            The passes do not settle on one track: on the Pose2Sim demo, run to 14 passes, they wander between
-            two states (each pass 3.7-13 mm from the one before, 59.7-65.4 mm from the reference), which the
-            mean IK residual tells apart (correlation 0.98 with the error over passes 5-14; README, Markerless
-            tracking).
+            With two refinements per frame (``TrackerConfig.refinements``, the default before 2026-11-25) the
+            passes did not settle on one track: on the Pose2Sim demo, run to 14 passes, they wandered between two
+            states (each pass 3.7-13 mm from the one before, 59.7-65.4 mm from the reference), which the mean IK
+            residual told apart (correlation 0.98 with the error over passes 5-14). With one they settle within a
+            few mm and the residual no longer ranks the settled passes (README, Markerless tracking).
         patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best (fewer
             lost frames, or as many and a lower residual), instead of at ``min_change_m``: a pass that moved
             little can still be followed by one that moves on to a better track.
