@@ -14,21 +14,21 @@ The keypoints are Pose2Sim's raw triangulation, or with ``--filtered-reference``
 reference its occupied voxels centre (the blobs' ``offset`` in configs/blobs.yaml is that fraction).
 
 The defaults (frames at half the videos' size, 1 cm voxels, a 1 x 1 window) keep thin parts (toes, the head's
-top) within 5 cm; the README also quotes figures at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25
---voxel 0.02 --window 3``), where those parts are missed more often.
+top) within 5 cm; at a quarter size, 2 cm voxels and a 3 x 3 window (``--scale 0.25 --voxel 0.02 --window 3``)
+those parts are missed more often (docs/results.md, "Occupancy").
 
 The grid's box is the floor region three cameras see (:func:`grid_from_rig` with ``min_views=3``; its box is
-conservative, the one for four cuts the swinging foot in 12 frames), and voxels that fewer than ``--min-views``
-(default 4) cameras see are unobserved: the Bayesian fusion has no veto from a camera that does not see a
-voxel, so where only three cameras see, the operator (in cam_02) crossed with the subject's silhouettes in
-two other views makes a human-sized phantom (1.2 m across with ``--min-views 3``), while every reference
+conservative, the one for four cuts the swinging foot in some frames), and voxels that fewer than
+``--min-views`` (default 4) cameras see are unobserved: the Bayesian fusion has no veto from a camera that does
+not see a voxel, so where only three cameras see, the operator (in cam_02) crossed with the subject's
+silhouettes in two other views makes a human-sized phantom (with ``--min-views 3``), while every reference
 keypoint of every frame projects into all four images.
 
 ``--background-from-track POSES`` takes the background from the frames each pixel is clearest of a track's body
 instead (:func:`torchtrack.tracking.refine.background_from_track`; a track of the demo with its body, e.g.
 ``eval_pose2sim_tracking.py --init-from-reference --save-poses POSES``); ``--refine FIELD=VALUE`` overrides the
 config's ``background_refinement`` settings it uses (``near_fraction=0.02``: pixels that stay near the tracked body
-keep the plain estimate, its fill, which gives the stance foot's toes back; README, Observation).
+keep the plain estimate, its fill, which gives the stance foot's toes back; docs/results.md, "Occupancy").
 
 Usage: .venv/bin/python scripts/eval_pose2sim_occupancy.py [--scale 0.5] [--voxel 0.01] [--window 1] [--min-views 4]
        [--picture JPG] [--misses JPG] [--no-fill] [--fill-prior-log-odds 0] [--background-from-track POSES

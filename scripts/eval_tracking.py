@@ -276,7 +276,7 @@ def fit_rounds(seq: Path, model: str, config: dict, rounds: int, background: Bac
                tracker_overrides: Sequence[str] = ()) -> None:
     """--fit-rounds: the bone fit alone, round after round, on the observation of the first frame at its true
     pose, from the template scaled to the true height: its ridge towards that start (the tracker's) and towards
-    each round's own body (as before 2026-11-24). Prints the fitted proportions after each round."""
+    each round's own body (the alternative; docs/results.md, "Tracker settings"). Prints the fitted proportions after each round."""
     folder, observer = _observer(seq, model, config, background)
     W, H = (int(v) for v in observer.rig.image_size_wh[0].tolist())
     fb = next(iter(folder.iter_batches(1, 0, 1, size_wh=(W, H))))

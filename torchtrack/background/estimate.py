@@ -46,8 +46,8 @@ def rgb_to_yuv(images: torch.Tensor, scale: torch.Tensor | None = None) -> torch
     through), optionally divided by a per-image ``scale``.
 
     Computed as one 3 x 3 matrix product with kornia's matrix (:func:`rgb_to_yuv_matrix`): kornia converts
-    channel by channel, which is 4-5x slower on a frame of 4 x 320 x 240 pixels (1.3 vs 0.3 ms on 2 CPU cores);
-    the values agree to float rounding (tests/test_background.py).
+    channel by channel, which is several times slower; the values agree to float rounding
+    (tests/test_background.py).
 
     Args:
         images: (..., 3, H, W) RGB.

@@ -68,15 +68,14 @@ class BackgroundConfig:
             place (left in the temporal median) by their colours and paint them out of the background
             (:mod:`torchtrack.background.static`). For a subject who stays in place (a balancing trial, arms
             raised on the spot); off by default because on a subject who moves through the scene, whose
-            median is clean, it paints out room that looks like the subject (synthetic silhouette IoU, mean of
-            3 cameras: arm_raise 0.23 -> 0.69, squat 0.52 -> 0.70, walk 0.98 -> 0.72;
-            ``scripts/eval_static_fill.py``). No effect on a model from empty-scene frames.
+            median is clean, it paints out room that looks like the subject (``scripts/eval_static_fill.py``;
+            docs/results.md, "Occupancy"). No effect on a model from empty-scene frames.
         fill_prior_log_odds: the fill's prior log odds of room against subject for a pixel near where the subject
             moved, subtracted from the colour evidence before the graph cut. 0 (even odds) paints out every
-            pixel whose colour the subject explains better, skin-toned walls and wooden furniture included: on
-            the Pose2Sim demo (3 cm voxels, ``scripts/eval_pose2sim_occupancy.py --fill-prior-log-odds``) 95 %
-            of the reference keypoints lie within 5 cm of a voxel but the occupied volume is 0.30 m^3, 57 % of
-            it away from the body; 1 gives a body-sized 0.06 m^3 with 72 % of the keypoints covered.
+            pixel whose colour the subject explains better, skin-toned walls and wooden furniture included, and
+            on the Pose2Sim demo fills several bodies' volume away from the body; 1 keeps the volume body-sized
+            at the cost of some keypoints' coverage (``scripts/eval_pose2sim_occupancy.py
+            --fill-prior-log-odds``; docs/results.md, "Occupancy").
     """
 
     min_std: float = 0.012
@@ -203,10 +202,10 @@ class BackgroundModel(nn.Module):
         it is free of the subject, wherever at least ``MIN_CLEAN_FRAMES`` such frames exist, passes 1-3 only
         elsewhere. The masks are trusted: a pixel they never cover takes the median of all frames (pass 3 may
         have painted it), so anything else that moves, another person too, belongs in them. On the Pose2Sim
-        demo, masks drawn around the reference keypoints leave that many frames at 93 % of the pixels the
-        subject ever covers, and the track from that background is 64.9 mm from the reference against 422.8 mm
-        from passes 1-3 (``scripts/eval_pose2sim_tracking.py --init-from-reference --reference-background``;
-        2026-11-24). :mod:`torchtrack.tracking.refine` derives such masks from the track itself (66.4 mm there).
+        demo, masks drawn around the reference keypoints give a background the tracker does far better on than
+        on passes 1-3's (``scripts/eval_pose2sim_tracking.py --init-from-reference --reference-background``;
+        docs/results.md, "The real Pose2Sim demo"). :mod:`torchtrack.tracking.refine` derives such masks from
+        the track itself.
 
         Args:
             frames: (N, C, 3, H, W) RGB in [0, 1] (float16 storage is fine), N >= 5; at most ``max_frames`` are

@@ -20,8 +20,7 @@ Per camera:
    et al. 2004) solves the same energy but re-learns its colour models as 5-component GMMs from its own noisy
    seeds; on the Pose2Sim demo it dropped the stance lower leg and foot (skin on a dark treadmill, a thin
    region whose colours the room GMM also explains) in three of the four cameras although the histogram
-   ratio called them subject (scripts/eval_pose2sim_occupancy.py: LAnkle within 5 cm of a voxel in 18 % of
-   the frames with GrabCut, 100 % with the histogram unary).
+   ratio called them subject (docs/results.md, "Tried and dropped").
 4. Fill: the region's background mean is inpainted from the room around it (:func:`cv2.inpaint`, the
    Navier-Stokes method, per YUV channel in float32; OpenCV's Telea method is wrong on float32 images in
    OpenCV 5.0, offset by about -1.2 on a ramp, and quantised on 8- and 16-bit ones); its std is kept.

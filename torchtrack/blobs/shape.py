@@ -18,8 +18,8 @@ The ellipsoids' centres and their semi-axes along their bones are affine in the 
 fixed joint angles, a bone's length scales its blobs' offsets and every joint it carries: the caller gives the
 columns), the rotations and cross semi-axes fixed. The samples' distances to the voxels are read off a distance
 field of the voxels (:class:`VoxelDistance`), so that the objective is smooth in ``x`` (holding each sample's
-nearest voxel for a round of L-BFGS, as in ICP, tied the samples to them and crept: a limb 25 % longer than the
-model was fitted 3, 7, 9 and 11 % longer after one to four rounds). Shapes: N voxels, K ellipsoids, P
+nearest voxel for a round of L-BFGS, as in ICP, tied the samples to them and crept: a limb longer than the
+model was fitted a little longer after each round, never reaching its length). Shapes: N voxels, K ellipsoids, P
 parameters, M samples per ellipsoid.
 """
 
@@ -71,8 +71,8 @@ class VoxelDistance:
     points): each lattice node's distance to the nearest node inside a voxel (exact Euclidean distance
     transform) less one cell, so that the nodes beside the voxels' count as covered, as a voxel whose centre lies
     within half its edge of the body counts as covered (half a cell instead, the interpolated distance rises
-    from the voxels' last nodes inwards of their faces: a limb 25 % longer than the model was fitted 19 % longer,
-    against 21.5 % with a cell; 1.5 cm voxels); beyond the lattice, the distance to it is added.
+    from the voxels' last nodes inwards of their faces, and a limb longer than the model was fitted shorter than
+    with a whole cell); beyond the lattice, the distance to it is added.
 
     Attributes:
         field: (1, 1, Z, Y, X) distances (m). lower: (3,) the first node (x, y, z). cell: the lattice's spacing.

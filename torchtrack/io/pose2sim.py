@@ -19,9 +19,8 @@ from torchtrack.io.trc import read_trc, y_up_to_world
 CALIBRATION = "calibration/Calib_qualisys_pose2sim.toml"
 REFERENCE = "reference_3d/S00_P00_T01_BalancingTrial_0-100.trc"
 #: The same keypoints after Pose2Sim's own filtering step (a zero-phase Butterworth low-pass): its final output.
-#: The raw triangulation jitters from frame to frame (RMS second difference 43.9 mm against 3.0 over the 21
-#: keypoints, 11.3 mm apart on average) and has single-frame outliers (frame 46's right small toe 12.8 cm from the
-#: filtered one, off the foot in two views; ``scripts/eval_pose2sim_occupancy.py --reference-noise``).
+#: The raw triangulation jitters from frame to frame and has single-frame outliers (a toe off the foot in two
+#: views; ``scripts/eval_pose2sim_occupancy.py --reference-noise``; docs/results.md, "The real Pose2Sim demo").
 REFERENCE_FILTERED = "reference_3d/S00_P00_T01_BalancingTrial_0-100_filt_butterworth.trc"
 
 #: Pose2Sim BODY_25B keypoints -> our output points (``Skeleton.output_names``), where the two define the same

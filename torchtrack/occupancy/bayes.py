@@ -33,7 +33,7 @@ class BayesConfig:
     """Sensor model of the Bayesian grid.
 
     The defaults are not the paper's uniform priors (P_S1 = P_R1 = 1/2, which make the fusion a soft
-    majority vote, fat by a third on a single person; measured in scripts/eval_occupancy.py): for one person,
+    majority vote, fat on a single person: scripts/eval_occupancy.py, docs/results.md, "Occupancy"): for one person,
     a voxel inside another camera's silhouette cone but off the body is usually empty while its pixel still
     sees the body, so a detection is mostly explained by another object on the viewing line (P_R1 = 0.75)
     and a background pixel is strong evidence against occupancy. ``window`` 1 gives the tightest grid on

@@ -85,8 +85,8 @@ class HullConfig:
         centre_sample: the finest edge rule averages a 9th sample, at the voxel centre, with the 8. The 8 samples
             of a voxel on the silhouette's border split 4 : 4 (mean ~32 = t_finest_edge) whether its centre lies
             just inside or just outside; the centre's pixel breaks the tie. False: ties are kept, a half-voxel
-            shell around the body (synthetic walk, 2 cm, 8 cameras: IoU with the body 0.843 -> 0.860; 4 cameras
-            0.693 -> 0.722; ``scripts/eval_occupancy.py --hull centre_sample=false``).
+            shell around the body that lowers the IoU with it (``scripts/eval_occupancy.py --hull
+            centre_sample=false``; docs/results.md, "Occupancy").
         min_views: fewer views seeing a voxel -> discarded. None: min(2, number of cameras).
         footprint_early_out: above the finest level, a voxel that ``t_low`` calls background is subdivided
             (an edge) instead when, in every seeing view, the window of a child's projected width around one of
@@ -311,8 +311,8 @@ def _footprint_windows(plan: _Plan) -> list[int]:
 def _max_filter(x: Tensor, width: int, dim: int) -> Tensor:
     """Centred running maximum of odd ``width`` along ``dim`` (outside the tensor counts as the lowest value of
     the dtype; NaN spreads),
-    by doubling: ``log2(width) + 1`` element-wise maxima instead of ``width`` (``F.max_pool2d`` with stride 1
-    takes 5 ms on 4 x 320x240 at width 3, 34 ms at 15 on 2 CPU cores; this 0.5-1 ms)."""
+    by doubling: ``log2(width) + 1`` element-wise maxima instead of ``width`` (many times faster on a CPU than
+    ``F.max_pool2d`` with stride 1, whose cost grows with the width)."""
     r = width // 2
     pad = [0, 0] * (x.dim() - 1 - dim) + [r, r]
     low = float("-inf") if x.is_floating_point() else torch.iinfo(x.dtype).min
@@ -494,8 +494,8 @@ def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor,
 
 
 def _take(x: Tensor, at: Tensor) -> Tensor:
-    """(C, 8, V) -> (C, 8, len(at)) voxels ``at`` (``gather`` with an expanded index: 4x faster on the CPU than
-    ``index_select`` along the last axis)."""
+    """(C, 8, V) -> (C, 8, len(at)) voxels ``at`` (``gather`` with an expanded index: several times faster on
+    the CPU than ``index_select`` along the last axis)."""
     return x.gather(2, at.expand(*x.shape[:2], -1))
 
 

@@ -217,7 +217,7 @@ def ray_ellipsoid_intersect(
     pairs (:func:`bounding_sphere_pairs`: one test per ray against the sphere around all ellipsoids, then K
     tests for the rays that pass it) and the quadratic is solved only for those, so memory is bounded by
     ``chunk_size * K`` and the cost follows the rays that come near the ellipsoids (on a 640x480 view of a
-    19-part body about 20x less than solving every pair, see ``scripts/bench_render.py``).
+    19-part body many times less than solving every pair; ``scripts/bench_render.py``).
 
     A ray whose origin is inside an ellipsoid hits it where it leaves it; the normal there is the outward
     normal (it points along the ray).

@@ -15,9 +15,8 @@ then, pass after pass:
    the kept one's and it lost no frame the kept one tracked; otherwise the kept track and body stay and the
    passes stop (the next refit would start from the same body and end where this one did).
 
-On the synthetic 4-camera hull sequences (``scripts/eval_tracking.py --cameras 4 --models hull``, 2026-11-25)
-the residual follows the error: CMU 131_01 23.9 -> 19.3 -> 18.7 mm of residual while its MPJPE went 54.9 ->
-47.7 -> 46.3 mm; the squat 19.8 -> 20.1 while it went 44.3 -> 48.7 mm, a pass the test turns down.
+The residual mostly follows the error on the synthetic sequences, not always (docs/results.md, "Tracker
+settings").
 """
 
 from __future__ import annotations
@@ -56,8 +55,7 @@ class BodyRefitConfig:
         given_body: also refit a body that came with the start (``torchtrack track --init-pose`` of a file with
             a body: an earlier run's, or one fitted to 3D keypoints, which place the hips themselves). Off: on the
             Pose2Sim demo, from the body fitted to its reference keypoints, every pass lowered the residual and
-            raised the error (60.7 -> 68.5 -> 69.2 -> 71.3 mm; ``scripts/eval_pose2sim_tracking.py
-            --init-from-reference --refit given_body=true``, 2026-11-25).
+            raised the error (docs/results.md, "Tracker settings").
     """
 
     passes: int = 3

@@ -1,14 +1,12 @@
 """Functional hip centres: where each thigh pivots on the pelvis, from the axes its blob took over the frames.
 
-The bone fit of initialisation (:meth:`MarkerlessTracker._fit_bone_lengths`) reads the hips' height off blob
-means, and EM hands the top of each thigh to the pelvis blob: the thigh blobs' means sit low, and the fit puts
-the hips low, the thighs short and the torso long (CMU 131_01, 8-camera hull: thighs 0.370 m against a true
-0.409). A thigh blob's main axis, though, runs along the femur whatever share of its top it loses (that share
-moves its mean along the axis, not across it). Over frames in which the thigh swings, the axes it took, seen in
-the pelvis' frame, all pass through the hip's centre of rotation: the point closest to them in the least-squares
-sense is the functional hip centre (the functional method gait labs use on marker clusters, here on blobs). On
-that sequence the tracked hips were 44 / 49 mm from the true ones and the functional centres 19 / 19 mm, 28 and
-46 mm above the fitted hips.
+The bone fit of initialisation (:meth:`MarkerlessTracker._fit_bone_lengths`) reads the hips' height off blob means,
+and EM hands the top of each thigh to the pelvis blob: the thigh blobs' means sit low, and the fit puts the hips low,
+the thighs short and the torso long. A thigh blob's main axis, though, runs along the femur whatever share of its top
+it loses (that share moves its mean along the axis, not across it). Over frames in which the thigh swings, the axes it
+took, seen in the pelvis' frame, all pass through the hip's centre of rotation: the point closest to them in the
+least-squares sense is the functional hip centre (the functional method gait labs use on marker clusters, here on
+blobs; how much closer to the true hips it lands: docs/results.md, "Tracker settings").
 
 Each line ``m + s d`` (blob mean ``m``, unit main axis ``d``, both in the pelvis' frame) adds ``w (I - d d^T)`` to
 the normal matrix ``A`` and ``w (I - d d^T) m`` to the right-hand side ``b``; the centre solves ``A c = b``. The

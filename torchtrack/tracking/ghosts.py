@@ -14,17 +14,17 @@ no predicted body. Only blobs with voxels of their own may explain a ray (``cove
 last accepted frame filled), so a limb the views lost, e.g. a stance leg a video's background holds, explains
 nothing away. Nor does a blob explain the voxels of its own near shell (inside its ellipsoid grown by
 ``self_scale``): an arm raised past its prediction and seen by cameras that look down along it has every view's
-ray through the predicted arm, and would otherwise lose the voxels it has to follow (the Pose2Sim demo with
-silhouettes drawn from its reference keypoints: 108.9 mm with the right arm lost, 70.4 with ``self_scale`` 1.3).
-The tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); measured on the synthetic sequences with
-``scripts/eval_tracking.py`` (the README's table).
+ray through the predicted arm, and would otherwise lose the voxels it has to follow (as the Pose2Sim demo's raised
+right arm did without it). The tracker lowers ghosts' EM weights (``TrackerConfig.ghost_weight``); what that does
+with 4 and 8 cameras: ``scripts/eval_tracking.py``, docs/results.md, "Tracker settings".
 
 Limits. The test trusts the prediction: a prediction that sits on the ghosts explains the real voxels away
 and confirms itself (the tracker's re-acquisition, after its divergence test, searches without it). Each voxel
 is tested at its centre, so a hull's coarse interior cube or a merged cell is kept or lowered whole. The inside
 margin is relative, so thin limbs get a few millimetres of it. Visibility is not modelled: a view "sees" every
 voxel inside its image. The shell (``self_scale``) trades the other way: a shell too wide keeps a limb's own
-ghosts, which then pull it (1.4 and 1.5 lost the 4-camera walk's right wrist).
+ghosts, which then pull it (wider shells lost the synthetic 4-camera walk's right wrist; docs/results.md,
+"Tracker settings").
 
 This is this project's extension to de Bem's and Caillette's EM, not part of either paper: both tracked from
 enough cameras that ghosts were small.

@@ -19,11 +19,10 @@ What the points do not pin, the template's proportions decide: without the ``spi
 length scales the shoulders' offsets, left-right too, and the shoulders' height shift takes up the rest), and the
 pelvis' by the hips' width.
 
-The bone fit matters on real subjects: Pose2Sim's demo subject, started from the template scaled to 1.71 m, has
-its trunk 3 cm longer and the shoulders higher on it than the template; the body fitted to the first frame's 15
-points brings that frame from 23.6 to 11.3 mm mean landmark error, the whole clip (every frame's pose fitted
-with that body) from 27.6 to 22.5 mm (``scripts/eval_pose2sim_tracking.py --reference-fit``), and its track from
-82.4 to 69.9 mm (``--init-from-reference``; median of five runs at other ``velocity`` settings 86.3 -> 73.1 mm).
+The bone fit matters on real subjects: Pose2Sim's demo subject has a longer trunk and higher shoulders on it than
+the template scaled to its height, and the fitted body brings both the landmark fit and the track closer to the
+reference than the scaled template does (``scripts/eval_pose2sim_tracking.py --reference-fit`` and
+``--init-from-reference``; docs/results.md, "The real Pose2Sim demo").
 
 :func:`initial_pose` records the result for ``torchtrack track --init-pose`` (a poses.npz frame with the body's
 URDF in its ``body_urdf`` key, as the tracker's own output carries the body it fitted).

@@ -52,28 +52,21 @@ from torchtrack.tracking.observation import VoxelObservation
 
 log = logging.getLogger(__name__)
 
-#: Bones whose lengths are fitted together at initialisation (left and right tied).
-#: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
-#: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). On by default
-#: (scripts/eval_tracking.py; --tracker fit_bone_lengths=false for one scale), 8 cameras, Bayesian grid: CMU
-#: 131_01 45.6 -> 27.9 mm, 131_02 45.2 -> 23.2 (7/7 motions within target, 5/7 with one scale), at the cost of the
-#: procedural motions, which have the template's own proportions (walk 9.8 -> 11.8, squat 12.8 -> 16.6); 4
-#: cameras, Bayesian grid 2/7 -> 4/7; the hull 5/7 either way with 8 cameras (its legs come out short on CMU:
-#: 131_02 69.7 -> 53.2 mm) and 1/7 with 4 (measured on the host before 2026-11-24, and before ghost suppression
-#: for 4 cameras; the README's table has the current figures).
 #: hold_lost_feet: after a re-acquisition, a remembered foot farther than this from the re-acquired pose's is no
 #: longer held (the subject may have moved on while it was lost).
 REACQUIRED_FOOT_M = 0.1
+#: Bones whose lengths are fitted together at initialisation (left and right tied).
+#: Each limb's two long bones share one scale and the pelvis, hands and feet another (too small to measure
+#: apart); torso and head are fitted separately, and the neck's height on the torso (NECK_JOINT). Real subjects'
+#: proportions differ from the template's, which one scale cannot follow (docs/results.md, "Tracker settings").
 BONE_GROUPS: tuple[tuple[str, ...], ...] = (
     ("pelvis", "l_hand", "r_hand", "l_foot", "r_foot"), ("torso",), ("head",),
     ("l_upperarm", "r_upperarm", "l_forearm", "r_forearm"), ("l_thigh", "r_thigh", "l_shank", "r_shank"))
 
 #: functional_hips: the thigh blobs whose axes locate the hips, and the joints (on the pelvis) they move. Only a
 #: shift up, of at most FUNCTIONAL_HIPS_MAX_M and leaving the pelvis at least a fifth of its length, is made: the
-#: bone fit's bias runs up (EM gives the thighs' tops to the pelvis blob), and a pivot below the fitted hips is
-#: the axes' error (8 cameras: none of 10 estimates; 4 cameras, whose ghosts bend the axes: 4-54 mm below in 8 of
-#: 11; scripts/eval_tracking.py --hips);
-#: anything else is logged and the body left as fitted.
+#: bone fit's bias runs up (EM gives the thighs' tops to the pelvis blob), so a pivot below the fitted hips is the
+#: axes' error (docs/results.md, "Tracker settings"); anything else is logged and the body left as fitted.
 THIGH_BLOBS, HIP_JOINTS, SPINE_JOINT = ("l_thigh", "r_thigh"), ("l_hip_flex", "r_hip_flex"), "spine_flex"
 HIP_FRAMES = ("l_thigh", "r_thigh")  # the hips' positions among JOINT_FRAMES
 FUNCTIONAL_HIPS_MAX_M = 0.08
@@ -85,21 +78,12 @@ NECK_JOINT, NECK_STEP_M = "neck_flex", 0.1
 #: Frame rates a sequence may declare (MarkerlessTracker.set_frame_rate): a video's, from time-lapse to high speed.
 MIN_FRAME_RATE, MAX_FRAME_RATE = 0.1, 10000.0
 
-#: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to the
-#: voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
-#: NECK_STEP_M (towards each round's body; with the torso's length held, it moves the shoulders). Towards the start,
-#: not towards each round's body: rounds towards their own last body could walk along what the voxels hardly tell
-#: apart (the torso's length against the head's and the neck's height: on the 4-camera hull's CMU 131_02 starfish, at
-#: the true pose, the torso went 0.39 -> 0.45 m over ten rounds and the head 0.18 -> 0.10, true 0.25 and 0.27;
-#: anchored, 0.40 and 0.18, settling; eval_tracking.py --fit-rounds). scripts/eval_tracking.py, three runs at
-#: velocity 0.5 / 0.47 / 0.53, towards each round's body -> towards the start: 4 cameras, Bayesian grid mean 30.3 /
-#: 31.0 / 30.5 -> 29.4 / 29.6 / 29.5, hull 41.3 / 38.9 / 39.5 -> 39.5 / 38.7 / 40.5 (CMU 131_02 57.9 -> 47.7-48.2); 8
-#: cameras 16.5 -> 16.1-16.2 and 19.6 -> 19.5-19.8 (the same sequences within target, and the 4-camera hull's squat
-#: in one run of three). Holding the shoulders' height too (the torso's scale measured on them, the neck's shift
-#: towards the start's neck) held the CMU bodies to the template's neck and shoulders: 8 cameras, CMU 131_01 /
-#: 131_02, Bayesian grid 32.4 / 33.0 mm, hull 38.6 / 36.2 (their necks 78-91 mm off); the torso's scale on the
-#: shoulders with the neck's shift free: 27.9 / 26.9 and 31.9 / 26.1 (4 cameras, Bayesian grid 40.8 / 33.2 against
-#: 35.8 / 33.8).
+#: The bone fit's ridge on each group's change relative to the body the fit started from (the template scaled to
+#: the voxels' height; for the torso its length, which is the neck's height on it), and on the neck's shift in
+#: NECK_STEP_M towards each round's body (with the torso's length held, that shift sets the shoulders' height).
+#: Towards the start because rounds towards their own last body drift along what the voxels hardly tell apart, the
+#: torso's length against the head's (docs/results.md, "Tracker settings"; the shoulders held as well: "Tried and
+#: dropped").
 BONE_FIT_RIDGE = 0.02
 
 #: TrackerConfig.bone_fit's choices.
@@ -107,52 +91,49 @@ BONE_FITS = ("blobs", "shape")
 
 #: The shape fit's ridge (bone_fit "shape"; the same form as BONE_FIT_RIDGE's, on an energy in m^2, a mean of
 #: squared distances between the voxels and the body: 2e-6 weighs a group's 10 % change like 0.14 mm of mean
-#: distance). Measured on a first version of the fit (exact distances to the nearest voxel) at 0, 2e-6 and 2e-5 on
-#: the 4-camera hull's CMU walks: 2e-5 held the torsos long (131_01 55.4 mm against 45.9 at 2e-6), 0 left them
-#: where 2e-6 did.
+#: distance). Weak on purpose: ten times stronger held the CMU walks' torsos long, and without it the fit came
+#: out the same (docs/results.md, "Tracker settings").
 SHAPE_FIT_RIDGE = 2e-6
 
 #: The shape fit's starts, (the neck's shift in NECK_STEP_M, the head's relative change): the union's energy has
-#: local minima along the neck's height against the head's length. At the true pose of CMU 131_01's starfish
-#: (8-camera hull; scripts/eval_tracking.py --fit-rounds 3 --tracker bone_fit=shape) three rounds end at torso
-#: 0.276 m, neck 0.061 below the shoulders, head 0.242 with these starts (true 0.248, 0.079 below, 0.272), and from
-#: the template's neck alone at 0.275, 0.059 below, 0.237; but one start fell elsewhere in two variants: with the
-#: distance field's margin at 0.25 m instead of 0.5 at 0.341, 0.004 above, 0.160 (measured with the ridge's factors
-#: in single precision), and a first version of the fit found the head 0.096 m with the neck 8 cm above the
-#: shoulders. Which minimum one start falls into is fragile.
+#: local minima along the neck's height against the head's length, and which one a single start falls into is
+#: fragile (it moved with the distance field's margin and the arithmetic's precision; docs/results.md,
+#: "Tracker settings").
 SHAPE_FIT_STARTS = ((0.0, 0.0), (-0.75, 0.0), (-0.75, 0.25), (-1.5, 0.0), (-1.5, 0.25))
 
 #: Rounds of the bone fit at initialisation, each followed by EM/IK passes, at most (it stops under a 0.5 %
-#: change, or at a round that fits worse). Three left the CMU bodies' torsos halfway (measured before that guard:
-#: 8 cameras, Bayesian grid, CMU 131_02 26.6 mm with 3 rounds, 20.6 with 8).
+#: change, or at a round that fits worse). Eight because three left the CMU bodies' torsos halfway to their
+#: length (docs/results.md, "Tracker settings").
 FIT_ROUNDS = 8
 
 #: The bone fit's EM sees the voxels split to at most this size (:meth:`VoxelObservation.split`): the hull's
 #: coarse interior cubes (6-12 cm) each went whole to one blob, and at the hips they gave the thighs' tops to the
-#: pelvis (8 cameras, the hull's CMU walks: legs 0.356 m against a true 0.409; 34.8 / 34.9 -> 31.0 / 27.1 mm).
-#: The Bayesian grid's voxels (3 cm) are not split.
+#: pelvis and the legs came out short (docs/results.md, "Tracker settings"). The Bayesian grid's voxels (3 cm) are
+#: not split.
 BONE_FIT_VOXEL_M = 0.03
 
 #: Initialisation: the heading the toes point along (the first tried) gives way to another only if that fits the
 #: starfish frame better by more than this (m of the fit's cost, :meth:`MarkerlessTracker._fit_cost`). Where the
-#: toes are unclear the fits of a starfish and of its flip are often a tie: 20.5 / 20.4 mm on the 4-camera hull's
-#: CMU 131_01 (the flip won and the whole track ran backwards, 335.5 mm), against 16.6 / 21.1 on 131_02.
+#: toes are unclear the fits of a starfish and of its flip are often a tie, and a flip that wins by noise tracks the
+#: whole sequence backwards (docs/results.md, "Tracker settings").
 HEADING_MARGIN_M = 0.002
 
 #: A starfish's arms are raised: the initialisation refuses a fit whose upper arm hangs within this angle of
-#: straight down (the starfish has them 72 deg up; the fits of the 28 synthetic starfish starts, 68-93 deg).
+#: straight down (the starfish pose has them 72 deg up; the synthetic starts' fits stay well above this:
+#: docs/results.md, "Tracker settings").
 STARFISH_MIN_ARM_RAISE_DEG = 45.0
 
 #: The starfish frame's voxels may hold at most this many times the volume of the body (its blobs' ellipsoids)
 #: scaled to their height: more is not one person (phantom volume; a background estimated from a video whose
-#: subject stands still, painted out with the room around them). The 28 synthetic starfish starts: 1.1-1.9
-#: (4 cameras, hull, the most); the Pose2Sim demo's first frame (no starfish) on the filled background: 6.6.
+#: subject stands still, painted out with the room around them). The synthetic starts stay well under it and the
+#: Pose2Sim demo's first frame on the filled background well over it (docs/results.md, "Tracker settings").
 STARFISH_MAX_VOLUME_RATIO = 3.0
 
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("Start the sequence with the subject standing arms and legs spread, or give an initial pose with "
-                "--init-pose POSES.npz (the first valid frame of a poses.npz of this subject, e.g. from an earlier "
-                "run)")
+                "--init-pose START.npz: a poses.npz of this subject whose first valid frame is the pose (an earlier "
+                "run's output), or one fitted to 3D keypoints of the first frame by `torchtrack init-pose "
+                "KEYPOINTS.trc --out START.npz`")
 
 #: The spine's DOFs, between the pelvis (the root) and the torso: straight (0) in the rest pose.
 SPINE_DOFS: tuple[str, ...] = ("spine_flex", "spine_abd", "spine_twist")
@@ -176,8 +157,8 @@ class TrackerConfig:
     Attributes:
         em, ccd: EM and CCD settings.
         refinements: goals -> root -> CCD passes per frame (1: de Bem's Algorithm 2 once; each further pass starts
-            from the bones the last one solved). Two passes, the default until 2026-11-25, fit the synthetic 4-camera
-            grid's turn and arm raise better and the real Pose2Sim demo worse (README, Markerless tracking).
+            from the bones the last one solved). One by default: a second fits some synthetic 4-camera motions
+            better and the real Pose2Sim demo worse (docs/results.md, "Tracker settings").
         max_root_rotation_deg: bound on the root's change of orientation per pass (no front/back flips).
         velocity: factor of the constant-velocity prediction (0 = previous pose), at ``velocity_fps``.
         velocity_fps: the frame rate ``velocity`` is set for (0: use it as it is at every rate). At another rate
@@ -186,9 +167,8 @@ class TrackerConfig:
             per frame (the last pose taken as exact), the prediction error is least at ``v = d^2 / (d^2 + 2 s^2)``;
             d scales with 1 / fps and s does not, so ``k = v / (1 - v)`` scales with ``(velocity_fps / fps)^2``
             and the factor is ``k / (1 + k)``: 0.5 at 30 fps is 0.2 at 60 fps
-            (:attr:`MarkerlessTracker.prediction_velocity`). On the 60 fps Pose2Sim demo one factor for every rate
-            (``velocity_fps=0``) found its best at 0.2-0.3 (62.6 / 61.3 / 61.4 mm against 66.4 at 0.5), while the
-            30 fps synthetic table wants 0.5.
+            (:attr:`MarkerlessTracker.prediction_velocity`). The 60 fps Pose2Sim demo tracks best near 0.2 and the
+            30 fps synthetic sequences at 0.5 (docs/results.md, "Tracker settings").
         min_voxels, min_volume_m3: below either, the frame has nobody in it (valid = False).
         lost_residual_m: mean goal-to-joint distance above which a frame counts as diverging.
         min_explained: fraction of the voxel weight the blobs must take (else diverging).
@@ -196,15 +176,15 @@ class TrackerConfig:
         init_passes: EM/IK passes on the first frame during initialisation.
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
-            CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37); BONE_GROUPS has figures.
+            CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
+            "Tracker settings").
         bone_fit: what the bone fit fits. ``"blobs"``: the means and lengths of blobs EM fitted to the voxels
             without priors, by linear least squares; ``"shape"``: the union of the body's ellipsoids to the voxels
             themselves (:mod:`torchtrack.blobs.shape`), which EM's sharing of the voxels between overlapping blobs
             does not bias (the pelvis' over the thighs' tops, the head's over the neck), but which takes
-            silhouette holes and ghost volume as the body's shape. On the synthetic table it helps the CMU walks
-            (4 cameras, Bayesian grid 40.5 / 32.0 -> 27.9 / 23.6 mm, hull 54.9 / 47.8 -> 52.9 / 32.5) and costs
-            the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera squat its target
-            (39.1 -> 49.5, 44.3 -> 61.9; README), so it is not the default.
+            silhouette holes and ghost volume as the body's shape. Not the default: it helps the synthetic CMU
+            walks but costs the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera
+            squat (docs/results.md, "Tracker settings").
         em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
             grows with the voxel count while the blobs need no such detail.
         blobs: blob config file (``configs/`` name or path).
@@ -214,23 +194,23 @@ class TrackerConfig:
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
         ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
             (:mod:`torchtrack.tracking.ghosts`; 1: off). ``explained`` still counts their full weight.
-            ghost_max_cameras: only for rigs of at most this many cameras: from more, the hull holds few ghosts
-            and the test takes more real voxels (at the seams between blobs) than ghosts. ghost_inside_scale,
-            ghost_cover_scale: its ellipsoid scales (a voxel inside the predicted blobs grown by the first is
-            never a ghost; a ray through them grown by the second is explained). ghost_self_scale: a blob does
-            not explain the rays of voxels inside its own ellipsoid grown by this (0: it does; it acts only
-            above ``ghost_inside_scale``), so that a limb that moved past its prediction, seen from cameras
-            that look down along it, can follow its voxels.
+            ghost_max_cameras: only for rigs of at most this many cameras: from more, the hull holds few ghosts and
+            the test takes more real voxels (at the seams between blobs) than ghosts (docs/results.md, "Tracker
+            settings"). ghost_inside_scale, ghost_cover_scale: its ellipsoid scales (a voxel inside the predicted
+            blobs grown by the first is never a ghost; a ray through them grown by the second is explained).
+            ghost_self_scale: a blob does not explain the rays of voxels inside its own ellipsoid grown by this (0: it
+            does; it acts only above ``ghost_inside_scale``), so that a limb that moved past its prediction, seen from
+            cameras that look down along it, can follow its voxels.
         hold_lost_feet: IK weight of the goals that hold a foot where it was last observed while no view shows
-            it (0: off): the ankle and toe whose goals' confidence falls under ``hold_min_confidence`` and that
-            moved less than ``hold_max_step_m`` between their last two observed frames (a planted foot, not a
-            swinging one: 2 cm a frame is 0.6 m/s at 30 fps; a foot seen again elsewhere after a gap is not
-            held until it is seen still) keep their last observed positions as goals. The residual and the
-            confidences stay the observation's. On the Pose2Sim demo, whose stance leg the background holds,
-            106.6 -> 99.0 mm. The initial pose counts as observed, so a foot it puts wrong that no view shows
-            stays wrong (with ``floor_contact`` the support foot's held goals are then lowered onto the floor).
-            Nothing is held during initialisation's or re-acquisition's search, and after a re-acquisition a
-            remembered foot farther than ``REACQUIRED_FOOT_M`` from the new pose's is let go.
+            it (0: off): the ankle and toe whose goals' confidence falls under ``hold_min_confidence`` and that moved
+            less than ``hold_max_step_m`` between their last two observed frames (a planted foot, not a swinging one:
+            2 cm a frame is 0.6 m/s at 30 fps; a foot seen again elsewhere after a gap is not held until it is seen
+            still) keep their last observed positions as goals. The residual and the confidences stay the
+            observation's. It helps the Pose2Sim demo, whose stance leg the background holds (docs/results.md,
+            "Tracker settings"). The initial pose counts as observed, so a foot it puts wrong that no view shows stays
+            wrong (with ``floor_contact`` the support foot's held goals are then lowered onto the floor). Nothing is
+            held during initialisation's or re-acquisition's search, and after a re-acquisition a remembered foot
+            farther than ``REACQUIRED_FOOT_M`` from the new pose's is let go.
         functional_hips: move the hips, once, to where the thighs pivot (:mod:`torchtrack.tracking.functional`)
             when each thigh's axes have gathered this much information (the sum over frames of its blob's fill
             times sin^2 of the axis' angle off its mean; 0: off). The pelvis' origin rises with the hips (the
@@ -240,8 +220,8 @@ class TrackerConfig:
             not for a given skeleton. The frames tracked before are re-stated in the moved body by
             :func:`~torchtrack.tracking.run.track_sequence` (:meth:`MarkerlessTracker.restate`).
             functional_hips_min_cameras: the thighs' axes are learnt only from rigs of at least this many
-            cameras: the ghost volumes of four views bend the thigh blobs' axes (the kick with 4 cameras put the
-            hips 47-53 mm low where 8 put them 6-9 mm high, README).
+            cameras: the ghost volumes of four views bend the thigh blobs' axes and put the pivots below the
+            fitted hips (docs/results.md, "Tracker settings").
         lost_hand_frames: a hand whose blob has been de-activated (empty, Caillette §4.3) for this many accepted
             frames has lost its arm, which is searched for again: the frame is tracked once more from its solution
             with that arm's five DOFs (``ARM_DOFS``) at rest, hanging beside the body, and once more as it is; the
@@ -250,14 +230,15 @@ class TrackerConfig:
             this many frames on (a hand no view shows costs two more passes per this many frames); a frame with
             nobody and a re-acquisition start the count again (0: off). De-activation alone only waits for the hand
             to fill again where the arm predicts it, which it does not once the arm has drifted off its voxels
-            (README; scripts/eval_tracking.py --blob-activity). Off by default: on the Pose2Sim demo one search
-            kept in the first pass moved the refinement's chain of passes, 60.7 -> 65.6 mm (README).
+            (scripts/eval_tracking.py --blob-activity). Off by default: it helps the 4-camera hull, but on the
+            Pose2Sim demo a search kept in the first pass moved the refinement's later passes for the worse
+            (docs/results.md, "Tracker settings").
         rigid_trunk: fit the root to the trunk goals with the spine straight, and let CCD bend the spine from
             straight (else the root is fitted to the trunk as currently bent). The hips lie on the pelvis' pitch
             axis, so the goals hardly tell a tilted pelvis with the spine and hips bent to make up for it from an
-            upright one; fitted with the current bend, the split drifted (8 cameras, the hull's CMU 131_02:
-            pelvis pitched 40-65 deg, thighs at their extension limit, 53.1 -> 34.9 mm with the straight
-            trunk). The price: a real spine bend is taken by the pelvis and the hips (the landmarks move little).
+            upright one; fitted with the current bend, the split drifted (the pelvis pitched far back, the thighs
+            at their extension limit; docs/results.md, "Tracker settings"). The price: a real spine bend is taken
+            by the pelvis and the hips (the landmarks move little).
     """
 
     em: EMConfig = field(default_factory=EMConfig)
@@ -443,8 +424,8 @@ def with_hips_raised(skeleton: Skeleton, dz_m: float) -> Skeleton:
     ``dz_m`` longer. A state whose root is moved up as much (:meth:`MarkerlessTracker.restate`) puts the trunk,
     arms and head where the body's old state put them, and the knees and feet too where the thighs hang straight.
     The blobs follow the bones: the thigh blobs grow with the thighs, and the pelvis blob, whose extent along the
-    trunk is a share of the pelvis' length (to the spine's joint), shrinks (dz 46 mm: its semi-axis 126 -> 66
-    mm); the pelvis keeps at least a fifth of its length (FUNCTIONAL_HIPS_MAX_M)."""
+    trunk is a share of the pelvis' length (to the spine's joint), shrinks with it; the pelvis keeps at least a
+    fifth of its length (FUNCTIONAL_HIPS_MAX_M)."""
     spine = skeleton.joint_origin(SPINE_JOINT)
     lengths = dict(zip(skeleton.bone_names, skeleton.bone_lengths.tolist()))
     return skeleton.with_joint_origins({SPINE_JOINT: (spine[0], spine[1], spine[2] - dz_m)}).with_bone_lengths(
@@ -640,9 +621,9 @@ class MarkerlessTracker:
             self.angles = self.previous = res.angles
         # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
         # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
-        # undone and ends the fit (a guard against feedback between the fit and the pose: from a start 5 cm too
-        # tall the hull's torso ran from 0.40 to 0.52 m over the rounds on CMU 131_01, against a true 0.25).
-        # Going on past a worse round and keeping the best was measured worse (4 cameras: squat 69 -> 95 mm)
+        # undone and ends the fit (a guard against feedback between the fit and the pose, which let the hull's
+        # torso grow round after round from a start too tall; going on past a worse round and keeping the best
+        # was worse: docs/results.md, "Tried and dropped")
         best_fit = (self._fit_cost(res), self.subject.skeleton, res)
         fit_obs = obs.split(BONE_FIT_VOXEL_M)  # the bone fit's voxels (BONE_FIT_VOXEL_M)
         start_body = self.subject.skeleton  # scaled to the voxels' height: the fit's ridge pulls towards it
@@ -1138,8 +1119,8 @@ class MarkerlessTracker:
         were, which keeps the trunk, arms and head where they were, then CCD (the tracker's) towards the joints
         the body of that version put there but the hips, which bends the longer thighs back towards the knees
         and the feet: exactly where the thigh hangs straight under the hip, off by about dz (1 - cos flexion)
-        otherwise (a longer thigh from a higher hip cannot reach a flexed knee: 14 mm at 1 rad for dz 3 cm, 30 mm
-        at 1.6 rad). A NaN state stays NaN.
+        otherwise (a longer thigh from a higher hip cannot reach a flexed knee: 1.4 cm off at 1 rad for dz 3 cm,
+        3 cm at 1.6 rad). A NaN state stays NaN.
 
         Args:
             angles: (N, D). version: one version, or (N,) per state.

@@ -18,16 +18,10 @@ where the body is in every frame, even when it is imperfect, and that is what ea
 5. of the refined passes, the track that fits its own observation best (``RefineConfig.keep``) is the result.
 
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
-limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them. On the
-Pose2Sim demo (Bayesian grid, 3 cm, from the pose and body fitted to the reference's frame 0) the passes take
-the track from 422.8 mm with 32 lost frames to 69.9 mm with none after four tracks, and to 66.4 mm after seven
-(with the velocity factor 0.5 at the demo's 60 fps; 62.6 mm after eight at the 0.2 the frame rate now gives),
-where it settles (``scripts/eval_pose2sim_tracking.py --init-from-reference``, 2026-11-24; ``min_change_m``); the
-background from the frames the reference keypoints leave free gives 64.9 mm. In a prototype, trusting the grown
-masks as they are oscillated between 160 and 260 mm. Nor did the loop settle on one track with two refinements
-per frame (the tracker's default before 2026-11-25): run on, the demo's passes 7-14 wandered between two tracks
-(59.7-60.7 and 64.3-65.4 mm from the reference), which their mean IK residual told apart (21.60-21.71 against
-22.78-22.89 mm); hence step 5 rather than the last pass.
+limb the track misplaces is still nearer the pixels it covers in the frames the track puts near them; trusting
+the grown masks as they are did not converge. The passes need not settle on one track, so the result is the pass
+that fits its observation best (step 5), not the last (the passes on the Pose2Sim demo: docs/results.md, "The real
+Pose2Sim demo"; the masks trusted: "Tried and dropped").
 
 :func:`background_from_track` does the same re-estimation from a finished track's ``poses.npz``, for observing
 the sequence again with it (``torchtrack observe SEQ --background-from-track OUT/poses.npz``).
@@ -88,20 +82,16 @@ class RefineConfig:
             1-3, with the static-subject fill) instead: a part of the subject that stays in place just outside the
             drawn body (the toes of a stance foot) is otherwise in all of those frames and so in the background (0:
             off). On the Pose2Sim demo's occupancy it brings the stance foot's toes back and grows the volume
-            (README, Observation); between tracking passes it lost (``scripts/eval_pose2sim_tracking.py --refine
-            near_fraction=0.01``, with the velocity factor 0.5 at every rate: 84.1 mm against 66.4), so the tracking
-            config leaves it off.
+            (docs/results.md, "Occupancy"); between tracking passes it made the track worse, so the tracking config
+            leaves it off (docs/results.md, "Tracker settings").
         min_change_m: with ``keep: last``, the passes stop early once a pass's track moved less than this from
             the one before (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then
             the last (0: all ``passes`` are run).
         keep: which pass's track is the result: ``fit``, the refined pass (after the first re-estimation) whose
             track fits its own observation best, the fewest lost frames and then the lowest mean IK residual
             (the goals' distance from the fitted skeleton, ``extra['ik_residual_m']``); ``last``, the last pass.
-            With two refinements per frame (``TrackerConfig.refinements``, the default before 2026-11-25) the
-            passes did not settle on one track: on the Pose2Sim demo, run to 14 passes, they wandered between two
-            states (each pass 3.7-13 mm from the one before, 59.7-65.4 mm from the reference), which the mean IK
-            residual told apart (correlation 0.98 with the error over passes 5-14). With one they settle within a
-            few mm and the residual no longer ranks the settled passes (README, Markerless tracking).
+            ``fit`` because the passes may wander between tracks, which the residual tells apart, rather than
+            settle (docs/results.md, "The real Pose2Sim demo").
         patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best (fewer
             lost frames, or as many and a lower residual), instead of at ``min_change_m``: a pass that moved
             little can still be followed by one that moves on to a better track.
@@ -378,9 +368,9 @@ def track_with_background_refinement(
     the body from that pose). The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
     of ``[start, stop)``, read once (the first background may come from the whole clip). A frame a pass lost
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
-    was measured worse on the Pose2Sim demo (151.2 against 124.8 mm after three passes, before the ghost test:
-    the first pass lost 38 of its 100 frames). Frames never tracked (before the first initialisation) are left
-    out. A first pass that tracks no frame ends the refinement with a warning and its poses.
+    was worse on the Pose2Sim demo (docs/results.md, "Tried and dropped"). Frames never tracked (before the
+    first initialisation) are left out. A first pass that tracks no frame ends the refinement with a warning and
+    its poses.
 
     The result is the track of the pass ``config.keep`` names: the refined pass that fits its observation best
     (``fit``; its number in ``extra['refinement_pass']``, 1 the first pass), or the last one. The logger gets

@@ -126,7 +126,7 @@ def restate(tracker: MarkerlessTracker, angles: np.ndarray, joints3d: np.ndarray
     :meth:`~MarkerlessTracker.restate`), their output points the final body's at the re-stated angles: the trunk,
     arms and head as tracked, the pelvis and hips raised, the knees and feet as the longer thighs reach them
     (where a thigh is flexed, up to dz (1 - cos flexion) from the tracked ones; keeping the tracked knees, ankles
-    and toes instead, which leaves the angles off them, measured the same: 8 cameras, within 0.3 mm either way)."""
+    and toes instead, which leaves the angles off them, measured no better: docs/results.md, "Tried and dropped")."""
     redo = (version < tracker.body_version) & np.isfinite(angles).all(1)
     if tracker.subject is None or not redo.any():
         return

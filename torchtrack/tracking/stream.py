@@ -5,22 +5,18 @@ Tracking a frame is many small tensor operations that one core runs about as fas
 :func:`observe_batches` with ``workers=1`` reads and observes in a spawned worker (a
 :class:`torch.utils.data.DataLoader` over an :class:`~torch.utils.data.IterableDataset`) while the caller tracks
 the frames already observed, each process with its own share of the cores. A thread would not do: the tracker's
-Python holds the GIL between its small operations (a prototype, not kept, gained nothing). The worker is spawned,
-not forked: a child forked from a process whose OpenMP and OpenCV threads have run can deadlock (a forked
-prototype hung in its first pooled observation). Spawning costs the worker's start, about 2-3 s (importing torch);
-sources pickle without their decoders and re-open in the worker.
+Python holds the GIL between its small operations (a threaded version gained nothing; docs/results.md, "Tried and
+dropped"). The worker is spawned, not forked: a child forked from a process whose OpenMP and OpenCV threads have
+run can deadlock. Spawning costs the worker's start, a few seconds (importing torch); sources pickle without
+their decoders and re-open in the worker.
 
 Thread shares (``workers=1``): the caller keeps one intra-op thread for the duration of the iteration, the worker
 gets the other ``n - 1`` of the ``n`` it had (at least one), and OpenCV's own thread pool and FFmpeg's decoder
 threads are limited to one in the worker (``OPENCV_FFMPEG_THREADS``, unless the environment sets it). The
-tracker's small operations gain nothing from more threads, and oversubscribed cores cost more than they give: on
-the 2-core machine a tracker left at two threads next to a busy process ran several times slower, its threads
-waiting for each other (measured once, not by a kept script), and a worker given both threads next to the tracker
-observed a 1.5 cm hull slower than with one. On two cores the stream pays where observing and tracking cost about
-the same and the observation gains little from a second thread (the fast config's 1.5 cm hull, four runs:
-19.9-23.8 -> 27.6-37.0 frames/s); the Bayesian grid at 64^3 over 8 cameras at 640x480, which observes at half the
-speed on one thread, was slower with the worker in one run and faster in another (``scripts/bench_track.py``
-prints both).
+tracker's small operations gain nothing from more threads, and oversubscribed cores cost more than they give (a
+tracker's threads next to a busy process wait for each other). The stream pays where observing and tracking cost
+about the same and the observation gains little from a second thread; where the observation is the larger share
+and scales with threads it may not (``scripts/bench_track.py`` prints both; docs/results.md, "Speed").
 """
 
 from __future__ import annotations
