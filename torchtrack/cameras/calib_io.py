@@ -1,6 +1,6 @@
 """Calibration files: torchtrack's native TOML, and auto-detected imports of other rigs' formats.
 
-Native TOML (the anipose / Pose2Sim layout, see DESIGN.md "On-disk formats"): one table per camera with
+Native TOML (the anipose / Pose2Sim layout, see docs/formats.md): one table per camera with
 ``name``, ``size = [W, H]``, ``matrix`` (3x3 px), ``distortions`` (4 or 5 OpenCV coefficients; fisheye: 4),
 ``rotation`` (Rodrigues vector, world -> camera), ``translation`` and an optional ``fisheye``. A top-level
 table is a camera when it has any of ``matrix``, ``distortions``, ``rotation``, ``translation``; other tables

@@ -17,21 +17,27 @@ from torchtrack.checks import InputError
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Register ``calib`` with its actions ``convert`` and ``show``."""
-    parser = subparsers.add_parser("calib", help="calibration files: convert to native TOML, show",
-                                   description=__doc__.splitlines()[0])
+    parser = subparsers.add_parser("calib", help="calibration files: `calib convert IN OUT`, `calib show FILE`",
+                                   description="Convert calibration files to torchtrack's native TOML (or "
+                                               "EasyMocap YAML), or show one.")
     actions = parser.add_subparsers(dest="calib_action", required=True, metavar="ACTION")
 
     convert = actions.add_parser(
-        "convert", help="convert a calibration (native/anipose/Pose2Sim TOML, caliscope, Qualisys .qca, "
-                        "EasyMocap YAML) to native TOML (OUT.toml) or EasyMocap YAML (OUT folder or OUT/intri.yml)")
-    convert.add_argument("input", type=Path, help="calibration file (or EasyMocap folder)")
-    convert.add_argument("output", type=Path, help="OUT.toml, or a folder / .yml path for EasyMocap YAML")
-    convert.add_argument("--translation-scale", type=float, default=1.0, metavar="S",
-                         help="multiply translations by S, e.g. 0.001 for a rig calibrated in mm (default 1)")
+        "convert", help="convert a calibration file to native TOML or EasyMocap YAML",
+        description="Convert a calibration (native/anipose/Pose2Sim TOML, caliscope, Qualisys .qca, EasyMocap "
+                    "YAML) to native TOML (OUT.toml) or EasyMocap YAML (OUT folder or OUT/intri.yml).")
+    convert.add_argument("input", type=Path, metavar="IN", help="calibration file (or EasyMocap folder)")
+    convert.add_argument("output", type=Path, metavar="OUT",
+                         help="OUT.toml, or a folder / .yml path for EasyMocap YAML")
+    convert.add_argument("--translation-scale", type=float, default=1.0, metavar="FACTOR",
+                         help="multiply translations by FACTOR, e.g. 0.001 for a rig calibrated in mm "
+                              "(default: %(default)s)")
     convert.set_defaults(func=run_convert)
 
-    show = actions.add_parser("show", help="print the cameras: sizes, focal lengths, centres")
-    show.add_argument("file", type=Path, help="calibration file (any supported format)")
+    show = actions.add_parser("show", help="print the cameras: sizes, focal lengths, centres",
+                              description="Print one line per camera: name, model, image size (pixels), focal "
+                                          "lengths and principal point (pixels), centre in world coordinates.")
+    show.add_argument("file", type=Path, metavar="FILE", help="calibration file (any supported format)")
     show.set_defaults(func=run_show)
 
 

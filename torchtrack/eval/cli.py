@@ -11,19 +11,21 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     from torchtrack.conventions import LANDMARKS
     from torchtrack.eval.metrics import DEFAULT_PCK_THRESHOLDS_M
 
-    p = sub.add_parser("eval", help="pose accuracy (MPJPE, PCK, lost frames) of poses.npz against gt.npz",
+    p = sub.add_parser("eval", help="MPJPE, PCK and lost frames of a poses.npz against gt.npz",
                        description="Compare a predicted poses.npz with a reference in the same schema (such as "
                                    "the gt.npz of `torchtrack synth`) on their common frames and print MPJPE per "
                                    "landmark, root-aligned MPJPE, median and worst frame, PCK and lost frames "
                                    "(frames the prediction marks invalid, left out of the errors).")
-    p.add_argument("pred", type=Path, help="predicted poses.npz")
-    p.add_argument("gt", type=Path, help="reference poses (gt.npz)")
+    p.add_argument("pred", type=Path, metavar="PRED", help="predicted poses.npz")
+    p.add_argument("gt", type=Path, metavar="GT", help="reference poses in the same schema (gt.npz)")
     p.add_argument("--pck", type=float, nargs="+", default=list(DEFAULT_PCK_THRESHOLDS_M), metavar="M",
-                   help="PCK thresholds in metres (default: %(default)s)")
+                   help=f"PCK thresholds in metres (default: {' '.join(f'{m:g}' for m in DEFAULT_PCK_THRESHOLDS_M)})")
     p.add_argument("--landmarks", nargs="+", default=None, metavar="NAME",
                    help=f"joints to evaluate (default: the 16 landmarks {', '.join(LANDMARKS)})")
-    p.add_argument("--root", default="pelvis", help="joint subtracted for the root-aligned MPJPE (default: pelvis)")
-    p.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the report as JSON")
+    p.add_argument("--root", default="pelvis", metavar="NAME",
+                   help="joint subtracted for the root-aligned MPJPE (default: %(default)s)")
+    p.add_argument("--json", type=Path, default=None, metavar="FILE",
+                   help="also write the report as JSON to FILE (default: stdout only)")
     p.set_defaults(func=run)
 
 

@@ -1,7 +1,7 @@
 """The real Pose2Sim demo (../shared/data/pose2sim_demo) as a torchtrack sequence folder.
 
 The demo's files are laid out Pose2Sim's way (``videos/cam01.mp4``, a calibration TOML whose cameras are
-``cam_01``..): :func:`pose2sim_sequence` links them into the DESIGN.md layout without copying the videos,
+``cam_01``..): :func:`pose2sim_sequence` links them into the sequence-folder layout (docs/formats.md) without copying the videos,
 and :func:`reference_keypoints` reads Pose2Sim's own 3D keypoints (BODY_25B names, TRC, Y up) in our world,
 raw or filtered.
 """

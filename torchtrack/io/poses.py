@@ -1,4 +1,4 @@
-"""The ``poses.npz`` schema (tracker output, and ``gt.npz`` of synthetic sequences); see DESIGN.md.
+"""The ``poses.npz`` schema (tracker output, and ``gt.npz`` of synthetic sequences); see docs/formats.md.
 
 | key | shape / type | meaning |
 |---|---|---|

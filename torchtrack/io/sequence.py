@@ -1,4 +1,4 @@
-"""Reader for the sequence folder of DESIGN.md ("On-disk formats").
+"""Reader for the sequence folder (docs/formats.md).
 
 ::
 

@@ -17,31 +17,40 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("observe", help="3D occupancy of a sequence folder, logged to TensorBoard",
                        description="Compute per-frame occupancy of a sequence folder and write OUT/occupancy.npz "
                                    "(occupied voxel centres and sizes per frame) and TensorBoard logs in OUT/tb.")
-    p.add_argument("seq", type=Path, help="sequence folder (calibration.toml, video/ or frames/)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--model", choices=("bayes", "hull", "silhouette"), default="bayes")
-    p.add_argument("--voxel", type=float, default=0.02, help="voxel size in metres (the hull's finest level)")
-    p.add_argument("--scale", type=float, default=1.0, help="process the images at this fraction of their size")
-    p.add_argument("--window", type=int, default=1, help="Bayesian grid: k of the k x k sampling window")
-    p.add_argument("--min-views", type=int, default=None, help="cameras that must see a voxel (default: all)")
-    p.add_argument("--start", type=int, default=0)
-    p.add_argument("--stop", type=int, default=None)
-    p.add_argument("--batch", type=int, default=4, help="frames per batch (Bayesian grid, silhouettes)")
-    p.add_argument("--log-every", type=int, default=10, help="log the point cloud and images every N frames (0: never)")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("seq", type=Path, metavar="SEQ", help="sequence folder (calibration.toml, video/ or frames/)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument("--model", choices=("bayes", "hull", "silhouette"), default="bayes",
+                   help="Bayesian occupancy grid, hierarchical colour hull or silhouette carving "
+                        "(default: %(default)s)")
+    p.add_argument("--voxel", type=float, default=0.02, metavar="M",
+                   help="voxel size in metres, the hull's finest level (default: %(default)s)")
+    p.add_argument("--scale", type=float, default=1.0, metavar="F",
+                   help="process the images at this fraction of their size (default: %(default)s)")
+    p.add_argument("--window", type=int, default=1, metavar="K",
+                   help="Bayesian grid: sample a K x K pixel window around each voxel's projection, K odd "
+                        "(default: %(default)s)")
+    p.add_argument("--min-views", type=int, default=None, metavar="N",
+                   help="cameras that must see a voxel (default: all)")
+    p.add_argument("--start", type=int, default=0, metavar="FRAME",
+                   help="first frame to process, a 0-based frame index (default: %(default)s)")
+    p.add_argument("--stop", type=int, default=None, metavar="FRAME",
+                   help="frame index to stop before, exclusive (default: the end of the sequence)")
+    p.add_argument("--batch", type=int, default=4, metavar="N",
+                   help="frames per batch, Bayesian grid and silhouettes (default: %(default)s)")
+    p.add_argument("--log-every", type=int, default=10, metavar="N",
+                   help="log the point cloud and images every N frames (0: never) (default: %(default)s)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu or cuda (default: %(default)s)")
     p.add_argument("--fill-static-subject", action="store_true",
                    help="without background/ frames: paint the parts of the subject that never move out of the "
-                        "estimated background (a subject balancing in place)")
+                        "estimated background, for a subject balancing in place (default: off)")
     p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
-                   help="estimate the background from the frames each pixel is clearest of a tracked body: the "
-                        "poses.npz of a `torchtrack track` run on this sequence (for a sequence without "
-                        "background/ frames whose subject hardly moves; see torchtrack.tracking.refine)")
+                   help="without background/ frames: estimate the background from the frames each pixel is "
+                        "clearest of the body tracked in POSES, the poses.npz of a `torchtrack track` run on SEQ "
+                        "(default: from background/, else estimated from the video)")
     p.add_argument("--near-fraction", type=float, default=0.0, metavar="F",
-                   help="with --background-from-track: pixels with fewer than RefineConfig.clear_frames (10) frames "
-                        "at least F of the image's larger side clear of the tracked body keep the plain estimate "
-                        "(with --fill-static-subject, its fill): parts that stay just outside the drawn body, such "
-                        "as a stance foot's toes, come back, and the volume grows (0: off; "
-                        "RefineConfig.near_fraction)")
+                   help="with --background-from-track: a pixel without enough frames (RefineConfig.clear_frames) "
+                        "at least F of the image's larger side clear of the tracked body keeps the plain estimate, "
+                        "which brings back e.g. a stance foot's toes (0: off) (default: %(default)s)")
     p.set_defaults(func=run)
 
 

@@ -9,30 +9,42 @@ import dataclasses
 def add_parser(sub: argparse._SubParsersAction) -> None:
     from torchtrack.synth.motion import MOTIONS
 
-    p = sub.add_parser("synth", help="render a synthetic multi-camera sequence (video, calibration, ground truth)",
+    p = sub.add_parser("synth", help="render a synthetic multi-camera sequence with ground truth",
                        description="Render a body of ellipsoids moving in a textured room, seen by a ring of "
                                    "cameras, into a sequence folder (calibration.toml, background/, video/, "
                                    "gt.npz, meta.toml).")
-    p.add_argument("--out", required=True, help="sequence folder to write (replaced atomically)")
-    p.add_argument("--motion", default="walk",
-                   help=f"procedural motion ({', '.join(MOTIONS)}) or a .bvh file (default: walk)")
-    p.add_argument("--duration", type=float, default=3.0, help="seconds of motion after the starfish start")
-    p.add_argument("--starfish", type=float, default=1.0, help="seconds of starfish pose at the start")
-    p.add_argument("--fps", type=float, default=30.0)
-    p.add_argument("--height", type=float, default=1.75, help="subject height in metres (procedural motions)")
-    p.add_argument("--cameras", type=int, default=8, help="number of cameras on the ring")
-    p.add_argument("--size", default="640x480", help="image size WxH")
-    p.add_argument("--radius", type=float, default=3.5, help="camera ring radius in metres")
-    p.add_argument("--background-frames", type=int, default=20)
-    p.add_argument("--format", choices=("mp4", "png"), default="mp4", help="video files or PNG frames")
-    p.add_argument("--noise", type=float, default=2.0, help="sensor noise std in 8-bit levels")
-    p.add_argument("--illumination-change", type=float, default=0.0,
-                   help="amplitude of a smooth global gain change over the sequence (0 = off, e.g. 0.25)")
-    p.add_argument("--shadow", action="store_true", help="soft shadow of the body on the floor")
+    p.add_argument("--out", required=True, metavar="DIR", help="sequence folder to write (replaced atomically)")
+    p.add_argument("--motion", default="walk", metavar="MOTION",
+                   help=f"procedural motion ({', '.join(MOTIONS)}) or a .bvh file (default: %(default)s)")
+    p.add_argument("--duration", type=float, default=3.0, metavar="SEC",
+                   help="seconds of motion after the starfish start (default: %(default)s)")
+    p.add_argument("--starfish", type=float, default=1.0, metavar="SEC",
+                   help="seconds of starfish pose at the start (default: %(default)s)")
+    p.add_argument("--fps", type=float, default=30.0, metavar="HZ",
+                   help="frame rate in frames per second; a .bvh file is resampled to it (default: %(default)s)")
+    p.add_argument("--height", type=float, default=1.75, metavar="M",
+                   help="subject height in metres, procedural motions (a .bvh: its own) (default: %(default)s)")
+    p.add_argument("--cameras", type=int, default=8, metavar="N",
+                   help="number of cameras on the ring (default: %(default)s)")
+    p.add_argument("--size", default="640x480", metavar="WxH",
+                   help="image size in pixels, width x height (default: %(default)s)")
+    p.add_argument("--radius", type=float, default=3.5, metavar="M",
+                   help="camera ring radius in metres (default: %(default)s)")
+    p.add_argument("--background-frames", type=int, default=20, metavar="N",
+                   help="frames of the empty room written to background/ (default: %(default)s)")
+    p.add_argument("--format", choices=("mp4", "png"), default="mp4",
+                   help="mp4 video files or PNG frames (default: %(default)s)")
+    p.add_argument("--noise", type=float, default=2.0, metavar="LEVELS",
+                   help="sensor noise standard deviation in 8-bit grey levels (default: %(default)s)")
+    p.add_argument("--illumination-change", type=float, default=0.0, metavar="A",
+                   help="amplitude A of a global gain 1 + A sin(2 pi t / T) over the sequence, a fraction "
+                        "(e.g. 0.25; 0: off) (default: %(default)s)")
+    p.add_argument("--shadow", action="store_true", help="soft shadow of the body on the floor (default: off)")
     p.add_argument("--distractor", action="store_true",
-                   help="a static object absent from the background frames, seen by some views")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+                   help="a static box absent from the background frames, seen by some views (default: off)")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="seed of the sensor noise and the room textures (default: %(default)s)")
+    p.add_argument("--device", default="cpu", help="torch device to render on: cpu or cuda (default: %(default)s)")
     p.add_argument("--reuse", action="store_true",
                    help="keep OUT as it is when it already holds this sequence: rendered with these settings and "
                         "today's configs/body.urdf and blobs.yaml (meta.toml's [synth] table); render it otherwise")

@@ -1,4 +1,4 @@
-"""Write complete synthetic sequence folders (DESIGN.md format) from a motion.
+"""Write complete synthetic sequence folders (docs/formats.md) from a motion.
 
 A sequence: a ring rig (``calibration.toml``), empty-scene ``background/`` frames, the rendered
 ``video/<cam>.mp4`` (or PNG frames), ground truth ``gt.npz`` in the poses schema (landmarks and all 22

@@ -13,55 +13,91 @@ log = logging.getLogger(__name__)
 DEFAULT_CONFIG = "markerless.yaml"
 
 
+def _shipped_config() -> dict[str, Any] | None:
+    """The built-in ``configs/markerless.yaml`` (not one of that name in the working directory), for the
+    defaults the help quotes; None where it cannot be read (the help then names the settings only)."""
+    from torchtrack.resources import builtin_config
+
+    try:
+        return load_config(str(builtin_config(DEFAULT_CONFIG)))
+    except Exception:  # noqa: BLE001 - the help must build whatever the config's state
+        return None
+
+
+def _config_default(cfg: dict[str, Any] | None, key: str) -> str:
+    """The help's note on an option that overrides the config's ``SECTION.NAME`` ``key``: "default from
+    --config: KEY, VALUE in markerless.yaml" (VALUE in YAML spelling), read from the shipped config."""
+    section, name = key.split(".")
+    value = (cfg or {}).get(section, {}).get(name)
+    if value is None:
+        return f"default from --config: {key}"
+    text = ("true" if value else "false") if isinstance(value, bool) else (
+        f"{value:g}" if isinstance(value, float) else str(value))
+    return f"default from --config: {key}, {text} in {DEFAULT_CONFIG}".replace("%", "%%")
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    cfg = _shipped_config()
+
+    def conf(key: str) -> str:
+        return _config_default(cfg, key)
+
     p = sub.add_parser(
         "track", help="markerless 3D body tracking of a sequence folder",
         description="Track the body through a sequence folder from its occupancy (Bayesian grid or colour hull), "
                     "with blobs fitted by EM, joint goals and CCD inverse kinematics. Writes OUT/poses.npz "
-                    "(DESIGN.md schema) and TensorBoard logs in OUT/tb. The sequence should start with the "
-                    "subject in the starfish pose, or give --init-pose.")
-    p.add_argument("seq", type=Path, help="sequence folder (calibration.toml, video/ or frames/, background/)")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
-    p.add_argument("--config", default=DEFAULT_CONFIG, help="tracking config (a configs/ name or a path)")
-    p.add_argument("--model", choices=("bayes", "hull"), default=None, help="observation model (overrides config)")
-    p.add_argument("--voxel", type=float, default=None, help="voxel size in metres (overrides config)")
-    p.add_argument("--scale", type=float, default=None, help="image scale (overrides config)")
-    p.add_argument("--init-pose", type=Path, default=None,
-                   help="poses.npz whose first valid frame is the initial pose (instead of the starfish start), "
-                        "with its subject's body where the file has one (body_urdf: an earlier run's output, or "
-                        "torchtrack.tracking.landmark_fit.initial_pose from 3D keypoints)")
-    p.add_argument("--height", type=float, default=None,
-                   help="subject height in metres with --init-pose: the body model scaled to it instead of the "
-                        "file's body (default: the file's body, else its height, else meta.toml's)")
-    p.add_argument("--start", type=int, default=0)
-    p.add_argument("--stop", type=int, default=None)
-    p.add_argument("--batch", type=int, default=4, help="frames read and observed per batch")
-    p.add_argument("--log-every", type=int, default=10, help="log images and the 3D view every N frames (0: never)")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+                    "(docs/formats.md) and TensorBoard logs in OUT/tb. The sequence should start with the "
+                    "subject in the starfish pose, or give --init-pose. Options marked 'default from --config' "
+                    "override that setting of the tracking config.")
+    p.add_argument("seq", type=Path, metavar="SEQ",
+                   help="sequence folder (calibration.toml, video/ or frames/, background/)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="FILE",
+                   help="tracking config: a configs/ name or a YAML path (default: %(default)s)")
+    p.add_argument("--model", choices=("bayes", "hull"), default=None,
+                   help=f"observation model: Bayesian occupancy grid or colour hull ({conf('observation.model')})")
+    p.add_argument("--voxel", type=float, default=None, metavar="M",
+                   help=f"voxel size in metres, the hull's finest level ({conf('observation.voxel_m')})")
+    p.add_argument("--scale", type=float, default=None, metavar="F",
+                   help=f"process the images at this fraction of their size, in [0.05, 1] "
+                        f"({conf('observation.scale')})")
+    p.add_argument("--init-pose", type=Path, default=None, metavar="POSES",
+                   help="poses.npz whose first valid frame is the initial pose (an earlier run's, or `torchtrack "
+                        "init-pose`'s), with its body where the file has one (default: the starfish start)")
+    p.add_argument("--height", type=float, default=None, metavar="M",
+                   help="with --init-pose: subject height in metres, the body model scaled to it instead of the "
+                        "file's body (default: the file's body, else its height, else meta.toml's, else 1.75)")
+    p.add_argument("--start", type=int, default=0, metavar="FRAME",
+                   help="first frame to track, a 0-based frame index (default: %(default)s)")
+    p.add_argument("--stop", type=int, default=None, metavar="FRAME",
+                   help="frame index to stop before, exclusive (default: the end of the sequence)")
+    p.add_argument("--batch", type=int, default=4, metavar="N",
+                   help="frames read and observed per batch (default: %(default)s)")
+    p.add_argument("--log-every", type=int, default=10, metavar="N",
+                   help="log images and the 3D view every N frames (0: never) (default: %(default)s)")
+    p.add_argument("--device", default="cpu", help="torch device: cpu or cuda (default: %(default)s)")
     p.add_argument("--workers", type=int, choices=(0, 1), default=None,
-                   help="1: read and observe frames in a worker process ahead of the tracker (CPU); 0: in this "
-                        "process (overrides the config's observation.workers)")
+                   help=f"1: read and observe frames in a worker process ahead of the tracker (CPU); 0: in this "
+                        f"process ({conf('observation.workers')})")
     p.add_argument("--fill-static-subject", action="store_true", default=None,
-                   help="without background/ frames: paint the parts of the subject that never move out of the "
-                        "estimated background (a subject balancing in place; overrides config)")
-    p.add_argument("--refine-passes", type=int, default=None,
-                   help="without background/ frames: re-estimate the background from the track and track again, "
-                        "at most this many times; with background_refinement.keep: fit (the default) the refined "
-                        "pass whose track fits its observation best is kept (fewest lost frames, then lowest mean "
-                        "IK residual; stopping background_refinement.patience passes after it); overrides the "
-                        "config's background_refinement.passes; 0: off)")
-    p.add_argument("--refit-passes", type=int, default=None,
-                   help="refit the body on several tracked frames at once and track again, at most this many "
-                        "times, keeping each pass whose track fits the blobs better (lower mean IK residual; "
-                        "overrides the config's body_refit.passes, also for a body given with --init-pose, which "
-                        "is otherwise refitted only with body_refit.given_body; 0: off)")
+                   help=f"without background/ frames: paint the parts of the subject that never move out of the "
+                        f"estimated background, for a subject balancing in place "
+                        f"({conf('observation.fill_static_subject')})")
+    p.add_argument("--refine-passes", type=int, default=None, metavar="N",
+                   help=f"without background/ frames: re-estimate the background from the track and track again, "
+                        f"at most N times, background_refinement.keep choosing the result (0: off; "
+                        f"{conf('background_refinement.passes')})")
+    p.add_argument("--refit-passes", type=int, default=None, metavar="N",
+                   help=f"refit the body on several tracked frames and track again, at most N times, each pass "
+                        f"kept while it fits better; also refits a body given by --init-pose (0: off; "
+                        f"{conf('body_refit.passes')})")
     p.add_argument("--smooth-hz", type=float, default=None, metavar="HZ",
-                   help="low-pass filter the finished track's joint angles in time at this cut-off (zero-phase "
-                        "Butterworth; overrides the config's smoothing.cutoff_hz, 6 Hz by default; 0: off)")
+                   help=f"low-pass cut-off in Hz for the finished track's joint angles, zero-phase Butterworth "
+                        f"(0: off; {conf('smoothing.cutoff_hz')})")
     p.add_argument("--background-from-track", type=Path, default=None, metavar="POSES",
-                   help="start from the background re-estimated from an earlier track of this sequence (its "
-                        "poses.npz; with --init-pose of the same file and --refine-passes 0, nearly one more "
-                        "refinement pass of that run: it starts from that track's first frame)")
+                   help="start from the background re-estimated from an earlier track of SEQ, its poses.npz (with "
+                        "--init-pose POSES and --refine-passes 0: about one more refinement pass of that run) "
+                        "(default: from background/, else estimated from the video)")
     p.set_defaults(func=run)
 
 

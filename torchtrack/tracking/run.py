@@ -40,7 +40,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
             :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
 
     Returns:
-        the poses (DESIGN.md schema; ``extra`` holds ``subject_height_m``, ``observation_model``,
+        the poses (docs/formats.md; ``extra`` holds ``subject_height_m``, ``observation_model``,
         ``ik_residual_m``, ``explained``, ``reinitialised``, and ``body_urdf``, the subject's fitted body as URDF text,
         once initialised) and the seconds taken.
     """

@@ -1,0 +1,103 @@
+"""``torchtrack init-pose``: the start pose and body for ``torchtrack track --init-pose``, from 3D keypoints.
+
+    torchtrack init-pose KEYPOINTS.trc --out START.npz [--frame N] [--up y|z] [--scale-only]
+
+A recording that does not start in the starfish pose needs its first frame's pose. Another system's 3D
+keypoints of that frame (Pose2Sim's triangulation, joint centres from markers) give it: the pose and the
+subject's bone lengths are fitted to them (:func:`~torchtrack.tracking.landmark_fit.fit_to_landmarks`) and
+written as a one-frame ``poses.npz`` that carries the fitted body.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "init-pose", help="fit a start pose and body to 3D keypoints (for --init-pose)",
+        description="Fit the skeleton's pose and bone lengths to the 3D keypoints of one frame of a TRC file and "
+                    "write them as a one-frame poses.npz for `torchtrack track --init-pose`. Keypoint names: "
+                    "OpenPose BODY_25 / BODY_25B as Pose2Sim writes them (RHip, LKnee, Neck, Head, ...) or "
+                    "torchtrack's joint names (pelvis, l_knee, ...); at least 3 trunk points (hips, pelvis, "
+                    "shoulders) are needed.")
+    p.add_argument("keypoints", type=Path, metavar="TRC", help="TRC file of 3D keypoints (metres, mm or cm)")
+    p.add_argument("--out", type=Path, required=True, metavar="FILE",
+                   help="poses.npz to write: the fitted pose as one frame, with the fitted body (required)")
+    p.add_argument("--frame", type=int, default=0, metavar="N",
+                   help="row of the TRC to fit, 0-based: the sequence's first tracked frame (default: 0)")
+    p.add_argument("--up", choices=("y", "z"), default="y",
+                   help="the TRC's vertical axis: y for OpenSim / Pose2Sim files, z for a Z-up world "
+                        "(default: y)")
+    p.add_argument("--scale-only", action="store_true",
+                   help="scale the template body to the keypoints' height instead of fitting each bone's length "
+                        "(default: off, the lengths are fitted)")
+    p.set_defaults(func=run)
+
+
+def keypoint_landmarks(names: list[str], points: np.ndarray, known: list[str]) -> tuple[list[str], np.ndarray]:
+    """Keypoints ``points (..., M, 3)`` named ``names`` as the skeleton's output points: BODY_25(B) names through
+    :data:`torchtrack.io.pose2sim.LANDMARK_MAP` (a point made of several keypoints needs all of them), names in
+    ``known`` (``Skeleton.output_names``) as they are, a subject prefix such as ``Male:`` ignored. Returns the
+    output names found and ``(..., L, 3)``."""
+    from torchtrack.io.pose2sim import LANDMARK_MAP
+
+    bare = [n.split(":")[-1] for n in names]
+    out_names, cols = [], []
+    for i, n in enumerate(bare):
+        if n in known and n not in out_names:
+            out_names.append(n)
+            cols.append(points[..., i, :])
+    for ours, sources in LANDMARK_MAP.items():
+        if ours not in out_names and all(s in bare for s in sources):
+            out_names.append(ours)
+            cols.append(np.mean([points[..., bare.index(s), :] for s in sources], axis=0))
+    return out_names, (np.stack(cols, axis=-2) if cols else points[..., :0, :])
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from torchtrack.checks import InputError
+    from torchtrack.io.poses import save_poses
+    from torchtrack.io.trc import read_trc, y_up_to_world
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.tracking.landmark_fit import check_trunk_points, fit_to_landmarks, initial_pose
+
+    trc = read_trc(args.keypoints)
+    xyz = trc.positions_m()
+    if not 0 <= args.frame < xyz.shape[0]:
+        raise InputError(f"{args.keypoints}: --frame {args.frame} is out of range (the file has {xyz.shape[0]} rows)")
+    xyz = y_up_to_world(xyz[args.frame]) if args.up == "y" else xyz[args.frame]
+    generic = Skeleton.from_urdf()
+    names, points = keypoint_landmarks(trc.marker_names, xyz, list(generic.output_names))
+    finite = np.isfinite(points).all(-1)
+    names, points = [n for n, ok in zip(names, finite) if ok], points[finite]
+    if len(names) < 4:
+        raise InputError(f"{args.keypoints}: frame {args.frame} has {len(names)} usable keypoints ({names}); "
+                         "expected OpenPose BODY_25/BODY_25B names (RHip, LHip, Neck, RShoulder, ...) or "
+                         f"torchtrack's ({', '.join(generic.output_names)})")
+    try:
+        check_trunk_points(names, torch.as_tensor(points)[None])
+    except InputError:
+        raise InputError(f"{args.keypoints}: frame {args.frame} has fewer than 3 keypoints on the trunk (hips, "
+                         f"shoulders, pelvis) to place the body; found {names}") from None
+    try:
+        with torch.no_grad():
+            angles, body = fit_to_landmarks(generic, names, points, fit_bones=not args.scale_only)
+    except InputError as exc:
+        raise InputError(f"{args.keypoints}, frame {args.frame}: {exc}") from None
+    with torch.no_grad():
+        fitted = body.forward(angles[None]).output_points[0].cpu().numpy()
+    idx = [list(body.output_names).index(n) for n in names]
+    error_mm = 1e3 * np.linalg.norm(fitted[idx] - points, axis=-1)
+    save_poses(initial_pose(body, angles, fps=trc.rate_hz), args.out)
+    print(f"wrote {args.out}: {len(names)} keypoints fitted ({', '.join(names)}), a {body.height():.2f} m body, "
+          f"{error_mm.mean():.1f} mm from the keypoints on average (worst {names[int(error_mm.argmax())]}, "
+          f"{error_mm.max():.1f} mm)")
+    if error_mm.mean() > 30.0:  # a fit this far off is a wrong --up axis, wrong names or units
+        print(f"warning: the fit is far from the keypoints; check --up ({args.up}), the names and the units")
+    return 0
