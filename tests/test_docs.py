@@ -7,6 +7,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +94,26 @@ def test_readme_is_a_short_guide_with_its_sections():
         assert (REPO / link).exists(), f"README.md links to {link}, which does not exist"
 
 
+def test_every_option_the_readme_names_exists():
+    """Options written in the README's prose (`--device cuda`, `--translation-scale 0.001`, ...) are options of
+    the CLI (or of scripts/demo.sh, which passes its own on to `torchtrack track`)."""
+    import argparse
+
+    from torchtrack.cli import build_parser
+
+    known, parsers = set(), [build_parser()]
+    while parsers:
+        p = parsers.pop()
+        for action in p._actions:
+            known.update(action.option_strings)
+            if isinstance(action, argparse._SubParsersAction):
+                parsers.extend(action.choices.values())
+    text = "\n".join(ln for ln in README.read_text(encoding="utf-8").splitlines() if "bin/tensorboard" not in ln)
+    named = set(re.findall(r"(?<![\w-])(--[a-z][a-z0-9-]*)", text))
+    assert named, "no option found in README.md"
+    assert named <= known, f"README.md names options no command has: {sorted(named - known)}"
+
+
 @pytest.mark.slow
 def test_readme_demo_commands_run_as_printed(demo_run):
     from torchtrack.io.poses import load_poses
@@ -119,6 +140,7 @@ def test_readme_evaluation_and_python_sections_run(demo_run):
     (python,) = code_blocks(readme_section("Call it from Python"), "python")
     script = python.replace('"out/', f'"{demo_run}/').replace("track_sequence(folder, observer, tracker)",
                                                                "track_sequence(folder, observer, tracker, stop=4)")
+    assert "stop=4" in script and str(demo_run) in script
     res = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=1200)
     assert res.returncode == 0, res.stderr[-3000:]
     from torchtrack.io.poses import load_poses
@@ -182,6 +204,7 @@ def test_formats_document_lists_every_key_written(demo_run, tmp_path):
     occ = _keys(tmp_path / "obs" / "occupancy.npz")
     occ_doc = documented_keys("`occupancy.npz`")
     assert occ <= occ_doc, f"occupancy.npz keys missing from docs/formats.md: {occ - occ_doc}"
-    meta = (demo_run / "demo" / "seq" / "meta.toml").read_text()
-    for key in re.findall(r"^(\w+) =", meta, flags=re.M):
+    meta = tomllib.loads((demo_run / "demo" / "seq" / "meta.toml").read_text())
+    for key, value in meta.items():  # top-level keys and tables
+        key = f"[{key}]" if isinstance(value, dict) else key
         assert key in documented_keys("Sequence folder"), f"meta.toml key {key} missing from docs/formats.md"

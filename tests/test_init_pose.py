@@ -85,7 +85,7 @@ def test_init_pose_errors_name_the_file(tmp_path, walk, subject, capsys):
     write_trc(trc, arms, points[:, [out.index(BODY25B[n]) for n in arms]])
     assert main(["init-pose", str(trc), "--out", str(tmp_path / "s.npz")]) == 2
     err = capsys.readouterr().err
-    assert str(trc) in err and "keypoints" in err
+    assert str(trc) in err and "lacks the hips or a shoulder" in err
     assert not (tmp_path / "s.npz").exists()
     names = list(BODY25B)
     write_trc(trc, names, points[:, [out.index(BODY25B[n]) for n in names]])
@@ -93,6 +93,30 @@ def test_init_pose_errors_name_the_file(tmp_path, walk, subject, capsys):
     assert "--frame 6 is out of range (the file has 6 rows)" in capsys.readouterr().err
     assert main(["init-pose", str(tmp_path / "missing.trc"), "--out", str(tmp_path / "s.npz")]) == 2
     assert "missing.trc" in capsys.readouterr().err
+    hips = ["RHip", "LHip", "RKnee", "LKnee"]  # the hips and their mean lie on one line: no rotation about it
+    write_trc(trc, hips, points[:, [out.index(BODY25B[n]) for n in hips]])
+    assert main(["init-pose", str(trc), "--out", str(tmp_path / "s.npz")]) == 2
+    assert "lacks the hips or a shoulder" in capsys.readouterr().err
+    assert not (tmp_path / "s.npz").exists()
+
+
+def test_init_pose_leaves_out_missing_keypoints_and_scales_only_when_asked(tmp_path, subject, walk, capsys):
+    _, points = walk
+    out = list(subject.output_names)
+    names = list(BODY25B)
+    xyz = points[:, [out.index(BODY25B[n]) for n in names]].copy()
+    xyz[0, names.index("LWrist")] = np.nan  # an empty TRC cell
+    trc = tmp_path / "gap.trc"
+    write_trc(trc, names, xyz)
+    assert main(["init-pose", str(trc), "--out", str(tmp_path / "s.npz"), "--scale-only"]) == 0
+    report = capsys.readouterr().out
+    assert "14 keypoints fitted" in report and "l_wrist" not in report and "warning" not in report
+    start = load_poses(tmp_path / "s.npz")
+    assert np.isfinite(start.angles).all()
+    # one scale for the whole template: its proportions, not the subject's (shanks 1.1x, torso 0.9x)
+    body, template = Skeleton(str(start.extra["body_urdf"])), Skeleton.from_urdf()
+    ratio = (body.bone_lengths / template.bone_lengths).numpy()
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-4)
 
 
 def test_init_pose_on_the_pose2sim_demo(tmp_path, capsys):
@@ -101,5 +125,13 @@ def test_init_pose_on_the_pose2sim_demo(tmp_path, capsys):
     report = capsys.readouterr().out
     mean_mm = float(report.split(" mm from the keypoints")[0].rsplit(" ", 1)[1])
     assert mean_mm < 15.0, report  # a body of our skeleton fits another system's 15 points of a real person
+    assert "warning" not in report
     start = load_poses(tmp_path / "start.npz")
     assert 1.6 < float(start.extra["subject_height_m"]) < 1.9
+    # upright in the Z-up world, standing on the floor (the TRC is Y up: its hips are 0.90 m high)
+    p = dict(zip(start.joint_names, start.joints3d[0]))
+    assert 0.8 < p["pelvis"][2] < 1.0
+    assert p["head_top"][2] > p["pelvis"][2] + 0.4 and p["pelvis"][2] > p["l_ankle"][2] + 0.4
+    # read as Z up, the same file puts the subject on its side: the CLI says so
+    assert main(["init-pose", str(trc), "--out", str(tmp_path / "wrong.npz"), "--up", "z"]) == 0
+    assert "check --up (z)" in capsys.readouterr().out

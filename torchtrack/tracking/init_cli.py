@@ -21,9 +21,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "init-pose", help="fit a start pose and body to 3D keypoints (for --init-pose)",
         description="Fit the skeleton's pose and bone lengths to the 3D keypoints of one frame of a TRC file and "
                     "write them as a one-frame poses.npz for `torchtrack track --init-pose`. Keypoint names: "
-                    "OpenPose BODY_25 / BODY_25B as Pose2Sim writes them (RHip, LKnee, Neck, Head, ...) or "
-                    "torchtrack's joint names (pelvis, l_knee, ...); at least 3 trunk points (hips, pelvis, "
-                    "shoulders) are needed.")
+                    "BODY_25B as Pose2Sim writes them (RHip, LKnee, Neck, Head, ...) or torchtrack's joint "
+                    "names (pelvis, l_knee, ...); the hips and at least one shoulder are needed.")
     p.add_argument("keypoints", type=Path, metavar="TRC", help="TRC file of 3D keypoints (metres, mm or cm)")
     p.add_argument("--out", type=Path, required=True, metavar="FILE",
                    help="poses.npz to write: the fitted pose as one frame, with the fitted body (required)")
@@ -39,7 +38,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def keypoint_landmarks(names: list[str], points: np.ndarray, known: list[str]) -> tuple[list[str], np.ndarray]:
-    """Keypoints ``points (..., M, 3)`` named ``names`` as the skeleton's output points: BODY_25(B) names through
+    """Keypoints ``points (..., M, 3)`` named ``names`` as the skeleton's output points: BODY_25B names through
     :data:`torchtrack.io.pose2sim.LANDMARK_MAP` (a point made of several keypoints needs all of them), names in
     ``known`` (``Skeleton.output_names``) as they are, a subject prefix such as ``Male:`` ignored. Returns the
     output names found and ``(..., L, 3)``."""
@@ -65,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.io.poses import save_poses
     from torchtrack.io.trc import read_trc, y_up_to_world
     from torchtrack.skeleton import Skeleton
-    from torchtrack.tracking.landmark_fit import check_trunk_points, fit_to_landmarks, initial_pose
+    from torchtrack.tracking.landmark_fit import fit_to_landmarks, initial_pose
 
     trc = read_trc(args.keypoints)
     xyz = trc.positions_m()
@@ -76,15 +75,11 @@ def run(args: argparse.Namespace) -> int:
     names, points = keypoint_landmarks(trc.marker_names, xyz, list(generic.output_names))
     finite = np.isfinite(points).all(-1)
     names, points = [n for n, ok in zip(names, finite) if ok], points[finite]
-    if len(names) < 4:
-        raise InputError(f"{args.keypoints}: frame {args.frame} has {len(names)} usable keypoints ({names}); "
-                         "expected OpenPose BODY_25/BODY_25B names (RHip, LHip, Neck, RShoulder, ...) or "
-                         f"torchtrack's ({', '.join(generic.output_names)})")
-    try:
-        check_trunk_points(names, torch.as_tensor(points)[None])
-    except InputError:
-        raise InputError(f"{args.keypoints}: frame {args.frame} has fewer than 3 keypoints on the trunk (hips, "
-                         f"shoulders, pelvis) to place the body; found {names}") from None
+    # The root's rotation needs trunk points off the hips' line (a pelvis made of the hips' mean is on it).
+    if not ({"l_hip", "r_hip"} <= set(names) and {"l_shoulder", "r_shoulder"} & set(names)):
+        raise InputError(f"{args.keypoints}: frame {args.frame} lacks the hips or a shoulder, which place the body; "
+                         f"usable keypoints: {names or 'none'} (expected Pose2Sim's BODY_25B names: RHip, LHip, "
+                         "RShoulder, ..., or torchtrack's: r_hip, l_hip, r_shoulder, ...)")
     try:
         with torch.no_grad():
             angles, body = fit_to_landmarks(generic, names, points, fit_bones=not args.scale_only)
@@ -100,4 +95,8 @@ def run(args: argparse.Namespace) -> int:
           f"{error_mm.max():.1f} mm)")
     if error_mm.mean() > 30.0:  # a fit this far off is a wrong --up axis, wrong names or units
         print(f"warning: the fit is far from the keypoints; check --up ({args.up}), the names and the units")
+    up = {n: p[2] for n, p in zip(names, points)}
+    shoulders = np.mean([up[n] for n in ("l_shoulder", "r_shoulder") if n in up])
+    if shoulders - 0.5 * (up["l_hip"] + up["r_hip"]) < 0.2:  # a start is upright: Z up in the world
+        print(f"warning: the shoulders are not above the hips in the world (Z up); check --up ({args.up})")
     return 0
