@@ -157,6 +157,16 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
                  confidence=np.ones((T, len(joint_names)), np.float32))
 
 
+def score(path: Path, demo: Path) -> None:
+    """Print the MPJPE of a poses.npz of the demo against Pose2Sim's raw and filtered keypoints."""
+    poses = load_poses(path)
+    for filtered in (False, True):
+        names, ref = reference_landmarks(demo, filtered=filtered)
+        r = evaluate(poses, reference_poses(names, ref, poses.fps, poses.joint_names), landmarks=names)
+        print(f"{path} against Pose2Sim's {'filtered' if filtered else 'raw'} keypoints: MPJPE {r.mpjpe_mm:.1f} mm, "
+              f"{int((~poses.valid).sum())} of {poses.num_frames} frames invalid")
+
+
 def reference_fit(demo: Path, fit_bones: bool) -> None:
     """``--reference-fit``: how close our skeleton can come to the reference at all. The body the reference start
     uses (fitted to frame 0's points, :func:`fit_to_landmarks`), posed on every reference frame at once
@@ -342,6 +352,9 @@ def main() -> None:
                          "the reference's hips), where the reference's Neck sits against its shoulders, and the error "
                          "left after aligning each frame rigidly, as one body and as upper and lower body apart, "
                          "and how much more the track bends the knees")
+    ap.add_argument("--score", type=Path, default=None, metavar="POSES",
+                    help="only score POSES, a poses.npz of the demo (e.g. `torchtrack track`'s output of the "
+                         "README's worked example), against the raw and the filtered reference, and exit")
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the kept track's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
@@ -378,6 +391,9 @@ def main() -> None:
     config = load_config("markerless.yaml")
     if args.reference_fit:
         reference_fit(args.demo, not args.scale_only)
+        return
+    if args.score is not None:
+        score(args.score, args.demo)
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))

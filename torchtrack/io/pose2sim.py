@@ -59,9 +59,26 @@ def reference_keypoints(demo: str | Path, filtered: bool = False) -> tuple[list[
     return trc.marker_names, y_up_to_world(trc.positions_m())
 
 
+def landmarks_from_keypoints(names: list[str], points: np.ndarray, known: tuple[str, ...] = ()
+                             ) -> tuple[list[str], np.ndarray]:
+    """Keypoints ``points (..., M, 3)`` named ``names`` as our output points: names in ``known`` (e.g.
+    ``Skeleton.output_names``) as they are, BODY_25B names through :data:`LANDMARK_MAP` (a point made of several
+    keypoints needs all of them); a subject prefix such as ``Male:`` is ignored. Returns the output names found
+    (L,) and ``(..., L, 3)``."""
+    bare = [n.split(":")[-1] for n in names]
+    out_names, cols = [], []
+    for i, n in enumerate(bare):
+        if n in known and n not in out_names:
+            out_names.append(n)
+            cols.append(points[..., i, :])
+    for ours, sources in LANDMARK_MAP.items():
+        if ours not in out_names and all(s in bare for s in sources):
+            out_names.append(ours)
+            cols.append(np.mean([points[..., bare.index(s), :] for s in sources], axis=0))
+    return out_names, (np.stack(cols, axis=-2) if cols else points[..., :0, :])
+
+
 def reference_landmarks(demo: str | Path, filtered: bool = False) -> tuple[list[str], np.ndarray]:
     """The reference (:func:`reference_keypoints`) mapped onto our output points (:data:`LANDMARK_MAP`): names (L,),
     (T, L, 3)."""
-    names, pts = reference_keypoints(demo, filtered)
-    out = [pts[:, [names.index(s) for s in src]].mean(axis=1) for src in LANDMARK_MAP.values()]
-    return list(LANDMARK_MAP), np.stack(out, axis=1)
+    return landmarks_from_keypoints(*reference_keypoints(demo, filtered))

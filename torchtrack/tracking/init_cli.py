@@ -37,30 +37,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def keypoint_landmarks(names: list[str], points: np.ndarray, known: list[str]) -> tuple[list[str], np.ndarray]:
-    """Keypoints ``points (..., M, 3)`` named ``names`` as the skeleton's output points: BODY_25B names through
-    :data:`torchtrack.io.pose2sim.LANDMARK_MAP` (a point made of several keypoints needs all of them), names in
-    ``known`` (``Skeleton.output_names``) as they are, a subject prefix such as ``Male:`` ignored. Returns the
-    output names found and ``(..., L, 3)``."""
-    from torchtrack.io.pose2sim import LANDMARK_MAP
-
-    bare = [n.split(":")[-1] for n in names]
-    out_names, cols = [], []
-    for i, n in enumerate(bare):
-        if n in known and n not in out_names:
-            out_names.append(n)
-            cols.append(points[..., i, :])
-    for ours, sources in LANDMARK_MAP.items():
-        if ours not in out_names and all(s in bare for s in sources):
-            out_names.append(ours)
-            cols.append(np.mean([points[..., bare.index(s), :] for s in sources], axis=0))
-    return out_names, (np.stack(cols, axis=-2) if cols else points[..., :0, :])
-
-
 def run(args: argparse.Namespace) -> int:
     import torch
 
     from torchtrack.checks import InputError
+    from torchtrack.io.pose2sim import landmarks_from_keypoints
     from torchtrack.io.poses import save_poses
     from torchtrack.io.trc import read_trc, y_up_to_world
     from torchtrack.skeleton import Skeleton
@@ -72,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{args.keypoints}: --frame {args.frame} is out of range (the file has {xyz.shape[0]} rows)")
     xyz = y_up_to_world(xyz[args.frame]) if args.up == "y" else xyz[args.frame]
     generic = Skeleton.from_urdf()
-    names, points = keypoint_landmarks(trc.marker_names, xyz, list(generic.output_names))
+    names, points = landmarks_from_keypoints(trc.marker_names, xyz, tuple(generic.output_names))
     finite = np.isfinite(points).all(-1)
     names, points = [n for n, ok in zip(names, finite) if ok], points[finite]
     # The root's rotation needs trunk points off the hips' line (a pelvis made of the hips' mean is on it).
