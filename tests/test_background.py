@@ -269,12 +269,14 @@ def test_batched_equals_looped():
 
 
 def test_dead_camera_at_run_time_gives_nan_and_warns():
+    """An unreadable frame (NaN) and a black one give NaN; only the black one is warned about (the reader warned
+    about the unreadable one)."""
     model = _random_model(config=BackgroundConfig())
     images = torch.rand(2, 3, 3, 5, 7, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
     images[0, 1] = float("nan")  # not decoded
     images[1, 2] = 0.0  # black
     for fn in (model.mahalanobis2, model.log_likelihood):
-        with pytest.warns(RuntimeWarning, match=r"'c1', 'c2'"):
+        with pytest.warns(RuntimeWarning, match=r"camera\(s\) \['c2'\] gave an all-black frame"):
             out = fn(images)
         assert out[0, 1].isnan().all() and out[1, 2].isnan().all()
         assert torch.isfinite(out[0, [0, 2]]).all() and torch.isfinite(out[1, :2]).all()

@@ -78,7 +78,7 @@ def test_passes_are_kept_while_the_residual_falls_by_min_gain_and_without_losing
     tracks = iter([])
     refits = []
 
-    def fake_refit(folder, observer, tracker, kept, frames, size_wh=None, device=None):
+    def fake_refit(folder, observer, tracker, kept, frames, size_wh=None, device=None, progress=None):
         refits.append((kept, frames, size_wh))
         return bodies[len(refits)], 0.1
 

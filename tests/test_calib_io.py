@@ -279,6 +279,41 @@ def test_cli_bad_input_exit_code(cli, tmp_path):
     assert not (tmp_path / "out.toml").exists()
 
 
+def test_a_rig_in_millimetres_is_refused_for_tracking_and_converted_on_request(tmp_path, cli, caplog):
+    """A 3.5 m ring calibrated in mm (centres 3500 "m" away): loaded as written with a warning, refused by a
+    sequence folder with the conversion named, and brought back to metres by `calib convert --translation-scale`."""
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+
+    rig = make_ring_rig(RigConfig(num_cameras=4))
+    mm = CameraRig(rig.names, rig.K, rig.R_cam_world, rig.t_cam_world * 1000, rig.image_size_wh, rig.dist,
+                   rig.fisheye)
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    save_calibration(mm, seq / "calibration.toml")
+    with caplog.at_level("WARNING"):
+        assert torch.equal(load_calibration(seq / "calibration.toml", torch.float64).t_cam_world, mm.t_cam_world)
+    assert "the translations look like millimetres" in caplog.text and "--translation-scale 0.001" in caplog.text
+    with pytest.raises(InputError, match=r"calibration.toml: camera 'cam\d' is [\d,]+ units from the world origin.*"
+                                         r"--translation-scale 0.001"):
+        SequenceFolder(seq)
+    code, _, _ = cli("calib", "convert", seq / "calibration.toml", tmp_path / "m.toml", "--translation-scale",
+                     "0.001")
+    assert code == 0
+    torch.testing.assert_close(load_calibration(tmp_path / "m.toml", torch.float64).centers(), rig.centers(),
+                               rtol=0, atol=1e-9)
+
+
+def test_convert_names_the_formats_it_knows(cli, tmp_path):
+    text = tmp_path / "cameras.txt"
+    text.write_text("these are my cameras\nfour of them, in a ring\n")
+    code, _, err = cli("calib", "convert", text, tmp_path / "out.toml")
+    assert code == 2 and "cameras.txt: not a calibration format torchtrack reads; it knows" in err
+    for fmt in ("Pose2Sim TOML", "caliscope", "Qualisys", "EasyMocap"):
+        assert fmt in err
+    assert not (tmp_path / "out.toml").exists()
+
+
 # ---------------------------------------------------------------------------------------------- bad files
 def _replace(parts, old, new, count=1):
     def make(tmp_path):

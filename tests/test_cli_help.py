@@ -140,3 +140,32 @@ def test_track_help_quotes_the_shipped_config(parser, capsys, monkeypatch):
         text = str(value).lower() if isinstance(value, bool) else f"{value:g}" if isinstance(value, float) \
             else str(value)
         assert f"default from --config: {setting}, {text} in markerless.yaml" in out, option
+
+
+def test_version_and_verbose_after_the_command(capsys, tmp_path):
+    from torchtrack import __version__
+    from torchtrack.checks import InputError
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0 and capsys.readouterr().out.strip() == f"torchtrack {__version__}"
+    missing = str(tmp_path / "missing.toml")
+    assert main(["calib", "show", missing]) == 2  # an input error: one line
+    for argv in (["-v", "calib", "show", missing], ["calib", "show", missing, "-v"]):
+        with pytest.raises(InputError, match="missing.toml"):  # -v: the traceback, before or after the command
+            main(argv)
+
+
+def test_configs_by_name_and_listed_in_the_help(parser):
+    from torchtrack.checks import InputError
+    from torchtrack.resources import CONFIG_DIR, builtin_configs
+    from torchtrack.tracking.cli import load_config
+
+    names = sorted(p.stem for p in CONFIG_DIR.glob("markerless*.yaml"))
+    assert builtin_configs() == names and "markerless_fast" in names
+    assert load_config("markerless_fast")["source"] == str(CONFIG_DIR / "markerless_fast.yaml")
+    assert load_config("markerless_fast.yaml")["source"] == str(CONFIG_DIR / "markerless_fast.yaml")
+    with pytest.raises(InputError, match="built-in tracking configs: " + ", ".join(names)):
+        load_config("no_such_config")
+    help_text = " ".join(_commands(parser)["track"].format_help().split())
+    assert f"a built-in name ({', '.join(names)})" in help_text

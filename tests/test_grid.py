@@ -59,3 +59,10 @@ def test_centres_and_index_of_round_trip():
     torch.testing.assert_close(c[(2 * 4 + 3) * 5 + 1], torch.tensor([-0.05, 0.15, 0.15], dtype=torch.float64))
     _, out = spec.index_of(torch.tensor([[0.31, 0.0, 0.1]], dtype=torch.float64))
     assert not bool(out[0])
+
+
+def test_points_in_messages_are_rounded():
+    from torchtrack.occupancy.grid import format_point
+
+    assert format_point((-1.1999999999999997, 0.0, 2.1000000000000005)) == "(-1.2, 0, 2.1)"
+    assert format_point((0.12345, -3.0, 10.0)) == "(0.123, -3, 10)"

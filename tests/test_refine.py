@@ -252,7 +252,7 @@ def test_track_cli_refines_an_estimated_background(tmp_path, capsys):
                      "--start", "2", "--log-every", "0", "--refit-passes", "0"]) == 0
         out_text = capsys.readouterr().out
         # one refinement: the first pass, the refined one, and the kept (refined) pass once more for the logs
-        assert ("over 3 passes (track 2 of the background refinement kept)" in out_text) == (passes == 1), out_text
+        assert ("3 tracks of the background refinement, track 2 kept" in out_text) == (passes == 1), out_text
         poses = load_poses(out / "poses.npz")
         assert poses.num_frames == gt.num_frames - 2 and poses.valid.all()
         assert poses.frame_index.tolist() == list(range(2, gt.num_frames))

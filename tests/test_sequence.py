@@ -221,13 +221,24 @@ def test_size_mismatch_is_an_error(tmp_path, decoded_wh):
     assert f"decoded {decoded_wh[0]}x{decoded_wh[1]}" in msg and f"calibrated {W}x{H}" in msg
 
 
-def test_frame_count_mismatch_uses_minimum(tmp_path):
-    add_png(tmp_path, "long", frames(9, 1))
-    add_png(tmp_path, "short", frames(6, 2))
-    with pytest.warns(DataWarning, match=r"long: 9, short: 6.*minimum 6"):
-        seq = SequenceFolder(tmp_path, rig(["long", "short"]))
-    assert seq.num_frames == 6
-    assert sum(b.images.shape[0] for b in seq.iter_batches(4)) == 6
+def test_a_camera_that_ends_early_is_left_out_of_the_frames_it_lacks(tmp_path):
+    """The sequence is as long as half the cameras reach; the short camera's missing frames are invalid (NaN), the
+    others' are read; a camera longer than that has its last frames unused."""
+    data = {"a": frames(9, 1), "b": frames(9, 2), "short": frames(6, 3), "long": frames(12, 4)}
+    for name, f in data.items():
+        add_png(tmp_path, name, f)
+    with pytest.warns(DataWarning, match=r"the sequence has 9 frames; 'short' has 6 \(left out of frames 6-8\), "
+                                         r"'long' has 12 \(its last 3 unused\)"):
+        seq = SequenceFolder(tmp_path, rig(list(data)))
+    assert seq.num_frames == 9
+    batches = list(seq.iter_batches(4))
+    valid = torch.cat([b.valid for b in batches])  # (9, 4)
+    images = torch.cat([b.images for b in batches])
+    assert valid[:, [0, 1, 3]].all() and valid[:, 2].tolist() == [True] * 6 + [False] * 3
+    assert torch.isnan(images[6:, 2]).all()
+    for c, name in enumerate(data):
+        n = 6 if name == "short" else 9
+        torch.testing.assert_close(images[:n, c], as_images(data[name][:n]), rtol=0, atol=0)
 
 
 def test_corrupt_frame_gives_invalid_mask_and_nan(two_cams):

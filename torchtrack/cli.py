@@ -12,6 +12,7 @@ import argparse
 import importlib
 import logging
 import sys
+import warnings
 
 from torchtrack.checks import InputError
 
@@ -34,6 +35,7 @@ examples:
 
 Run `torchtrack COMMAND --help` for a command's options and their defaults."""
 
+VERBOSE_HELP = "log debug messages, and show the traceback of an input error"
 _REQUIRED = "the following arguments are required"  # argparse's message for missing arguments
 
 
@@ -117,6 +119,14 @@ def command_lines(parser: argparse.ArgumentParser, prefix: str = "") -> list[tup
     return out
 
 
+def _leaf_parsers(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """The parsers of the runnable commands under ``parser`` (``calib convert``, not ``calib``)."""
+    sub = _subcommands(parser)
+    if sub is None:
+        return [parser]
+    return [leaf for child in dict.fromkeys(sub.choices.values()) for leaf in _leaf_parsers(child)]
+
+
 def _set_commands(parser: argparse.ArgumentParser, text: str) -> None:
     parser.commands = text
     sub = _subcommands(parser)
@@ -125,13 +135,17 @@ def _set_commands(parser: argparse.ArgumentParser, text: str) -> None:
 
 
 def build_parser() -> Parser:
+    from torchtrack import __version__
+
     parser = Parser(prog="torchtrack", description=DESCRIPTION, epilog=EPILOG,
                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("-v", "--verbose", action="store_true",
-                        help="log debug messages, and show the traceback of an input error")
+    parser.add_argument("-v", "--verbose", action="store_true", help=VERBOSE_HELP)
+    parser.add_argument("--version", action="version", version=f"torchtrack {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in COMMAND_MODULES:
         importlib.import_module(name).add_parser(sub)
+    for leaf in _leaf_parsers(parser):  # -v also after the command; SUPPRESS keeps one given before it
+        leaf.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS, help=VERBOSE_HELP)
     lines = command_lines(parser)
     width = max((len(n) for n, _ in lines), default=0)
     text = "commands (`torchtrack COMMAND --help` for its options):\n" + "\n".join(
@@ -140,13 +154,59 @@ def build_parser() -> Parser:
     return parser
 
 
+class _Once(logging.Filter):
+    """Lets each info or warning text through once: a worker process and this one, or a run's several passes over
+    the same frames, report the same damaged file, camera or volume once."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[str] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno not in (logging.INFO, logging.WARNING):
+            return True
+        text = record.getMessage()
+        if text in self.seen:
+            return False
+        self.seen.add(text)
+        return True
+
+
+def _short_warning(message, category, filename, lineno, line=None) -> str:
+    """A warning as one line, without the source line Python's default format adds (``-v`` keeps that)."""
+    return str(message)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="%(levelname)s %(name)s: %(message)s")
+                        format="%(levelname)s %(name)s: %(message)s" if args.verbose else "%(levelname)s: %(message)s")
     logging.captureWarnings(True)
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
+    format_warning = warnings.formatwarning
+    if not args.verbose:
+        warnings.formatwarning = _short_warning
+    try:
+        with logging_redirect_tqdm():  # log lines above the progress bars, not through them
+            once = [(handler, _Once()) for handler in logging.getLogger().handlers]  # one per handler: each sees all
+            for handler, f in once:
+                handler.addFilter(f)
+            try:
+                return _run(args)
+            finally:
+                for handler, f in once:
+                    handler.removeFilter(f)
+    finally:
+        warnings.formatwarning = format_warning
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.func(args) or 0)
+    except KeyboardInterrupt:  # a command that keeps partial work says so itself; outputs are written atomically
+        print(f"torchtrack {args.command}: interrupted; no output was half-written", file=sys.stderr)
+        return 130
     except (InputError, FileNotFoundError, ValueError) as exc:
         # Bad input: one clear line, no traceback (use -v for the traceback).
         if args.verbose:

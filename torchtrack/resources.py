@@ -20,13 +20,22 @@ def builtin_config(name: str) -> Path:
     return p
 
 
+def builtin_configs(prefix: str = "markerless") -> list[str]:
+    """Names (without ``.yaml``) of the built-in YAML configs starting with ``prefix``: the tracking configs."""
+    return sorted(p.stem for p in CONFIG_DIR.glob(f"{prefix}*.yaml"))
+
+
 def config_path(name: str | Path) -> Path:
-    """Resolve a config: an existing path as given, else (for a bare file name) the built-in ``configs/NAME``."""
+    """Resolve a config: an existing path as given, else (for a bare name) the built-in ``configs/NAME``, with
+    ``.yaml`` added where the name has no suffix (``markerless_fast`` -> ``configs/markerless_fast.yaml``)."""
     p = Path(name)
     if p.is_file():
         return p
     if p.parent != Path("."):
         raise InputError(f"config file not found: {p}")
-    if not (CONFIG_DIR / p.name).is_file():
-        raise InputError(f"config file not found: {p} (nor {CONFIG_DIR / p.name}; {_INSTALL_HINT})")
-    return builtin_config(p.name)
+    for candidate in (p.name, p.name + ".yaml") if not p.suffix else (p.name,):
+        if (CONFIG_DIR / candidate).is_file():
+            return builtin_config(candidate)
+    known = ", ".join(builtin_configs()) or "none"
+    raise InputError(f"config file not found: {p} (nor {CONFIG_DIR / p.name}; built-in tracking configs: {known}; "
+                     f"{_INSTALL_HINT})")

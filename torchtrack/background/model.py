@@ -229,17 +229,19 @@ class BackgroundModel(nn.Module):
 
     @classmethod
     def from_folder(cls, folder: SequenceFolder, config: BackgroundConfig = BackgroundConfig(),
-                    size_wh: tuple[int, int] | None = None,
-                    device: torch.device | str | None = None) -> BackgroundModel:
+                    size_wh: tuple[int, int] | None = None, device: torch.device | str | None = None,
+                    progress: bool = False) -> BackgroundModel:
         """Model of a :class:`~torchtrack.io.sequence.SequenceFolder`: from its ``background/`` frames when
         present and readable, else estimated from ``max_frames`` evenly spaced video frames
         (:meth:`from_sequence`). Logs (INFO) which, naming the folder.
 
         Args:
             folder: the sequence folder. size_wh: (W, H) to read at (the model then has that size; scale the
-                intrinsics to match). device: where frames and model go (None: CPU).
+                intrinsics to match). device: where frames and model go (None: CPU). progress: show a progress
+            bar over the frames read.
         """
-        frames = folder.background_frames(config.max_frames, device=device, size_wh=size_wh)
+        frames = folder.background_frames(config.max_frames, device=device, size_wh=size_wh,
+                                          progress="background" if progress else None)
         if frames is not None and frames.shape[0] >= MIN_FRAMES:
             logger.info("background of %s: %d empty-scene frames from %s", folder.root, frames.shape[0],
                         folder.root / "background")
@@ -250,7 +252,8 @@ class BackgroundModel(nn.Module):
         if n < MIN_SEQUENCE_FRAMES:
             raise InputError(f"{folder.root}: no background/ frames and only {len(folder)} video frames; need at "
                              f"least {MIN_SEQUENCE_FRAMES} to estimate the background")
-        _, frames = folder.sample_frames(n, device=device, size_wh=size_wh)
+        _, frames = folder.sample_frames(n, device=device, size_wh=size_wh,
+                                         progress="background (estimated)" if progress else None)
         return cls.from_sequence(frames, config, folder.camera_names)
 
     # ------------------------------------------------------------------------------------------ evaluation
@@ -290,10 +293,12 @@ class BackgroundModel(nn.Module):
         """YUV (B, C, 3, H, W) as :meth:`normalise`, the (B, C) gain used and the (B, C) dead-frame mask."""
         self._check_images(images)
         dead = est.dead_frames(images)  # (B, C)
-        if bool(dead.any()):
-            cams = [self.camera_names[c] for c in dead.any(0).nonzero()[:, 0].tolist()]
-            warnings.warn(f"background model: camera(s) {cams} gave an all-NaN or all-black frame "
-                          f"({int(dead.sum())} of {dead.numel()} camera frames); their output is NaN",
+        # all-black frames are warned about; all-NaN ones are unreadable, which the reader has said already
+        black = dead & ~torch.isnan(images.flatten(2)).all(-1) if bool(dead.any()) else dead
+        if bool(black.any()):
+            cams = [self.camera_names[c] for c in black.any(0).nonzero()[:, 0].tolist()]
+            warnings.warn(f"background model: camera(s) {cams} gave an all-black frame "
+                          f"({int(black.sum())} of {black.numel()} camera frames); their output is NaN",
                           RuntimeWarning, stacklevel=3)
         if self.config.compensate_gain:  # the gain needs Y on robust_gain's pixel grid only
             s = est.GAIN_STRIDE

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+from tqdm import tqdm
 
 from torchtrack.checks import InputError, check_shape
 
@@ -238,7 +239,7 @@ class ShapeFrame:
 
 def fit_shape_frames(frames: Sequence[ShapeFrame], ridge: torch.Tensor, target: torch.Tensor,
                      starts: Sequence[torch.Tensor] = (), local: int = 0, samples: int = 96, tau: float = 0.05,
-                     rounds: int = 4, iterations: int = 60, cell: float = 0.015
+                     rounds: int = 4, iterations: int = 60, cell: float = 0.015, progress: str | None = None
                      ) -> tuple[torch.Tensor, torch.Tensor, float]:
     """One body fitted to several frames' voxels at once: the parameters shared by every frame (each model's
     first ``S = P - local``, e.g. the bones' scales) and ``local`` more per frame (each model's last, e.g. a root
@@ -251,6 +252,7 @@ def fit_shape_frames(frames: Sequence[ShapeFrame], ridge: torch.Tensor, target: 
 
     Args:
         frames: F >= 1 frames whose models have the same P. ridge: (S,) >= 0; target: (S,). starts: (S,) tensors.
+        progress: the label of a progress bar over the starts' rounds (None: no bar).
 
     Returns:
         the shared parameters (S,), the local ones (F, local), and the objective (m^2).
@@ -292,7 +294,9 @@ def fit_shape_frames(frames: Sequence[ShapeFrame], ridge: torch.Tensor, target: 
         return energy / F + (ridge * (shared - target) ** 2).sum()
 
     best: tuple[float, torch.Tensor] | None = None
-    for x0 in (list(starts) or [torch.zeros(S, dtype=dt, device=device)]):
+    starts = list(starts) or [torch.zeros(S, dtype=dt, device=device)]
+    bar = tqdm(total=len(starts) * rounds, desc=progress, unit="round", disable=progress is None, leave=False)
+    for x0 in starts:
         check_shape(x0, (S,), "start")
         x = torch.cat([x0.detach().to(dt), x0.new_zeros(F * local, dtype=dt)]).requires_grad_(True)
         opt = torch.optim.LBFGS([x], lr=1, max_iter=iterations, line_search_fn="strong_wolfe")
@@ -305,9 +309,11 @@ def fit_shape_frames(frames: Sequence[ShapeFrame], ridge: torch.Tensor, target: 
         with torch.enable_grad():
             for _ in range(rounds):
                 opt.step(closure)
+                bar.update(1)
         with torch.no_grad():
             e = float(objective(x))
         if best is None or e < best[0]:
             best = (e, x.detach())
+    bar.close()
     x = best[1]
     return x[:S], x[S:].reshape(F, local), best[0]

@@ -142,6 +142,10 @@ def write_native_toml(rig: CameraRig, path: str | Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ dispatch
+#: The formats :func:`detect_format` recognises, for messages.
+KNOWN_FORMATS = ("native / anipose / Pose2Sim TOML (calibration.toml), caliscope camera_array.toml, Qualisys QTM "
+                 ".qca XML (.qca, .qca.txt, .xml), EasyMocap / OpenCV YAML (intri.yml + extri.yml)")
+
 def detect_format(path: str | Path) -> str:
     """``"native"``, ``"caliscope"``, ``"qualisys"`` or ``"easymocap"`` for a calibration path.
 
@@ -168,13 +172,38 @@ def detect_format(path: str | Path) -> str:
             return "qualisys"
         if head.startswith(b"%YAML"):
             return "easymocap"
+        try:
+            doc = F.read_toml_file(p)
+        except InputError:
+            raise InputError(f"{p}: not a calibration format torchtrack reads; it knows {KNOWN_FORMATS}") from None
+        if not doc or not all(isinstance(v, dict) for v in doc.values()):
+            raise InputError(f"{p}: not a calibration format torchtrack reads; it knows {KNOWN_FORMATS}")
     cameras = F.read_toml_file(p).get("cameras")
     if isinstance(cameras, dict) and cameras and all(isinstance(v, dict) for v in cameras.values()):
         return "caliscope"
     return "native"
 
 
-def load_calibration(path: str | Path, dtype: torch.dtype = torch.float32) -> CameraRig:
+#: Camera centres farther than this from the world origin (m) mean translations in another unit (mm, cm): no
+#: capture room is that large, and millimetres read as metres put a 3 m ring 3 km away.
+MAX_CAMERA_DISTANCE_M = 100.0
+
+
+def check_translation_units(rig: CameraRig, where: str) -> None:
+    """Refuse a rig whose camera centres lie farther than :data:`MAX_CAMERA_DISTANCE_M` from the origin (its
+    translations are likely in millimetres), naming ``where``, the farthest camera and the conversion."""
+    dist = rig.centers().detach().double().norm(dim=-1)
+    far = int(dist.argmax())
+    d = float(dist[far])
+    if d > MAX_CAMERA_DISTANCE_M:
+        raise InputError(
+            f"{where}: camera '{rig.names[far]}' is {d:,.0f} units from the world origin, farther than "
+            f"{MAX_CAMERA_DISTANCE_M:g} m if they were metres: the translations look like millimetres (or "
+            f"centimetres); "
+            f"convert with `torchtrack calib convert IN OUT.toml --translation-scale 0.001` (0.01 for cm)")
+
+
+def load_calibration(path: str | Path, dtype: torch.dtype = torch.float32, warn_units: bool = True) -> CameraRig:
     """Load a calibration in any supported format (:func:`detect_format`) as a CameraRig.
 
     Args:
@@ -182,6 +211,9 @@ def load_calibration(path: str | Path, dtype: torch.dtype = torch.float32) -> Ca
             ``.qca.txt``), EasyMocap ``intri.yml`` / ``extri.yml`` (either file, or their folder), or a
             sequence folder holding ``calibration.toml``.
         dtype: float dtype of the rig's buffers.
+        warn_units: warn when the translations look like millimetres (:func:`check_translation_units`; they are
+            kept as they are: a rig of mouse cameras may be calibrated in mm on purpose; a sequence folder refuses
+            them).
 
     Raises:
         InputError: naming the file (and camera and field) for anything unreadable or invalid.
@@ -190,12 +222,19 @@ def load_calibration(path: str | Path, dtype: torch.dtype = torch.float32) -> Ca
     p = Path(path)
     log.debug("%s: reading %s calibration", p, fmt)
     if fmt == "native":
-        return read_native_toml(p / "calibration.toml" if p.is_dir() else p, dtype)
-    if fmt == "caliscope":
-        return calib_formats.read_caliscope_toml(p, dtype)
-    if fmt == "qualisys":
-        return calib_formats.read_qualisys_qca(p, dtype)
-    return calib_formats.read_easymocap_yaml(p, dtype)
+        rig = read_native_toml(p / "calibration.toml" if p.is_dir() else p, dtype)
+    elif fmt == "caliscope":
+        rig = calib_formats.read_caliscope_toml(p, dtype)
+    elif fmt == "qualisys":
+        rig = calib_formats.read_qualisys_qca(p, dtype)
+    else:
+        rig = calib_formats.read_easymocap_yaml(p, dtype)
+    if warn_units:
+        try:
+            check_translation_units(rig, str(p))
+        except InputError as exc:
+            log.warning("%s", exc)
+    return rig
 
 
 def save_calibration(rig: CameraRig, path: str | Path) -> None:

@@ -7,12 +7,15 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import math
 from pathlib import Path
 
 import torch
 
 from torchtrack.checks import InputError
+
+log = logging.getLogger(__name__)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -32,6 +35,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     convert.add_argument("--translation-scale", type=float, default=1.0, metavar="FACTOR",
                          help="multiply translations by FACTOR, e.g. 0.001 for a rig calibrated in mm "
                               "(default: %(default)s)")
+    convert.add_argument("--overwrite", action="store_true",
+                         help="replace an existing calibration file at OUT (default: refuse)")
     convert.set_defaults(func=run_convert)
 
     show = actions.add_parser("show", help="print the cameras: sizes, focal lengths, centres",
@@ -55,30 +60,43 @@ def _scaled(rig, scale: float):
 def run_convert(args: argparse.Namespace) -> int:
     """Read ``args.input`` (float64, any format), scale translations, write ``args.output``."""
     from torchtrack.cameras.calib_formats import write_easymocap_yaml
-    from torchtrack.cameras.calib_io import load_calibration, write_native_toml
+    from torchtrack.cameras.calib_io import check_translation_units, load_calibration, write_native_toml
+    from torchtrack.io.outputs import CALIBRATION_FILE, EASYMOCAP_FILE, check_output
 
-    rig = _scaled(load_calibration(args.input, dtype=torch.float64), args.translation_scale)
     out: Path = args.output
     suffix = out.suffix.lower()
     if suffix == ".toml":
-        write_native_toml(rig, out)
-        written = [out]
-    elif suffix in (".yml", ".yaml"):
-        written = list(write_easymocap_yaml(rig, out.parent))
-    elif suffix == "" or out.is_dir():
-        written = list(write_easymocap_yaml(rig, out))
+        check_output(out, CALIBRATION_FILE, args.overwrite, "OUT")
+    elif suffix in (".yml", ".yaml", "") or out.is_dir():
+        folder = out.parent if suffix in (".yml", ".yaml") else out
+        for name in ("intri.yml", "extri.yml"):
+            check_output(folder / name, EASYMOCAP_FILE, args.overwrite, "OUT")
     else:
         raise InputError(f"{out}: unknown output format (use .toml for native TOML, a folder for EasyMocap YAML)")
+    rig = _scaled(load_calibration(args.input, dtype=torch.float64, warn_units=False), args.translation_scale)
+    try:  # kept as asked (a rig may be in mm on purpose), but tracking needs metres: say so
+        check_translation_units(rig, f"{args.input} with --translation-scale {args.translation_scale:g}")
+    except InputError as exc:
+        log.warning("%s", exc)
+    if suffix == ".toml":
+        write_native_toml(rig, out)
+        written = [out]
+    else:
+        written = list(write_easymocap_yaml(rig, folder))
     print(f"wrote {len(rig)} cameras to {', '.join(str(p) for p in written)}")
     return 0
 
 
 def run_show(args: argparse.Namespace) -> int:
     """Print one line per camera: name, model, size, focal lengths, principal point, centre."""
-    from torchtrack.cameras.calib_io import detect_format, load_calibration
+    from torchtrack.cameras.calib_io import check_translation_units, detect_format, load_calibration
 
-    rig = load_calibration(args.file, dtype=torch.float64)
+    rig = load_calibration(args.file, dtype=torch.float64, warn_units=False)
     print(f"{args.file}: {detect_format(args.file)} calibration, {len(rig)} cameras")
+    try:
+        check_translation_units(rig, str(args.file))
+    except InputError as exc:
+        log.warning("%s", exc)
     centres = rig.centers().tolist()
     for i, name in enumerate(rig.names):
         K = rig.K[i].tolist()

@@ -25,7 +25,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--root", default="pelvis", metavar="NAME",
                    help="joint subtracted for the root-aligned MPJPE (default: %(default)s)")
     p.add_argument("--json", type=Path, default=None, metavar="FILE",
-                   help="also write the report as JSON to FILE (default: stdout only)")
+                   help="also write the report as JSON to FILE: a new file, or an earlier report (with "
+                        "--overwrite) (default: stdout only)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier report at --json FILE (default: refuse)")
     p.set_defaults(func=run)
 
 
@@ -34,8 +37,11 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.eval.metrics import evaluate
     from torchtrack.io.atomic import write_text_atomic
+    from torchtrack.io.outputs import JSON_REPORT, check_output
     from torchtrack.io.poses import load_poses
 
+    if args.json is not None:
+        check_output(args.json, JSON_REPORT, args.overwrite, "--json")  # before any work
     pred, truth = load_poses(args.pred), load_poses(args.gt)
     report = evaluate(pred, truth, landmarks=args.landmarks, pck_thresholds_m=args.pck, root=args.root,
                       pred_name=str(args.pred), truth_name=str(args.gt))

@@ -20,7 +20,9 @@ Decisions (documented here because trackers rely on them):
   pose2sim_demo cam01/cam02 decode 1080x1920 while calibrated 1088x1920) is padded right/bottom by edge
   replication, with one :class:`~torchtrack.io.video.DataWarning` per camera. Any other mismatch is an
   ``InputError``. ``size_wh`` then resizes (``cv2.INTER_AREA``); the caller scales the intrinsics to match.
-* **Frame counts** differing between cameras: a warning naming them, and the minimum is used.
+* **Frame counts** differing between cameras: a warning naming them; the sequence is as long as the count that
+  half the cameras reach (rounded up), and a camera is left out (invalid) of the frames it lacks, so one camera
+  that ends early costs the others nothing (background frames: the minimum is used).
 * **Damaged frames** do not stop a run: batches carry ``valid (B, C)`` and the images of an invalid
   (frame, camera) are NaN, so code that ignores the mask fails loudly instead of tracking on zeros. A file that
   cannot be opened at all is an ``InputError`` when the folder is opened.
@@ -213,6 +215,27 @@ def _rig_sizes(rig: Any) -> tuple[list[str], np.ndarray]:
     return names, np.rint(size.double().numpy()).astype(np.int64)  # (C, 2) [W, H]
 
 
+def _bar(label: str | None, total: int):
+    """A tqdm progress bar over ``total`` frames labelled ``label``, or a disabled one for None."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=label, unit="frame", disable=label is None, leave=False)
+
+
+def _read_available(src: VideoSource, indices: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`VideoSource.read_indices` (not strict) of the ``indices`` the source has; those past its end come
+    back invalid (zeros), without a warning (the folder named the short camera when it opened)."""
+    have = [i for i in indices if i < src.num_frames]
+    if len(have) == len(indices):
+        return src.read_indices(indices, strict=False)
+    w, h = src.size_wh
+    frames = np.zeros((len(indices), h, w, 3), np.uint8)
+    valid = np.zeros(len(indices), bool)
+    if have:
+        frames[:len(have)], valid[:len(have)] = src.read_indices(have, strict=False)
+    return frames, valid
+
+
 class SequenceFolder:
     """A sequence folder: calibration, per-camera frame sources, optional background, meta and npz files.
 
@@ -226,7 +249,8 @@ class SequenceFolder:
     Attributes:
         root, rig, meta (:class:`SequenceMeta`), camera_names (C,), sources (C,) :class:`VideoSource`,
         background_sources (C,) or None, image_size_wh (C, 2) int64 numpy [W, H] calibrated sizes,
-        num_frames, fps, gt_path / markers2d_path (None when absent).
+        num_frames, fps, gt_path / markers2d_path (None when absent), reported (a set of keys of the problems
+        already warned about, so that a run's several passes over the frames warn once).
 
     Raises:
         InputError: missing calibration or camera frames, unreadable files, sizes that do not fit the calibration.
@@ -235,6 +259,7 @@ class SequenceFolder:
     def __init__(self, root: str | Path, rig: Any = None, *, verify_frame_count: bool = False,
                  max_pad_px: int = MAX_PAD_PX) -> None:
         self.root = Path(root)
+        self.reported: set[str] = set()
         if not self.root.is_dir():
             raise InputError(f"sequence folder not found: {self.root}")
         if rig is None:
@@ -242,8 +267,10 @@ class SequenceFolder:
             if not calib.is_file():
                 raise InputError(f"sequence folder {self.root} has no calibration.toml (and no rig was given)")
             from torchtrack.cameras import load_calibration
+            from torchtrack.cameras.calib_io import check_translation_units
 
-            rig = load_calibration(calib)
+            rig = load_calibration(calib, warn_units=False)
+            check_translation_units(rig, str(calib))  # metres or refused: a body is tracked in metres
         self.rig = rig
         self.camera_names, self.image_size_wh = _rig_sizes(rig)
         self.max_pad_px = int(max_pad_px)
@@ -255,7 +282,7 @@ class SequenceFolder:
             warnings.warn(f"{self.root}: sources without a calibrated camera are ignored: "
                           f"{[str(p.relative_to(self.root)) for p in extra]}", DataWarning, stacklevel=2)
         self.sources = self._open_sources(paths, verify_frame_count)
-        self.num_frames = self._common_count(self.sources, "frames")
+        self.num_frames = self._sequence_count(self.sources)
         self.fps = self._resolve_fps()
         self.background_sources = self._open_background(verify_frame_count)
         self.gt_path = self._optional("gt.npz")
@@ -285,6 +312,18 @@ class SequenceFolder:
             return
         raise InputError(f"camera '{cam}': {src.path} {sizes}: the frames do not fit the calibration (only a "
                          f"shortfall of up to {self.max_pad_px} px per dimension is padded)")
+
+    def _sequence_count(self, sources: list[VideoSource]) -> int:
+        """The count half the cameras reach (rounded up); each camera that has fewer or more frames is named."""
+        counts = [s.num_frames for s in sources]
+        n = sorted(counts, reverse=True)[(len(counts) + 1) // 2 - 1]
+        odd = [(c, k) for c, k in zip(self.camera_names, counts) if k != n]
+        if odd:
+            listing = ", ".join(f"'{c}' has {k}" + (f" (left out of frames {k}-{n - 1})" if k < n else
+                                                     f" (its last {k - n} unused)") for c, k in odd)
+            warnings.warn(f"{self.root}: cameras have different frame counts: the sequence has {n} frames; "
+                          f"{listing}", DataWarning, stacklevel=3)
+        return n
 
     def _common_count(self, sources: list[VideoSource], what: str) -> int:
         counts = [s.num_frames for s in sources]
@@ -359,7 +398,7 @@ class SequenceFolder:
 
         buf = valid = None
         for c, src in enumerate(sources):
-            frames, ok = src.read_indices(indices, strict=False)  # (B, h, w, 3), (B,)
+            frames, ok = _read_available(src, indices)  # (B, h, w, 3), (B,)
             h, w = frames.shape[1:3]
             cw, ch = (int(v) for v in self.image_size_wh[c])
             out_w, out_h = size_wh if size_wh is not None else (cw, ch)
@@ -434,9 +473,10 @@ class SequenceFolder:
         return next(self.iter_batches(1, index, index + 1, device=device, size_wh=size_wh)).images[0]
 
     def sample_frames(self, max_frames: int, start: int = 0, stop: int | None = None,
-                      device: torch.device | str | None = None, size_wh: tuple[int, int] | None = None
-                      ) -> tuple[list[int], torch.Tensor]:
-        """Up to ``max_frames`` video frames evenly spaced over ``[start, stop)``, first and last included.
+                      device: torch.device | str | None = None, size_wh: tuple[int, int] | None = None,
+                      progress: str | None = None) -> tuple[list[int], torch.Tensor]:
+        """Up to ``max_frames`` video frames evenly spaced over ``[start, stop)``, first and last included;
+        ``progress``: the label of a progress bar over them (None: no bar).
 
         Returns:
             the frame indices and (N, C, 3, H, W) float16 RGB [0, 1] (half the memory of float32; 1/255 steps
@@ -447,14 +487,18 @@ class SequenceFolder:
             raise InputError(f"{self.root}: no frames in [{start}, {stop}) ({self.num_frames} frames)")
         indices = [start + i for i in evenly_spaced(stop - start, max_frames)]
         chunks = []
-        for k in range(0, len(indices), SAMPLE_CHUNK):  # sorted indices: each source decodes forwards
-            buf, valid = self._read_block(self.sources, indices[k:k + SAMPLE_CHUNK], size_wh)
-            chunks.append(self._to_images(buf, valid, device).half())
+        with _bar(progress, len(indices)) as bar:
+            for k in range(0, len(indices), SAMPLE_CHUNK):  # sorted indices: each source decodes forwards
+                buf, valid = self._read_block(self.sources, indices[k:k + SAMPLE_CHUNK], size_wh)
+                chunks.append(self._to_images(buf, valid, device).half())
+                bar.update(len(buf))
         return indices, torch.cat(chunks)
 
     def background_frames(self, max_frames: int, device: torch.device | str | None = None,
-                          size_wh: tuple[int, int] | None = None) -> torch.Tensor | None:
-        """Up to ``max_frames`` empty-scene frames, evenly spaced over the background sources.
+                          size_wh: tuple[int, int] | None = None, progress: str | None = None
+                          ) -> torch.Tensor | None:
+        """Up to ``max_frames`` empty-scene frames, evenly spaced over the background sources (``progress``: as
+        :meth:`sample_frames`).
 
         Frames where any camera fails to decode are dropped (with a warning).
 
@@ -465,7 +509,12 @@ class SequenceFolder:
             return None
         count = self._common_count(self.background_sources, "background frame")
         indices = evenly_spaced(count, max_frames)  # raises on max_frames < 1
-        buf, valid = self._read_block(self.background_sources, indices, size_wh)
+        blocks = []
+        with _bar(progress, len(indices)) as bar:
+            for k in range(0, len(indices), SAMPLE_CHUNK):
+                blocks.append(self._read_block(self.background_sources, indices[k:k + SAMPLE_CHUNK], size_wh))
+                bar.update(len(blocks[-1][0]))
+        buf, valid = (np.concatenate(parts) for parts in zip(*blocks))
         keep = valid.all(axis=1)  # (N,)
         if not keep.all():
             warnings.warn(f"{self.root}/background: dropped {int((~keep).sum())} frame(s) that did not decode in "

@@ -20,10 +20,14 @@ skip them. A file that cannot be opened, or whose first frame does not decode, i
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
+import os
 import re
+import sys
+import tempfile
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -149,6 +153,62 @@ def write_frames_png(folder: str | Path, frames: Iterable[np.ndarray]) -> int:
 # ----------------------------------------------------------------------------------------------- sources
 
 
+class NativeStderr:
+    """What native code (FFmpeg inside OpenCV) writes to the process's stderr during :meth:`capture`, kept
+    instead of printed. OpenCV has no hook for FFmpeg's log, so file descriptor 2 points at a temporary file while
+    a call runs (nothing of Python's own writes to stderr, tqdm and logging included, runs meanwhile)."""
+
+    _PREFIX = re.compile(r"^\[[^\]]* @ 0x[0-9a-f]+\]\s*")  # "[mpeg4 @ 0x55d0...] " (an address per run)
+
+    def __init__(self) -> None:
+        self._file = None
+        self._read = 0
+
+    @contextlib.contextmanager
+    def capture(self) -> Iterator[None]:
+        if self._file is None:
+            self._file = tempfile.TemporaryFile()
+        for stream in (sys.stdout, sys.stderr):  # what Python buffered goes out first, in order
+            with contextlib.suppress(Exception):
+                stream.flush()
+        saved = os.dup(2)
+        os.dup2(self._file.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+    def new_lines(self) -> list[str]:
+        """The lines written since the last call, without FFmpeg's ``[codec @ address]`` prefix."""
+        if self._file is None:
+            return []
+        size = os.fstat(self._file.fileno()).st_size
+        if size == self._read:
+            return []
+        self._file.seek(self._read)
+        text = self._file.read().decode("utf-8", "replace")
+        self._read = size
+        return [self._PREFIX.sub("", line).strip() for line in text.splitlines() if line.strip()]
+
+    def close(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file, self._read = None, 0
+
+
+def frame_ranges(indices: list[int]) -> str:
+    """Sorted frame indices as ranges: ``[3, 4, 5, 9]`` -> ``'3-5, 9'``."""
+    out: list[str] = []
+    for i in indices:
+        if out and int(out[-1].split("-")[-1]) == i - 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{i}"
+        else:
+            out.append(str(i))
+    return ", ".join(out)
+
+
+
 class VideoSource(abc.ABC):
     """A sequence of RGB frames: a video file or an image folder.
 
@@ -206,10 +266,13 @@ class VideoSource(abc.ABC):
             valid[k] = self._decode_into(i, frames[k])
             if not valid[k] and strict:
                 raise InputError(f"{self.path}: frame {i} could not be decoded{self._why(i)}")
-        if not valid.all():
+        if not valid.all():  # one warning per source (the same text each time), each frame logged at debug level
             bad = [i for i, v in zip(idx, valid) if not v]
-            warnings.warn(f"{self.path}: frame(s) {bad} could not be decoded{self._why(bad[0])}; marked invalid",
-                          DataWarning, stacklevel=2)
+            logger.debug("%s: frame(s) %s could not be decoded", self.path, frame_ranges(bad))
+            if not getattr(self, "_warned_decode", False):
+                self._warned_decode = True
+                warnings.warn(f"{self.path}: some frames could not be decoded{self._why(bad[0])}; they are marked "
+                              "invalid (-v lists them)", DataWarning, stacklevel=2)
         return frames, valid
 
     def read_frame(self, index: int) -> np.ndarray:
@@ -249,20 +312,25 @@ class VideoFileSource(VideoSource):
             raise InputError(f"video file not found: {self.path}")
         self._cap = None
         self._t0_ms = 0.0
+        self._ffmpeg = NativeStderr()
+        self._ffmpeg_lines = 0  # FFmpeg lines seen: the first is warned about, the others logged at debug level
         cap = self._open()
         cv2 = self._cv2
         header = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         fps = float(cap.get(cv2.CAP_PROP_FPS))
         self.fps = fps if np.isfinite(fps) and fps > 0 else None
-        if not cap.grab():
+        with self._ffmpeg.capture():
+            grabbed = cap.grab()
+        if not grabbed:
             self.close()
             raise InputError(f"{self.path}: frame 0 could not be decoded (the file opens but holds no readable "
-                             "video frames)")
+                             f"video frames){self._ffmpeg_says()}")
         self._t0_ms = float(cap.get(cv2.CAP_PROP_POS_MSEC))
-        ok, bgr = cap.retrieve()
+        with self._ffmpeg.capture():
+            ok, bgr = cap.retrieve()
         self.close()
         if not ok or bgr is None:
-            raise InputError(f"{self.path}: frame 0 could not be decoded")
+            raise InputError(f"{self.path}: frame 0 could not be decoded{self._ffmpeg_says()}")
         self.size_wh = (int(bgr.shape[1]), int(bgr.shape[0]))
         self.header_frame_count = header
         if verify_frame_count or header <= 0:
@@ -272,6 +340,7 @@ class VideoFileSource(VideoSource):
                               DataWarning, stacklevel=2)
         else:
             self.num_frames = header
+        self._report_ffmpeg()
 
     @property
     def _cv2(self):
@@ -281,17 +350,18 @@ class VideoFileSource(VideoSource):
 
     def __getstate__(self) -> dict:
         """Pickled without its decoder (a worker process re-opens the file on its first read)."""
-        state = dict(self.__dict__, _cap=None)
+        state = dict(self.__dict__, _cap=None, _ffmpeg=NativeStderr())
         state.pop("_pos", None)
         state.pop("_held", None)
         return state
 
     def _open(self):
         self.close()
-        cap = self._cv2.VideoCapture(str(self.path))
+        with self._ffmpeg.capture():
+            cap = self._cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
             raise InputError(f"cannot open video file {self.path}: OpenCV/FFmpeg cannot read it (not a video, "
-                             "truncated, or an unsupported codec)")
+                             f"truncated, or an unsupported codec){self._ffmpeg_says()}")
         self._cap = cap
         self._pos = 0  # every frame index below _pos is gone (delivered, skipped or lost)
         self._held: int | None = None  # index of a frame grabbed but not yet retrieved (>= _pos)
@@ -302,10 +372,37 @@ class VideoFileSource(VideoSource):
             self._cap.release()
             self._cap = None
 
+    def _ffmpeg_says(self) -> str:
+        """``" (FFmpeg: ...)"`` with what FFmpeg wrote since the last report, for an error message."""
+        lines = self._ffmpeg.new_lines()
+        self._ffmpeg_lines += len(lines)
+        return f" (FFmpeg: {'; '.join(dict.fromkeys(lines))})" if lines else ""
+
+    def _report_ffmpeg(self) -> None:
+        """What FFmpeg wrote since the last report: the first time a warning, afterwards debug lines."""
+        lines = self._ffmpeg.new_lines()
+        if not lines:
+            return
+        first = self._ffmpeg_lines == 0
+        self._ffmpeg_lines += len(lines)
+        for line in lines:
+            logger.debug("%s: FFmpeg: %s", self.path, line)
+        if first:
+            warnings.warn(f"{self.path}: FFmpeg reported problems decoding it, such as '{lines[0]}' (-v shows "
+                          "FFmpeg's messages)", DataWarning, stacklevel=3)
+
+    def read_indices(self, indices: Iterable[int], *, strict: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            return super().read_indices(indices, strict=strict)
+        finally:
+            self._report_ffmpeg()
+
     def _grab(self) -> bool:
         """Decode the next picture; on success hold it at its timestamp index, else count one lost frame."""
         cap = self._cap
-        if not cap.grab():
+        with self._ffmpeg.capture():
+            grabbed = cap.grab()
+        if not grabbed:
             self._pos += 1
             return False
         index = self._pos
@@ -343,7 +440,8 @@ class VideoFileSource(VideoSource):
             self._grab()  # grab only decodes; the colour conversion happens in retrieve
         if self._held > index:
             return False  # the next decodable frame comes after `index`: it is kept for a later call
-        ok, bgr = self._cap.retrieve()
+        with self._ffmpeg.capture():
+            ok, bgr = self._cap.retrieve()
         self._pos, self._held = index + 1, None
         if not ok or bgr is None:
             return False

@@ -18,7 +18,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Compute per-frame occupancy of a sequence folder and write OUT/occupancy.npz "
                                    "(occupied voxel centres and sizes per frame) and TensorBoard logs in OUT/tb.")
     p.add_argument("seq", type=Path, metavar="SEQ", help="sequence folder (calibration.toml, video/ or frames/)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="output folder: new, empty, or an earlier run's (with --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier run's occupancy.npz and TensorBoard logs in DIR (default: refuse)")
     p.add_argument("--model", choices=("bayes", "hull", "silhouette"), default="bayes",
                    help="Bayesian occupancy grid, hierarchical colour hull or silhouette carving "
                         "(default: %(default)s)")
@@ -57,6 +60,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    from torchtrack.io.outputs import OBSERVE_DIR, check_output
+
+    check_output(args.out, OBSERVE_DIR, args.overwrite)  # before any work
     with torch.no_grad():
         return _run(args)
 
@@ -68,12 +74,17 @@ def _run(args: argparse.Namespace) -> int:
 
     from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.io.atomic import atomic_path
+    from torchtrack.io.outputs import OBSERVE_DIR, replacing
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
     from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, grid_from_rig,
                                       hull_from_images)
 
     device = torch.device(args.device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available to PyTorch")
+    if not 0.05 <= args.scale <= 1.0:
+        raise InputError(f"--scale must be in [0.05, 1], got {args.scale:g}")
     folder = SequenceFolder(args.seq)
     full = folder.rig
     W, H = (int(round(float(v) * args.scale)) for v in full.image_size_wh[0])
@@ -91,7 +102,7 @@ def _run(args: argparse.Namespace) -> int:
         bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, refine, (W, H),
                                    device=device, source=str(args.background_from_track))
     else:
-        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
+        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=True)
     spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)
     if args.model == "bayes":
         model = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views)).to(device)
@@ -103,8 +114,8 @@ def _run(args: argparse.Namespace) -> int:
     centres_all = spec.centres(device=device)
     stop = folder.num_frames if args.stop is None else min(args.stop, folder.num_frames)
     frames_out, centres_out, sizes_out = [], [], []
-    args.out.mkdir(parents=True, exist_ok=True)
-    with RunLogger(args.out / "tb") as tb, tqdm(total=stop - args.start, unit="frame", desc="observe") as bar:
+    with (replacing(args.out, OBSERVE_DIR), RunLogger(args.out / "tb") as tb,
+          tqdm(total=stop - args.start, unit="frame", desc="observe") as bar):
         for batch in folder.iter_batches(args.batch, args.start, stop, device=device, size_wh=(W, H)):
             t0 = time.perf_counter()
             if args.model == "hull":
@@ -128,13 +139,13 @@ def _run(args: argparse.Namespace) -> int:
                     tb.probability_images(t, "foreground/probability", torch.nan_to_num(fg, nan=0.0), rig.names)
                     tb.camera_images(t, "cameras/input", torch.nan_to_num(batch.images[i], nan=0.0), rig.names)
             bar.update(len(per_frame))
-    offsets = np.cumsum([0] + [len(c) for c in centres_out])
-    with atomic_path(args.out / "occupancy.npz", suffix=".npz") as tmp:
-        np.savez_compressed(tmp, frame_index=np.asarray(frames_out, np.int64), frame_offsets=offsets,
-                            centres=np.concatenate(centres_out) if centres_out else np.zeros((0, 3), np.float32),
-                            sizes=np.concatenate(sizes_out) if sizes_out else np.zeros((0,), np.float32),
-                            grid_lower_m=np.asarray(spec.lower_m), grid_upper_m=np.asarray(spec.upper_m),
-                            voxel_size_m=np.float64(spec.voxel_size_m), model=np.asarray(args.model))
+        offsets = np.cumsum([0] + [len(c) for c in centres_out])
+        with atomic_path(args.out / "occupancy.npz", suffix=".npz") as tmp:
+            np.savez_compressed(tmp, frame_index=np.asarray(frames_out, np.int64), frame_offsets=offsets,
+                                centres=np.concatenate(centres_out) if centres_out else np.zeros((0, 3), np.float32),
+                                sizes=np.concatenate(sizes_out) if sizes_out else np.zeros((0,), np.float32),
+                                grid_lower_m=np.asarray(spec.lower_m), grid_upper_m=np.asarray(spec.upper_m),
+                                voxel_size_m=np.float64(spec.voxel_size_m), model=np.asarray(args.model))
     print(f"wrote {args.out / 'occupancy.npz'} ({len(frames_out)} frames, mean "
           f"{offsets[-1] / max(1, len(frames_out)):.0f} voxels) and TensorBoard logs in {args.out / 'tb'}")
     return 0

@@ -70,6 +70,11 @@ class GridSpec:
         return (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2], inside
 
 
+def format_point(p: tuple[float, ...], digits: int = 3) -> str:
+    """``(x, y, z)`` rounded for messages: ``(-1.2, -1.2, 0)``, not ``(-1.1999999999999997, ...)``."""
+    return "(" + ", ".join(f"{round(float(v), digits):g}" for v in p) + ")"
+
+
 def grid_from_rig(rig: nn.Module, voxel_size_m: float, floor_z_m: float = 0.0, top_z_m: float = 2.1,
                   min_views: int | None = None, margin_m: float = 0.0, search_radius_m: float = 5.0) -> GridSpec:
     """The box over the floor region that at least ``min_views`` cameras see (default: all of them).
@@ -98,8 +103,8 @@ def grid_from_rig(rig: nn.Module, voxel_size_m: float, floor_z_m: float = 0.0, t
     lo = sel[:, :2].min(0).values - margin_m
     hi = sel[:, :2].max(0).values + margin_m
     spec = GridSpec((float(lo[0]), float(lo[1]), floor_z_m), (float(hi[0]), float(hi[1]), top_z_m), voxel_size_m)
-    log.info("grid from the rig's common view (%d of %d cameras): %s to %s, %s voxels of %.3f m", need, C,
-             spec.lower_m, spec.upper_m, "x".join(map(str, spec.shape)), voxel_size_m)
+    log.info("grid from the rig's common view (%d of %d cameras): %s to %s m, %s voxels of %.3f m", need, C,
+             format_point(spec.lower_m), format_point(spec.upper_m), "x".join(map(str, spec.shape)), voxel_size_m)
     return spec
 
 
@@ -141,7 +146,8 @@ class VoxelLookup(nn.Module):
                              persistent=False)
         for c in range(C):
             if not bool((index[c] >= 0).any()):
-                log.warning("camera %s sees none of the voxel grid %s-%s", rig.names[c], spec.lower_m, spec.upper_m)
+                log.warning("camera %s sees none of the voxel grid %s to %s m", rig.names[c],
+                            format_point(spec.lower_m), format_point(spec.upper_m))
 
     def gather(self, per_pixel: torch.Tensor, fill: float = 0.0) -> torch.Tensor:
         """Per-pixel values at every voxel.

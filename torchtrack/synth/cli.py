@@ -13,7 +13,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                        description="Render a body of ellipsoids moving in a textured room, seen by a ring of "
                                    "cameras, into a sequence folder (calibration.toml, background/, video/, "
                                    "gt.npz, meta.toml).")
-    p.add_argument("--out", required=True, metavar="DIR", help="sequence folder to write (replaced atomically)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="sequence folder to write, written whole or not at all: new, empty, or an earlier "
+                        "synthetic sequence (with --overwrite or --reuse)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier synthetic sequence in DIR (a folder holding anything else is refused) "
+                        "(default: refuse)")
     p.add_argument("--motion", default="walk", metavar="MOTION",
                    help=f"procedural motion ({', '.join(MOTIONS)}) or a .bvh file (default: %(default)s)")
     p.add_argument("--duration", type=float, default=3.0, metavar="SEC",
@@ -46,13 +51,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="seed of the sensor noise and the room textures (default: %(default)s)")
     p.add_argument("--device", default="cpu", help="torch device to render on: cpu or cuda (default: %(default)s)")
     p.add_argument("--reuse", action="store_true",
-                   help="keep OUT as it is when it already holds this sequence: rendered with these settings and "
-                        "today's configs/body.urdf and blobs.yaml (meta.toml's [synth] table); render it otherwise")
+                   help="keep DIR as it is when it already holds this sequence: rendered with these settings and "
+                        "today's configs/body.urdf and blobs.yaml (meta.toml's [synth] table); render it otherwise, "
+                        "replacing an earlier synthetic sequence there")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from torchtrack.checks import InputError
+    from torchtrack.io.outputs import SEQUENCE_DIR, check_output
     from torchtrack.synth.scene import SceneConfig
     from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 
@@ -71,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.reuse and is_current(args.out, cfg):
         print(f"{args.out} already holds this sequence (--reuse): kept")
         return 0
+    check_output(args.out, SEQUENCE_DIR, args.overwrite or args.reuse)
     out = write_sequence(cfg, args.out, device=args.device)
     print(f"wrote synthetic sequence to {out}")
     return 0

@@ -106,7 +106,8 @@ def refit_frames(poses: Poses, count: int) -> np.ndarray:
 
 def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, poses: Poses,
                         frames: int, size_wh: tuple[int, int] | None = None,
-                        device: torch.device | str | None = None) -> tuple[Skeleton, float]:
+                        device: torch.device | str | None = None, progress: str | None = None
+                        ) -> tuple[Skeleton, float]:
     """The tracker's body refitted on ``frames`` of the track's valid frames (:func:`refit_frames`) at their
     tracked poses, which must be under the tracker's current subject (as :func:`track_sequence` leaves them).
 
@@ -114,7 +115,7 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
         folder: the sequence; ``poses.frame_index`` are its frame numbers. observer: observes the picked
             frames.
         size_wh: the images' size the observer wants (None: the folder's own). device: where the frames are
-            decoded to (the observer's).
+            decoded to (the observer's). progress: the label of the shape fit's progress bar (None: no bar).
 
     Returns:
         the refitted skeleton and its largest relative change (:meth:`MarkerlessTracker.refit_bone_lengths`).
@@ -132,7 +133,7 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
         raise InputError(f"{folder.root}: frames {unread}, tracked before, cannot be read for the body refit")
     observations = observer(batch.images, batch.valid)  # the picked frames observed as one batch
     angles = torch.as_tensor(np.asarray(poses.angles)[picked], dtype=torch.float32)
-    return tracker.refit_bone_lengths(observations, angles)
+    return tracker.refit_bone_lengths(observations, angles, progress=progress)
 
 
 def track_with_body_refit(
@@ -171,7 +172,8 @@ def track_with_body_refit(
     for p in range(1, config.passes + 1):
         observer = make_observer()
         size_wh = tuple(int(v) for v in observer.rig.image_size_wh[0].tolist())
-        body, change = refit_body_on_track(folder, observer, tracker, kept, config.frames, size_wh, device)
+        body, change = refit_body_on_track(folder, observer, tracker, kept, config.frames, size_wh, device,
+                                           progress=f"body refit {p}/{config.passes}: shape" if progress else None)
         first = int(np.flatnonzero(np.asarray(kept.valid))[0])
         tracker.initialize_from_pose(torch.as_tensor(kept.angles[first]).to(tracker.angles), skeleton=body,
                                      floor_z_m=floor_z)

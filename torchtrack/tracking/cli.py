@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -37,6 +39,8 @@ def _config_default(cfg: dict[str, Any] | None, key: str) -> str:
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
+    from torchtrack.resources import builtin_configs
+
     cfg = _shipped_config()
 
     def conf(key: str) -> str:
@@ -51,9 +55,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "override that setting of the tracking config.")
     p.add_argument("seq", type=Path, metavar="SEQ",
                    help="sequence folder (calibration.toml, video/ or frames/, background/)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
-    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="FILE",
-                   help="tracking config: a configs/ name or a YAML path (default: %(default)s)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR",
+                   help="output folder: new, empty, or an earlier track's (with --overwrite)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an earlier track in DIR (its poses.npz and TensorBoard logs; other files are "
+                        "never replaced: such a DIR is refused) (default: refuse)")
+    p.add_argument("--config", default=DEFAULT_CONFIG, metavar="NAME",
+                   help=f"tracking config: a built-in name ({', '.join(builtin_configs())}) or a YAML path "
+                        "(default: %(default)s)")
     p.add_argument("--model", choices=("bayes", "hull"), default=None,
                    help=f"observation model: Bayesian occupancy grid or colour hull ({conf('observation.model')})")
     p.add_argument("--voxel", type=float, default=None, metavar="M",
@@ -164,8 +173,19 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    with torch.no_grad():
-        return _run(args)
+    from torchtrack.io.outputs import TRACK_DIR, check_output
+
+    t0 = time.perf_counter()
+    replaces = check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
+    try:
+        with torch.no_grad():
+            return _run(args, t0)
+    except KeyboardInterrupt:
+        kept = (f"{args.out} is as it was before this run" if replaces else
+                f"the TensorBoard logs of the frames tracked so far are in {args.out / 'tb'}"
+                if (args.out / "tb").is_dir() else "nothing was written")
+        print(f"torchtrack track: interrupted: no poses.npz written; {kept}", file=sys.stderr)
+        return 130
 
 
 def _initial_pose(path: Path) -> tuple[Any, float | None, Any]:
@@ -187,11 +207,12 @@ def _initial_pose(path: Path) -> tuple[Any, float | None, Any]:
     return poses.angles[ok[0]], (float(height) if height is not None else None), body
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, t0: float) -> int:
     import torch
 
     from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.checks import InputError
+    from torchtrack.io.outputs import TRACK_DIR, replacing
     from torchtrack.io.poses import save_poses
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
@@ -204,10 +225,12 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     ocfg = dict(cfg["observation"])
     model = args.model or ocfg.get("model", "bayes")
-    voxel = float(args.voxel or ocfg.get("voxel_m", 0.03))
-    scale = float(args.scale or ocfg.get("scale", 1.0))
+    voxel = float(args.voxel if args.voxel is not None else ocfg.get("voxel_m", 0.03))
+    scale = float(args.scale if args.scale is not None else ocfg.get("scale", 1.0))
     if not 0.05 <= scale <= 1.0:
-        raise InputError(f"--scale must be in [0.05, 1], got {scale}")
+        raise InputError(f"--scale must be in [0.05, 1], got {scale:g}")
+    if not 0.005 <= voxel <= 0.2:
+        raise InputError(f"--voxel must be in [0.005, 0.2] m, got {voxel:g}")
     tcfg = TrackerConfig.from_dict(cfg["tracker"], cfg["source"])
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -238,7 +261,7 @@ def _run(args: argparse.Namespace) -> int:
         bg = background_from_track(folder, load_poses(args.background_from_track), bg_config, rcfg, (W, H), device,
                                    source=str(args.background_from_track), blob_specs=tcfg.blobs)
     else:
-        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device)
+        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=True)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     if args.init_pose is not None:
         angles, height, body = _initial_pose(args.init_pose)
@@ -258,33 +281,45 @@ def _run(args: argparse.Namespace) -> int:
     def make_observer(background: BackgroundModel) -> Any:
         return observer_from_config(rig, background, ocfg, model, voxel).to(device)
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    with RunLogger(args.out / "tb") as tb:
+    with replacing(args.out, TRACK_DIR), RunLogger(args.out / "tb") as tb:
         passes: list[int] = []  # the passes run (the refinement may stop early)
-        poses, elapsed, bg = track_with_background_refinement(
+        poses, _, bg = track_with_background_refinement(
             folder, bg, make_observer, tracker, rcfg, bg_config, args.start, args.stop, args.batch, device,
             logger=tb, log_every=args.log_every, workers=workers, on_pass=lambda p, _: passes.append(p))
         refits: list[bool] = []  # whether each body refit pass was kept
         kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
-        poses, refit_s = track_with_body_refit(
+        poses, _ = track_with_body_refit(
             folder, lambda: make_observer(bg), tracker, poses, bcfg, args.start, args.stop, args.batch, device,
             log_dir=args.out / "tb", log_every=args.log_every, workers=workers,
             on_pass=lambda p, _, kept: refits.append(kept))
-        elapsed += refit_s
         if kept_pass is not None:
             poses.extra["refinement_pass"] = kept_pass
-    if tracker.subject is not None:  # no subject: nothing was tracked
-        poses = smooth_track(poses, tracker.subject.skeleton, scfg)
-    save_poses(poses, args.out / "poses.npz")
-    T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
-    n = len(passes) + len(refits)
-    rate = f"{T * n / elapsed:.1f} frames/s" + (f" over {n} passes" if n > 1 else "")
-    if "refinement_pass" in poses.extra:  # the refinement kept its best-fitting pass (tracked again for the logs)
-        rate += f" (track {int(poses.extra['refinement_pass'])} of the background refinement kept)"
-    if refits:
-        rate += f" ({len(refits)} body refit{'s' * (len(refits) > 1)}, {sum(refits)} kept)"
-    smoothed = float(poses.extra.get("smoothing_cutoff_hz", 0.0))
-    rate += f", smoothed at {smoothed:g} Hz" if smoothed else ""
-    print(f"wrote {args.out / 'poses.npz'}: {T} frames, {valid.sum()} tracked ({(~valid).sum()} invalid, "
-          f"{reinit.sum()} (re)initialisations), {rate}; TensorBoard logs in {args.out / 'tb'}")
+        if tracker.subject is not None:  # no subject: nothing was tracked
+            poses = smooth_track(poses, tracker.subject.skeleton, scfg)
+        save_poses(poses, args.out / "poses.npz")
+    print(_summary(args.out, poses, len(passes), refits, time.perf_counter() - t0))
+    if not poses.valid.any():
+        print(f"torchtrack track: error: no frame of {args.seq} was tracked: " + (
+            "the body was never found in the volume (nobody there, or the start was refused: see the warnings "
+            "above; a start pose can be given with --init-pose)" if tracker.subject is None else
+            "every frame was refused by the fit checks (see the warnings above)"), file=sys.stderr)
+        return 1
     return 0
+
+
+def _summary(out: Path, poses: Any, passes: int, refits: list[bool], wall_s: float) -> str:
+    """The closing line: frames tracked, the passes and the wall-clock rate of the whole command."""
+    T, valid, reinit = poses.num_frames, poses.valid, poses.extra["reinitialised"]
+    parts = [f"{T} frames, {int(valid.sum())} tracked ({int((~valid).sum())} invalid, {int(reinit.sum())} "
+             f"(re)initialisations)"]
+    if passes > 1:  # the refinement's tracks (the kept one tracked again for its logs counts too)
+        kept = poses.extra.get("refinement_pass")
+        parts.append(f"{passes} tracks of the background refinement" + (
+            f", track {int(kept)} kept" if kept is not None else ""))
+    if refits:
+        parts.append(f"{len(refits)} body refit{'s' * (len(refits) > 1)}, {sum(refits)} kept")
+    smoothed = float(poses.extra.get("smoothing_cutoff_hz", 0.0))
+    if smoothed:
+        parts.append(f"smoothed at {smoothed:g} Hz")
+    return (f"wrote {out / 'poses.npz'}: {'; '.join(parts)}; {wall_s:.0f} s wall clock, {T / wall_s:.2f} frames/s; "
+            f"TensorBoard logs in {out / 'tb'}")

@@ -25,7 +25,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "names (pelvis, l_knee, ...); the hips and at least one shoulder are needed.")
     p.add_argument("keypoints", type=Path, metavar="TRC", help="TRC file of 3D keypoints (metres, mm or cm)")
     p.add_argument("--out", type=Path, required=True, metavar="FILE",
-                   help="poses.npz to write: the fitted pose as one frame, with the fitted body (required)")
+                   help="poses.npz to write: the fitted pose as one frame, with the fitted body; a new file, or an "
+                        "earlier poses file (with --overwrite) (required)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier poses file at FILE (default: refuse)")
     p.add_argument("--frame", type=int, default=0, metavar="N",
                    help="row of the TRC to fit, 0-based: the sequence's first tracked frame (default: 0)")
     p.add_argument("--up", choices=("y", "z"), default="y",
@@ -41,12 +43,14 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from torchtrack.checks import InputError
+    from torchtrack.io.outputs import POSES_FILE, check_output
     from torchtrack.io.pose2sim import landmarks_from_keypoints
     from torchtrack.io.poses import save_poses
     from torchtrack.io.trc import read_trc, y_up_to_world
     from torchtrack.skeleton import Skeleton
     from torchtrack.tracking.landmark_fit import fit_to_landmarks, initial_pose
 
+    check_output(args.out, POSES_FILE, args.overwrite)  # before any work
     trc = read_trc(args.keypoints)
     xyz = trc.positions_m()
     if not 0 <= args.frame < xyz.shape[0]:

@@ -749,7 +749,7 @@ class MarkerlessTracker:
         return self._apply_bone_fit(x, res.angles.device)
 
     def refit_bone_lengths(self, observations: Sequence[VoxelObservation], angles: torch.Tensor,
-                           start_body: Skeleton | None = None) -> tuple[Skeleton, float]:
+                           start_body: Skeleton | None = None, progress: str | None = None) -> tuple[Skeleton, float]:
         """The subject's bone lengths fitted to several frames' voxels at once, each at its tracked pose: the
         shape fit (:func:`~torchtrack.blobs.shape.fit_shape_frames`) with the bone groups' scales and the neck's
         shift shared and a root shift per frame. A pose that bends a joint shows where it is, which the one
@@ -759,6 +759,7 @@ class MarkerlessTracker:
         Args:
             observations: F frames' voxels (split to ``BONE_FIT_VOXEL_M`` here). angles: (F, D) their poses under
             the current subject. start_body: the ridge's target (default: the current subject's skeleton).
+            progress: the label of the shape fit's progress bar (None: no bar).
 
         Returns:
             the new skeleton and its largest relative change.
@@ -780,7 +781,8 @@ class MarkerlessTracker:
             self.colour = colour
         # the ridge depends only on the current and the start body, the same for every frame: the last frame's
         shared, _, _ = fit_shape_frames(frames, p.ridge_w[:-3], p.target[:-3],
-                                        [x0[:-3] for x0 in self._shape_starts(p.target.device)], local=3)
+                                        [x0[:-3] for x0 in self._shape_starts(p.target.device)], local=3,
+                                        progress=progress)
         return self._apply_bone_fit(torch.cat([shared, shared.new_zeros(3)]), angles.device)
 
     @staticmethod
@@ -1021,7 +1023,7 @@ class MarkerlessTracker:
             self.previous[arm] = res.angles[arm]
         self.colour = res.blobs  # the colour model follows accepted frames only
         self._update_feet(res)
-        if self.hips is not None and obs.cameras_valid.numel() >= self.config.functional_hips_min_cameras:
+        if self.hips is not None and int(obs.cameras_valid.sum()) >= self.config.functional_hips_min_cameras:
             self._learn_hips(res)
         return res
 

@@ -416,7 +416,8 @@ def track_with_background_refinement(
                 break
             if frames is None:
                 indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device,
-                                                       size_wh=(W, H))
+                                                       size_wh=(W, H),
+                                                       progress="background refinement" if progress else None)
             k = np.asarray(indices) - start
             angles = torch.as_tensor(poses.angles[k])  # a lost frame: the pose the tracker held for it
             if p == 1 and start_state is not None and tracker.body_version:

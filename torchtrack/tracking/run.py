@@ -25,8 +25,11 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                    workers: int = 0) -> tuple[Poses, float]:
     """Track frames ``[start, stop)`` of ``folder``.
 
-    A frame with an unreadable camera frame is not tracked and comes out ``valid = False``; so does a frame
-    with nobody in the volume. Errors of the tracker name the frame.
+    A frame is tracked from the cameras whose frame is readable (a camera that ends early or stops decoding is
+    left out of the frames it lacks: the occupancy takes no evidence from it), when at least
+    :func:`min_cameras` are; with fewer it is not tracked and comes out ``valid = False``, as does a frame with
+    nobody in the volume. Cameras left out are named in one warning per camera and in ``extra['cameras_valid']``.
+    Errors of the tracker name the frame.
 
     Args:
         folder: the sequence. observer: the observation model at the processing size (its rig's size is the
@@ -41,8 +44,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
 
     Returns:
         the poses (docs/formats.md; ``extra`` holds ``subject_height_m``, ``observation_model``,
-        ``ik_residual_m``, ``explained``, ``reinitialised``, and ``body_urdf``, the subject's fitted body as URDF text,
-        once initialised) and the seconds taken.
+        ``ik_residual_m``, ``explained``, ``reinitialised``, ``camera_names`` and ``cameras_valid`` (T, C), and
+        ``body_urdf``, the subject's fitted body as URDF text, once initialised) and the seconds taken.
     """
     from tqdm import tqdm
 
@@ -61,6 +64,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     explained = np.zeros(T, np.float32)
     reinit = np.zeros(T, bool)
     version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
+    cameras_valid = np.zeros((T, len(rig.names)), bool)
+    need = min_cameras(len(rig.names))
     t_start = time.perf_counter()
     keep = log_every if logger is not None else 0
     stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
@@ -82,9 +87,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 t = int(fb.frame_index[i])
                 k = t - start
                 version[k] = tracker.body_version
-                if not bool(fb.valid[i].all()):  # a corrupt or missing camera frame: not tracked
-                    bad = [n for n, ok in zip(rig.names, fb.valid[i].tolist()) if not ok]
-                    log.warning("frame %d: unreadable frame from camera(s) %s; marked invalid", t, ", ".join(bad))
+                cameras_valid[k] = fb.valid[i].cpu().numpy()
+                if cameras_valid[k].sum() < need:  # too few readable cameras to carve the body: not tracked
                     res = tracker.skip()
                 else:
                     try:
@@ -108,16 +112,43 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 bar.update(1)
                 bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
     restate(tracker, angles, joints3d, version)
+    _report_cameras(folder, list(rig.names), cameras_valid, start, need)
     elapsed = time.perf_counter() - t_start
     extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
              "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
-             "reinitialised": reinit}
+             "reinitialised": reinit, "camera_names": np.asarray(list(rig.names)), "cameras_valid": cameras_valid}
     if tracker.subject is not None:  # the subject's body, for a later --init-pose (de Bem's reusable start)
         extra["body_urdf"] = np.asarray(tracker.subject.skeleton.urdf_text)
     poses = Poses(fps=folder.fps, frame_index=np.arange(start, stop, dtype=np.int64), joint_names=list(names),
                   joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
                   confidence=confidence, extra=extra)
     return poses, elapsed
+
+
+def min_cameras(num_cameras: int) -> int:
+    """Readable cameras a frame needs to be tracked: half the rig (rounded up), at least 3 (a hull carved by
+    fewer views is too fat and ghost-ridden to fit), at most all of them."""
+    return min(num_cameras, max(3, -(-num_cameras // 2)))
+
+
+def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.ndarray, start: int,
+                    need: int) -> None:
+    """Warn once per folder and camera about the frames it was left out of, and about the frames that had too
+    few readable cameras to be tracked (the refinement and refit passes read the same frames again)."""
+    from torchtrack.io.video import frame_ranges
+
+    reported = folder.reported
+    for c, name in enumerate(names):
+        missing = np.flatnonzero(~cameras_valid[:, c])
+        if missing.size and f"camera {name}" not in reported:
+            reported.add(f"camera {name}")
+            log.warning("%s: camera '%s' has no readable frame for %d frame(s) (%s); they were tracked from the "
+                        "other cameras", folder.root, name, missing.size, frame_ranges((missing + start).tolist()))
+    few = np.flatnonzero(cameras_valid.sum(1) < need)
+    if few.size and "few cameras" not in reported:
+        reported.add("few cameras")
+        log.warning("%s: %d frame(s) (%s) have fewer than %d readable cameras and were not tracked", folder.root,
+                    few.size, frame_ranges((few + start).tolist()), need)
 
 
 def restate(tracker: MarkerlessTracker, angles: np.ndarray, joints3d: np.ndarray, version: np.ndarray) -> None:
