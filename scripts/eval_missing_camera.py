@@ -23,18 +23,24 @@ from torchtrack.io.video import write_video
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 
-TRACK = ["--log-every", "0", "--refit-passes", "0", "--overwrite"]
+TRACK = ["--log-every", "0", "--refit-passes", "0"]
+MARK = ".eval_missing_camera"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", type=Path, default=Path("out/missing_camera"), help="work folder (replaced)")
+    ap.add_argument("--out", type=Path, default=Path("out/missing_camera"),
+                    help="work folder: new, empty, or this script's earlier one (replaced)")
     ap.add_argument("--cameras", type=int, default=8, help="cameras on the ring (default: 8)")
     ap.add_argument("--camera", type=int, default=2, help="the camera that fails (default: 2)")
     ap.add_argument("--duration", type=float, default=2.0, help="seconds of walk after the start (default: 2)")
     args = ap.parse_args()
-    if args.out.exists():
+    if args.out.exists() and any(args.out.iterdir()):
+        if not (args.out / MARK).is_file():  # never delete a folder this script did not write
+            raise SystemExit(f"--out {args.out}: not empty and not this script's work folder; give another")
         shutil.rmtree(args.out)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / MARK).write_text("work folder of scripts/eval_missing_camera.py\n")
     cfg = SynthConfig(motion="walk", duration_s=args.duration, starfish_s=0.2, fps=20, background_frames=4,
                       video_format="png", rig=RigConfig(num_cameras=args.cameras, width=320, height=240),
                       scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))

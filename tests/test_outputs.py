@@ -63,7 +63,8 @@ def test_files_and_folders_in_each_others_place_are_refused(tmp_path):
 def test_an_earlier_output_is_replaced_only_with_overwrite(tmp_path):
     track = tmp_path / "track"
     (track / "tb").mkdir(parents=True)
-    (track / "poses.npz").write_bytes(b"")
+    (track / "tb" / "events.out.tfevents.1.host").write_bytes(b"")
+    np.savez(track / "poses.npz", joint_names=np.array(["a"]), joints3d=np.zeros((1, 1, 3)), valid=np.ones(1, bool))
     with pytest.raises(InputError, match="already holds a track output; pass --overwrite to replace it"):
         check_output(track, TRACK_DIR, False)
     assert check_output(track, TRACK_DIR, True) is True
@@ -96,6 +97,28 @@ def test_file_outputs_are_recognised_by_content(tmp_path):
         check_output(report, JSON_REPORT, True)
 
 
+def test_own_output_means_its_content_too(tmp_path):
+    """A folder with the right names but a user's content is not torchtrack's: a poses.npz that is no poses file,
+    a tb/ holding more than TensorBoard event files."""
+    track = tmp_path / "track"
+    (track / "tb" / "my_experiment").mkdir(parents=True)
+    (track / "tb" / "my_experiment" / "events.out.tfevents.1").write_bytes(b"")
+    with pytest.raises(InputError, match="something other than a track output"):
+        check_output(track, TRACK_DIR, True)
+    (track / "tb" / "my_experiment").rename(track / "tb" / "body_refit_1")
+    assert check_output(track, TRACK_DIR, True)
+    (track / "poses.npz").write_bytes(b"my own bytes")
+    with pytest.raises(InputError, match="something other than a track output"):
+        check_output(track, TRACK_DIR, True)
+
+
+def test_an_earlier_output_left_aside_is_reported(tmp_path):
+    track = tmp_path / "track"
+    (track / ".replaced.abc123" / "tb").mkdir(parents=True)
+    with pytest.raises(InputError, match=r"\.replaced\.abc123, an earlier output an interrupted run set aside"):
+        check_output(track, TRACK_DIR, True)
+
+
 def test_replacing_puts_the_earlier_output_back_when_the_run_fails(tmp_path):
     out = tmp_path / "track"
     (out / "tb").mkdir(parents=True)
@@ -125,6 +148,11 @@ def test_synth_never_deletes_a_users_folder_or_file(tmp_path, capsys):
         assert main(["synth", "--out", str(folder), *small, *extra]) == 2
         assert "holds files torchtrack did not write there (data, notes.txt)" in capsys.readouterr().err
     assert snapshot(folder) == before
+    hidden = tmp_path / "hidden"
+    hidden.mkdir()
+    (hidden / ".env").write_text("SECRET=1\n")  # a folder holding only a hidden file is not empty
+    assert main(["synth", "--out", str(hidden), *small, "--overwrite"]) == 2
+    assert "(.env)" in capsys.readouterr().err and (hidden / ".env").read_text() == "SECRET=1\n"
     file = tmp_path / "a_file"
     file.write_bytes(b"precious")
     assert main(["synth", "--out", str(file), *small]) == 2
@@ -136,6 +164,10 @@ def test_synth_never_deletes_a_users_folder_or_file(tmp_path, capsys):
     assert "pass --overwrite" in capsys.readouterr().err
     assert main(["synth", "--out", str(seq), *small, "--seed", "1", "--overwrite"]) == 0
     assert "seed = 1" in (seq / "meta.toml").read_text()
+    (seq / "video" / "my_take.txt").write_text("notes")  # a user's file inside it: no longer only ours
+    assert main(["synth", "--out", str(seq), *small, "--overwrite"]) == 2
+    assert "something other than a synthetic sequence" in capsys.readouterr().err
+    assert (seq / "video" / "my_take.txt").read_text() == "notes"
 
 
 @pytest.mark.parametrize("command", ["track", "observe"])

@@ -15,8 +15,8 @@ import torch
 
 from conftest import shared_data
 from torchtrack.checks import InputError
-from torchtrack.io.sequence import (DEFAULT_FPS, SequenceFolder, SequenceMeta, normalise_camera_name, read_meta,
-                                    tomllib)
+from torchtrack.io.sequence import (DEFAULT_FPS, SequenceFolder, SequenceMeta, min_readable_cameras,
+                                    normalise_camera_name, read_meta, tomllib)
 from torchtrack.io.video import DataWarning, write_frames_png, write_video
 
 H, W = 24, 32
@@ -219,6 +219,23 @@ def test_size_mismatch_is_an_error(tmp_path, decoded_wh):
     msg = str(e.value)
     assert "'cam_x'" in msg and "frames/cam_x" in msg
     assert f"decoded {decoded_wh[0]}x{decoded_wh[1]}" in msg and f"calibrated {W}x{H}" in msg
+
+
+@pytest.mark.parametrize("counts, length", [((9, 9, 6, 6), 6), ((9, 9, 9, 6), 9), ((5, 9), 5), ((9, 4, 9), 4),
+                                            ((9,) * 7 + (3,), 9), ((9, 9, 9, 9, 3, 3, 3, 3), 9)])
+def test_the_sequence_is_as_long_as_enough_cameras_to_track_reach(tmp_path, counts, length):
+    """Enough cameras to track a frame: half of them, at least 3, at most all (min_readable_cameras)."""
+    names = [f"c{i}" for i in range(len(counts))]
+    for i, (name, n) in enumerate(zip(names, counts)):
+        add_png(tmp_path, name, frames(n, i))
+    with pytest.warns(DataWarning, match=f"the sequence has {length} frames"):
+        seq = SequenceFolder(tmp_path, rig(names))
+    assert seq.num_frames == length
+
+
+def test_min_readable_cameras():
+    expected = {1: 1, 2: 2, 3: 3, 4: 3, 5: 3, 6: 3, 7: 4, 8: 4, 9: 5, 12: 6}
+    assert {c: min_readable_cameras(c) for c in expected} == expected
 
 
 def test_a_camera_that_ends_early_is_left_out_of_the_frames_it_lacks(tmp_path):

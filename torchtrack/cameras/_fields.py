@@ -147,7 +147,9 @@ def distortions(value: object, fisheye: bool, where: Where, field: str = "distor
 def build_rig(records: list[CameraRecord], path: str | Path, dtype: torch.dtype) -> CameraRig:
     """One CameraRig from the parsed records, in ``dtype``; errors name the file."""
     if not records:
-        raise InputError(f"{path}: no cameras found")
+        from torchtrack.cameras.calib_io import KNOWN_FORMATS
+
+        raise InputError(f"{path}: no cameras found; the calibration formats torchtrack reads: {KNOWN_FORMATS}")
     names = [r.name for r in records]
     dupes = sorted({n for n in names if names.count(n) > 1})
     if dupes:

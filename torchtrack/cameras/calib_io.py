@@ -142,9 +142,11 @@ def write_native_toml(rig: CameraRig, path: str | Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------------ dispatch
+
 #: The formats :func:`detect_format` recognises, for messages.
 KNOWN_FORMATS = ("native / anipose / Pose2Sim TOML (calibration.toml), caliscope camera_array.toml, Qualisys QTM "
                  ".qca XML (.qca, .qca.txt, .xml), EasyMocap / OpenCV YAML (intri.yml + extri.yml)")
+
 
 def detect_format(path: str | Path) -> str:
     """``"native"``, ``"caliscope"``, ``"qualisys"`` or ``"easymocap"`` for a calibration path.

@@ -76,8 +76,12 @@ def run_convert(args: argparse.Namespace) -> int:
     rig = _scaled(load_calibration(args.input, dtype=torch.float64, warn_units=False), args.translation_scale)
     try:  # kept as asked (a rig may be in mm on purpose), but tracking needs metres: say so
         check_translation_units(rig, f"{args.input} with --translation-scale {args.translation_scale:g}")
-    except InputError as exc:
-        log.warning("%s", exc)
+    except InputError:
+        far = float(rig.centers().double().norm(dim=-1).max())
+        log.warning("%s with --translation-scale %g: a camera is %s units from the world origin; tracking needs "
+                    "metres (a sequence folder refuses cameras more than 100 m away): --translation-scale %g would "
+                    "give metres if these are millimetres", args.input, args.translation_scale, f"{far:,.0f}",
+                    args.translation_scale * 0.001)
     if suffix == ".toml":
         write_native_toml(rig, out)
         written = [out]

@@ -9,16 +9,20 @@ Every command that writes names its output's *kind* (a track folder, a synthetic
   is refused with an :class:`~torchtrack.checks.InputError` naming the path and what is there.
 
 "Own output" is recognised by content, so outputs written before this check existed count too: a folder whose
-visible entries are all ones that kind writes (a synthetic sequence also needs meta.toml's ``[synth]`` table), a
-file that parses as that kind. Folder outputs written in place (a track's TensorBoard logs grow during the run)
-are replaced through :func:`replacing`: the old entries are moved aside and come back if the run fails or is
-interrupted. Single files are written atomically by their writers (:mod:`torchtrack.io.atomic`).
+entries are all ones that kind writes, each of the content that kind writes (a ``poses.npz`` that is a poses
+file, a ``tb/`` of TensorBoard event files, a synthetic sequence with meta.toml's ``[synth]`` table and only
+videos and frames in its camera folders), a file that parses as that kind. Hidden entries count as the user's
+(a synthetic sequence is replaced whole), except the temporaries of this module and of atomic writes. Folder
+outputs written in place (a track's TensorBoard logs grow during the run) are replaced through
+:func:`replacing`: the old entries are moved aside and come back if the run fails or is interrupted. Single files
+are written atomically by their writers (:mod:`torchtrack.io.atomic`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import shutil
 import tempfile
@@ -33,6 +37,8 @@ try:  # Python >= 3.11
     import tomllib
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
+
+log = logging.getLogger(__name__)
 
 __all__ = ["OutputKind", "TRACK_DIR", "OBSERVE_DIR", "SEQUENCE_DIR", "EASYMOCAP_FILE", "POSES_FILE", "JSON_REPORT",
            "CALIBRATION_FILE", "check_output", "replacing"]
@@ -55,12 +61,50 @@ class OutputKind:
     is_own: Callable[[Path], bool] | None = None
 
 
-def _synth_meta(folder: Path) -> bool:
-    """Whether ``folder/meta.toml`` has the ``[synth]`` table that `torchtrack synth` writes."""
+#: Prefix of the folder :func:`replacing` moves an earlier output into.
+ASIDE_PREFIX = ".replaced."
+
+
+def _synth_sequence(folder: Path) -> bool:
+    """Whether ``folder`` is a sequence `torchtrack synth` wrote: meta.toml with its ``[synth]`` table, and in
+    ``video/``, ``frames/`` and ``background/`` only video files and folders of images."""
+    from torchtrack.io.video import IMAGE_SUFFIXES, VIDEO_SUFFIXES
+
     try:
-        return isinstance(tomllib.loads((folder / "meta.toml").read_text(encoding="utf-8")).get("synth"), dict)
+        if not isinstance(tomllib.loads((folder / "meta.toml").read_text(encoding="utf-8")).get("synth"), dict):
+            return False
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return False
+    for sub in ("video", "frames", "background"):
+        if not (folder / sub).is_dir():
+            continue
+        for entry in (folder / sub).iterdir():
+            if entry.is_dir():
+                if any(not f.is_file() or f.suffix.lower() not in IMAGE_SUFFIXES for f in entry.iterdir()):
+                    return False
+            elif entry.suffix.lower() not in VIDEO_SUFFIXES:
+                return False
+    return True
+
+
+def _event_files(tb: Path) -> bool:
+    """Whether ``tb`` holds only TensorBoard event files, at its top and in ``body_refit_N/`` runs."""
+    for entry in tb.iterdir():
+        if entry.is_dir() and entry.name.startswith("body_refit_"):
+            if not _event_files(entry) or any(e.is_dir() for e in entry.iterdir()):
+                return False
+        elif not (entry.is_file() and entry.name.startswith("events.out.tfevents.")):
+            return False
+    return True
+
+
+def _run_folder(result: str, keys: set[str]) -> Callable[[Path], bool]:
+    """A track's or observe's folder: its ``result`` npz holding ``keys``, its ``tb/`` only event files."""
+    def test(folder: Path) -> bool:
+        if (folder / result).exists() and not _npz_with(keys)(folder / result):
+            return False
+        return not (folder / "tb").exists() or ((folder / "tb").is_dir() and _event_files(folder / "tb"))
+    return test
 
 
 def _npz_with(keys: set[str]) -> Callable[[Path], bool]:
@@ -84,38 +128,46 @@ def _json_with(keys: set[str]) -> Callable[[Path], bool]:
 
 
 def _calibration(path: Path) -> bool:
-    """A TOML file of camera tables, as `calib convert` writes (any readable calibration TOML)."""
+    """A native calibration TOML, as `calib convert` writes: camera tables with a matrix, a rotation and a
+    translation each (and any ``[metadata]``)."""
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
         return False
-    return bool(doc) and all(isinstance(v, dict) for k, v in doc.items() if k != "metadata")
+    cameras = [v for k, v in doc.items() if k != "metadata"]
+    return bool(cameras) and all(isinstance(v, dict) and {"matrix", "rotation", "translation"} <= set(v)
+                                 for v in cameras)
 
 
 def _opencv_yaml(path: Path) -> bool:
-    """An OpenCV FileStorage YAML file (EasyMocap's intri.yml / extri.yml)."""
+    """An OpenCV FileStorage YAML file with camera matrices (EasyMocap's intri.yml / extri.yml)."""
     try:
-        with path.open("rb") as f:
-            return f.read(5) == b"%YAML"
+        text = path.read_bytes()
     except OSError:
         return False
+    return text.startswith(b"%YAML") and (b"\nK_" in text or b"\nR_" in text or b"\nRot_" in text)
 
 
-TRACK_DIR = OutputKind("track output", True, frozenset({"poses.npz", "tb"}))
-OBSERVE_DIR = OutputKind("occupancy output", True, frozenset({"occupancy.npz", "tb"}))
+TRACK_DIR = OutputKind("track output", True, frozenset({"poses.npz", "tb"}),
+                       _run_folder("poses.npz", {"joint_names", "joints3d", "valid"}))
+OBSERVE_DIR = OutputKind("occupancy output", True, frozenset({"occupancy.npz", "tb"}),
+                         _run_folder("occupancy.npz", {"frame_index", "frame_offsets", "centres"}))
 SEQUENCE_DIR = OutputKind("synthetic sequence", True,
                           frozenset({"calibration.toml", "video", "frames", "background", "gt.npz", "meta.toml",
                                      "body.urdf"}),
-                          _synth_meta)
+                          _synth_sequence)
 EASYMOCAP_FILE = OutputKind("EasyMocap calibration file", False, is_own=_opencv_yaml)
 POSES_FILE = OutputKind("poses file", False, is_own=_npz_with({"joint_names", "joints3d", "valid"}))
 JSON_REPORT = OutputKind("evaluation report", False, is_own=_json_with({"pred", "gt"}))
 CALIBRATION_FILE = OutputKind("calibration file", False, is_own=_calibration)
 
 
-def _visible(folder: Path) -> list[str]:
-    """The folder's entries, hidden ones (temporaries of atomic writes, .DS_Store) left out."""
-    return sorted(p.name for p in folder.iterdir() if not p.name.startswith("."))
+def _entries(folder: Path, kind: OutputKind) -> list[str]:
+    """The folder's entries but the temporaries of an atomic write of one of ``kind``'s entries (``.NAME.*``)
+    and macOS's ``.DS_Store``: what decides whose the folder is."""
+    def temporary(name: str) -> bool:
+        return name == ".DS_Store" or any(name.startswith(f".{e}.") for e in kind.entries)
+    return sorted(p.name for p in folder.iterdir() if not temporary(p.name))
 
 
 def _listing(names: list[str], limit: int = 5) -> str:
@@ -154,13 +206,19 @@ def check_output(path: str | Path, kind: OutputKind, overwrite: bool, option: st
     """
     path = Path(path)
     _check_parent(path, option)
-    if not path.exists() and not path.is_symlink():
-        return False
     where = f"{option} {path}"
+    if path.is_symlink() and not path.exists():
+        raise InputError(f"{where}: is a link to {os.readlink(path)}, which does not exist")
+    if not path.exists():
+        return False
     if kind.folder:
         if not path.is_dir():
             raise InputError(f"{where}: is a file; the {kind.name} is a folder: give a new or empty folder")
-        names = _visible(path)
+        names = _entries(path, kind)
+        aside = [n for n in names if n.startswith(ASIDE_PREFIX)]
+        if aside:
+            raise InputError(f"{where}: holds {path / aside[0]}, an earlier output an interrupted run set aside; "
+                             f"move its contents back into {path} (or delete it) and run again")
         if not names:
             return False
         foreign = [n for n in names if n not in kind.entries]
@@ -191,22 +249,25 @@ def replacing(folder: str | Path, kind: OutputKind) -> Iterator[Path]:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     old = [folder / e for e in sorted(kind.entries) if (folder / e).exists()]
-    aside = Path(tempfile.mkdtemp(prefix=".replaced.", dir=folder)) if old else None
+    aside = Path(tempfile.mkdtemp(prefix=ASIDE_PREFIX, dir=folder)) if old else None
     for p in old:
         os.replace(p, aside / p.name)
     try:
         yield folder
     except BaseException:
         if aside is not None:
-            for e in kind.entries:
-                new = folder / e
-                if new.is_dir() and not new.is_symlink():
-                    shutil.rmtree(new, ignore_errors=True)
-                elif new.exists() or new.is_symlink():
-                    new.unlink()
-            for p in aside.iterdir():
-                os.replace(p, folder / p.name)
-            aside.rmdir()
+            try:
+                for e in kind.entries:
+                    new = folder / e
+                    if new.is_dir() and not new.is_symlink():
+                        shutil.rmtree(new)
+                    elif new.exists() or new.is_symlink():
+                        new.unlink()
+                for p in aside.iterdir():
+                    os.replace(p, folder / p.name)
+                aside.rmdir()
+            except OSError as exc:  # the run's own error goes on; say where the earlier output is
+                log.error("%s: could not put the earlier output back (%s); it is in %s", folder, exc, aside)
         raise
     if aside is not None:
         shutil.rmtree(aside, ignore_errors=True)

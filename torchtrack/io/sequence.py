@@ -21,8 +21,8 @@ Decisions (documented here because trackers rely on them):
   replication, with one :class:`~torchtrack.io.video.DataWarning` per camera. Any other mismatch is an
   ``InputError``. ``size_wh`` then resizes (``cv2.INTER_AREA``); the caller scales the intrinsics to match.
 * **Frame counts** differing between cameras: a warning naming them; the sequence is as long as the count that
-  half the cameras reach (rounded up), and a camera is left out (invalid) of the frames it lacks, so one camera
-  that ends early costs the others nothing (background frames: the minimum is used).
+  :func:`min_readable_cameras` of them reach, and a camera is left out (invalid) of the frames it lacks, so one
+  camera that ends early costs the others nothing (background frames: the minimum is used).
 * **Damaged frames** do not stop a run: batches carry ``valid (B, C)`` and the images of an invalid
   (frame, camera) are NaN, so code that ignores the mask fails loudly instead of tracking on zeros. A file that
   cannot be opened at all is an ``InputError`` when the folder is opened.
@@ -215,6 +215,12 @@ def _rig_sizes(rig: Any) -> tuple[list[str], np.ndarray]:
     return names, np.rint(size.double().numpy()).astype(np.int64)  # (C, 2) [W, H]
 
 
+def min_readable_cameras(num_cameras: int) -> int:
+    """Readable cameras a frame needs to be tracked: half the rig (rounded up), at least 3 (a hull carved by
+    fewer views is too fat and ghost-ridden to fit), at most all of them."""
+    return min(num_cameras, max(3, -(-num_cameras // 2)))
+
+
 def _bar(label: str | None, total: int):
     """A tqdm progress bar over ``total`` frames labelled ``label``, or a disabled one for None."""
     from tqdm import tqdm
@@ -314,9 +320,10 @@ class SequenceFolder:
                          f"shortfall of up to {self.max_pad_px} px per dimension is padded)")
 
     def _sequence_count(self, sources: list[VideoSource]) -> int:
-        """The count half the cameras reach (rounded up); each camera that has fewer or more frames is named."""
+        """The count that enough cameras to track a frame reach (:func:`min_readable_cameras`); each camera that
+        has fewer or more frames is named."""
         counts = [s.num_frames for s in sources]
-        n = sorted(counts, reverse=True)[(len(counts) + 1) // 2 - 1]
+        n = sorted(counts, reverse=True)[min_readable_cameras(len(counts)) - 1]
         odd = [(c, k) for c, k in zip(self.camera_names, counts) if k != n]
         if odd:
             listing = ", ".join(f"'{c}' has {k}" + (f" (left out of frames {k}-{n - 1})" if k < n else

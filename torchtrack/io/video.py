@@ -172,8 +172,8 @@ class NativeStderr:
             with contextlib.suppress(Exception):
                 stream.flush()
         saved = os.dup(2)
-        os.dup2(self._file.fileno(), 2)
         try:
+            os.dup2(self._file.fileno(), 2)
             yield
         finally:
             os.dup2(saved, 2)

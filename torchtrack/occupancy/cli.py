@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import time
 from pathlib import Path
 
@@ -62,9 +63,16 @@ def run(args: argparse.Namespace) -> int:
 
     from torchtrack.io.outputs import OBSERVE_DIR, check_output
 
-    check_output(args.out, OBSERVE_DIR, args.overwrite)  # before any work
-    with torch.no_grad():
-        return _run(args)
+    replaces = check_output(args.out, OBSERVE_DIR, args.overwrite)  # before any work
+    try:
+        with torch.no_grad():
+            return _run(args)
+    except KeyboardInterrupt:
+        kept = (f"{args.out} is as it was before this run" if replaces else
+                f"the TensorBoard logs of the frames observed are in {args.out / 'tb'}"
+                if (args.out / "tb").is_dir() else "nothing was written")
+        print(f"torchtrack observe: interrupted: no occupancy.npz written; {kept}", file=sys.stderr)
+        return 130
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -180,12 +180,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         with torch.no_grad():
             return _run(args, t0)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, NothingTracked) as exc:
         kept = (f"{args.out} is as it was before this run" if replaces else
-                f"the TensorBoard logs of the frames tracked so far are in {args.out / 'tb'}"
+                f"the TensorBoard logs of the frames tracked are in {args.out / 'tb'}"
                 if (args.out / "tb").is_dir() else "nothing was written")
-        print(f"torchtrack track: interrupted: no poses.npz written; {kept}", file=sys.stderr)
-        return 130
+        if isinstance(exc, KeyboardInterrupt):
+            print(f"torchtrack track: interrupted: no poses.npz written; {kept}", file=sys.stderr)
+            return 130
+        print(f"torchtrack track: error: {exc}; no poses.npz written; {kept}", file=sys.stderr)
+        return EXIT_NOTHING_TRACKED
 
 
 def _initial_pose(path: Path) -> tuple[Any, float | None, Any]:
@@ -294,17 +297,26 @@ def _run(args: argparse.Namespace, t0: float) -> int:
             on_pass=lambda p, _, kept: refits.append(kept))
         if kept_pass is not None:
             poses.extra["refinement_pass"] = kept_pass
-        if tracker.subject is not None:  # no subject: nothing was tracked
+        if not poses.valid.any():  # raised inside: an earlier output is put back, not replaced by nothing
+            raise NothingTracked(
+                f"none of the {poses.num_frames} frames of {args.seq} was tracked: " + (
+                    "the body was never found in the volume (nobody there, or the start was refused: see the "
+                    "warnings above; --init-pose gives a start pose)" if tracker.subject is None else
+                    "every frame was refused by the fit checks (see the warnings above)"))
+        if tracker.subject is not None:
             poses = smooth_track(poses, tracker.subject.skeleton, scfg)
         save_poses(poses, args.out / "poses.npz")
     print(_summary(args.out, poses, len(passes), refits, time.perf_counter() - t0))
-    if not poses.valid.any():
-        print(f"torchtrack track: error: no frame of {args.seq} was tracked: " + (
-            "the body was never found in the volume (nobody there, or the start was refused: see the warnings "
-            "above; a start pose can be given with --init-pose)" if tracker.subject is None else
-            "every frame was refused by the fit checks (see the warnings above)"), file=sys.stderr)
-        return 1
     return 0
+
+
+class NothingTracked(Exception):
+    """A track without a single valid frame: no poses.npz is written, and the command exits with
+    :data:`EXIT_NOTHING_TRACKED`."""
+
+
+#: Exit status of a run that tracked no frame (1 is Python's for an uncaught error; 2 bad input; 130 Ctrl-C).
+EXIT_NOTHING_TRACKED = 3
 
 
 def _summary(out: Path, poses: Any, passes: int, refits: list[bool], wall_s: float) -> str:

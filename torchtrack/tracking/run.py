@@ -11,7 +11,7 @@ import torch
 
 from torchtrack.checks import InputError
 from torchtrack.io.poses import Poses
-from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.sequence import SequenceFolder, min_readable_cameras
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.stream import observe_batches
@@ -27,9 +27,9 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
 
     A frame is tracked from the cameras whose frame is readable (a camera that ends early or stops decoding is
     left out of the frames it lacks: the occupancy takes no evidence from it), when at least
-    :func:`min_cameras` are; with fewer it is not tracked and comes out ``valid = False``, as does a frame with
-    nobody in the volume. Cameras left out are named in one warning per camera and in ``extra['cameras_valid']``.
-    Errors of the tracker name the frame.
+    :func:`~torchtrack.io.sequence.min_readable_cameras` are; with fewer it is not tracked and comes out
+    ``valid = False``, as does a frame with nobody in the volume. Cameras left out are named in one warning per
+    camera and in ``extra['cameras_valid']``. Errors of the tracker name the frame.
 
     Args:
         folder: the sequence. observer: the observation model at the processing size (its rig's size is the
@@ -65,7 +65,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     reinit = np.zeros(T, bool)
     version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
     cameras_valid = np.zeros((T, len(rig.names)), bool)
-    need = min_cameras(len(rig.names))
+    need = min_readable_cameras(len(rig.names))
     t_start = time.perf_counter()
     keep = log_every if logger is not None else 0
     stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
@@ -125,12 +125,6 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     return poses, elapsed
 
 
-def min_cameras(num_cameras: int) -> int:
-    """Readable cameras a frame needs to be tracked: half the rig (rounded up), at least 3 (a hull carved by
-    fewer views is too fat and ghost-ridden to fit), at most all of them."""
-    return min(num_cameras, max(3, -(-num_cameras // 2)))
-
-
 def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.ndarray, start: int,
                     need: int) -> None:
     """Warn once per folder and camera about the frames it was left out of, and about the frames that had too
@@ -143,7 +137,8 @@ def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.
         if missing.size and f"camera {name}" not in reported:
             reported.add(f"camera {name}")
             log.warning("%s: camera '%s' has no readable frame for %d frame(s) (%s); they were tracked from the "
-                        "other cameras", folder.root, name, missing.size, frame_ranges((missing + start).tolist()))
+                        "other cameras where at least %d were readable", folder.root, name, missing.size,
+                        frame_ranges((missing + start).tolist()), need)
     few = np.flatnonzero(cameras_valid.sum(1) < need)
     if few.size and "few cameras" not in reported:
         reported.add("few cameras")

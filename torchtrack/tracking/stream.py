@@ -87,13 +87,17 @@ class _ObservedFrames(IterableDataset):
         self.folder, self.observer, self.cell_m = folder, observer, cell_m
         self.start, self.stop, self.batch, self.device = start, stop, batch, device
         self.keep_images, self.threads = keep_images, threads
+        self.debug = logging.getLogger().getEffectiveLevel() <= logging.DEBUG  # the caller's -v
 
     def __iter__(self) -> Iterator[ObservedBatch | _Warned | InputError]:
         if self.threads is None:
             yield from self._batches()
             return
         # in a worker process: its share of the cores and nothing more (OpenCV's pool, FFmpeg's decoder
-        # threads, read as each video opens), its warnings handed to the caller
+        # threads, read as each video opens), its warnings handed to the caller; with the caller's -v its debug
+        # lines (each undecodable frame, FFmpeg's messages) go to stderr as the caller's do
+        if self.debug:
+            logging.basicConfig(level=logging.DEBUG, format="%(levelname)s %(name)s: %(message)s")
         torch.set_num_threads(self.threads)
         import cv2
 
