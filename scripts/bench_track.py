@@ -31,7 +31,7 @@ from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import grid_from_rig
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
-from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.pipeline import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.stream import observe_batches
 

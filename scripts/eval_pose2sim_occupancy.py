@@ -54,7 +54,7 @@ from torchtrack.io.pose2sim import pose2sim_sequence, reference_keypoints
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import BayesConfig, BayesianGrid, grid_from_rig
-from torchtrack.tracking.cli import load_config
+from torchtrack.tracking.pipeline import load_config
 from torchtrack.tracking.refine import RefineConfig, background_from_track
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"

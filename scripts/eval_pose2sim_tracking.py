@@ -65,7 +65,7 @@ from torchtrack.io.poses import Poses, load_poses, save_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
-from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.pipeline import load_config, observer_from_config
 from torchtrack.tracking.goals import weighted_kabsch
 from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig

@@ -50,7 +50,7 @@ from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
-from torchtrack.tracking.cli import load_config, observer_from_config
+from torchtrack.tracking.pipeline import load_config, observer_from_config
 from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult, MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 from torchtrack.tracking.run import track_sequence

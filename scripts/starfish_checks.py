@@ -33,7 +33,7 @@ from torchtrack.checks import InputError  # noqa: E402
 from torchtrack.io.poses import load_poses  # noqa: E402
 from torchtrack.io.sequence import SequenceFolder  # noqa: E402
 from torchtrack.skeleton import Skeleton  # noqa: E402
-from torchtrack.tracking.cli import load_config, observer_from_config  # noqa: E402
+from torchtrack.tracking.pipeline import load_config, observer_from_config  # noqa: E402
 from torchtrack.tracking.markerless import (STARFISH_MAX_VOLUME_RATIO, STARFISH_MIN_ARM_RAISE_DEG,  # noqa: E402
                                             MarkerlessTracker, TrackerConfig)
 

@@ -36,7 +36,7 @@ def _poses(skel: Skeleton, valid, residual_mm) -> Poses:
 
 
 def test_config_defaults_are_the_shipped_config_and_bad_settings_are_named():
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
 
     cfg = load_config("markerless.yaml")
     assert BodyRefitConfig.from_dict(cfg["body_refit"], cfg["source"]) == BodyRefitConfig()
@@ -136,7 +136,7 @@ def test_a_wrong_body_is_refitted_towards_the_rendered_one_on_a_walk(walk):
     from torchtrack.background import BackgroundModel
     from torchtrack.io.poses import load_poses
     from torchtrack.io.sequence import SequenceFolder
-    from torchtrack.tracking.cli import load_config, observer_from_config
+    from torchtrack.tracking.pipeline import load_config, observer_from_config
     from torchtrack.tracking.run import track_sequence
 
     folder = SequenceFolder(walk)

@@ -159,7 +159,7 @@ def test_version_and_verbose_after_the_command(capsys, tmp_path):
 def test_configs_by_name_and_listed_in_the_help(parser):
     from torchtrack.checks import InputError
     from torchtrack.resources import CONFIG_DIR, builtin_configs
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
 
     names = sorted(p.stem for p in CONFIG_DIR.glob("markerless*.yaml"))
     assert builtin_configs() == names and "markerless_fast" in names

@@ -139,8 +139,7 @@ def test_readme_evaluation_and_python_sections_run(demo_run):
     report = json.loads((demo_run / "demo" / "eval.json").read_text())
     assert report
     (python,) = code_blocks(readme_section("Call it from Python"), "python")
-    script = python.replace('"out/', f'"{demo_run}/').replace("track_sequence(folder, observer, tracker)",
-                                                               "track_sequence(folder, observer, tracker, stop=4)")
+    script = python.replace('"out/', f'"{demo_run}/').replace("stop=20, refit_passes=1", "stop=4, refit_passes=0")
     assert "stop=4" in script and str(demo_run) in script
     res = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=1200)
     assert res.returncode == 0, res.stderr[-3000:]

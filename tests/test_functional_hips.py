@@ -195,7 +195,7 @@ def test_a_tracked_sequence_is_restated_in_the_moved_body(tmp_path):
 
     from torchtrack.background import BackgroundModel
     from torchtrack.io.sequence import SequenceFolder
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
     from torchtrack.tracking.observation import Observer
     from torchtrack.tracking.run import track_sequence
 

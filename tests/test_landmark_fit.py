@@ -127,7 +127,7 @@ def test_cuda_fit_matches_cpu(skel, subject):
 def test_initial_pose_file_carries_the_body_to_the_cli(tmp_path, skel, subject):
     """initial_pose -> save_poses -> the CLI's reader gives back the same state and body, and a tracker started
     from it uses that body."""
-    from torchtrack.tracking.cli import _initial_pose
+    from torchtrack.tracking.pipeline import read_start_pose as _initial_pose
     from torchtrack.tracking.markerless import MarkerlessTracker
 
     a = procedural_motion(subject, "walk", 0.2, 30, starfish_s=0.0)[3]
@@ -148,7 +148,7 @@ def test_initial_pose_file_carries_the_body_to_the_cli(tmp_path, skel, subject):
 
 
 def test_a_body_of_other_dofs_in_an_initial_pose_file_is_refused(tmp_path, skel, subject):
-    from torchtrack.tracking.cli import _initial_pose
+    from torchtrack.tracking.pipeline import read_start_pose as _initial_pose
 
     rec = initial_pose(subject, subject.rest_angles())
     text = str(rec.extra["body_urdf"])

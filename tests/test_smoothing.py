@@ -36,7 +36,7 @@ def _track(skel: Skeleton, angles: np.ndarray, fps: float, valid=None, reinit=No
 
 
 def test_config_defaults_are_the_shipped_config_and_bad_settings_are_named():
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
 
     cfg = load_config("markerless.yaml")
     assert SmoothingConfig.from_dict(cfg["smoothing"], cfg["source"]) == SmoothingConfig()

@@ -136,7 +136,7 @@ def test_a_video_source_pickles_without_its_decoder_and_reads_the_same_frames(se
 
 def test_tracking_with_a_worker_gives_the_same_poses(seq):
     from torchtrack.skeleton import Skeleton
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
     from torchtrack.tracking.run import track_sequence
 

@@ -1105,7 +1105,7 @@ def test_track_cli_bad_input(tmp_path, seq, capsys):
 
 
 def test_config_extends_overrides_its_base(tmp_path):
-    from torchtrack.tracking.cli import load_config
+    from torchtrack.tracking.pipeline import load_config
 
     base = load_config("markerless.yaml")
     fast = load_config("markerless_fast.yaml")

@@ -5,3 +5,13 @@ Conventions (see :mod:`torchtrack.conventions`): world Z up, metres, radians, Op
 """
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``torchtrack.track``: :func:`torchtrack.tracking.pipeline.track`, imported on first use (it needs torch,
+    which ``import torchtrack`` does not load)."""
+    if name == "track":
+        from torchtrack.tracking.pipeline import track
+
+        return track
+    raise AttributeError(f"module 'torchtrack' has no attribute {name!r}")

@@ -11,7 +11,7 @@ run can deadlock. Spawning costs the worker's start, a few seconds (importing to
 their decoders and re-open in the worker.
 
 Thread shares (``workers=1``): the caller keeps one intra-op thread for the duration of the iteration, the worker
-gets the other ``n - 1`` of the ``n`` it had (at least one), and OpenCV's own thread pool and FFmpeg's decoder
+gets the other ``n - 1`` of the machine's ``n`` (at least one), and OpenCV's own thread pool and FFmpeg's decoder
 threads are limited to one in the worker (``OPENCV_FFMPEG_THREADS``, unless the environment sets it). The
 tracker's small operations gain nothing from more threads, and oversubscribed cores cost more than they give (a
 tracker's threads next to a busy process wait for each other). The stream pays where observing and tracking cost
@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 #: batches the worker may run ahead of the tracker
 PREFETCH_BATCHES = 4
+#: torch's intra-op threads when this module was imported (its default: the machine's cores), before a caller
+#: such as :func:`~torchtrack.tracking.pipeline.track` lowered its own
+MACHINE_THREADS = torch.get_num_threads()
 
 
 class ObservedBatch(NamedTuple):
@@ -151,7 +154,8 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
         cell_m: the observations' voxels merged per cell of this size
             (:meth:`~torchtrack.tracking.observation.VoxelObservation.pooled`; 0: as observed), where they are
             observed: the tracker's ``em_cell_m``.
-        worker_threads: the worker's intra-op threads (default: one less than the caller's, at least one).
+        worker_threads: the worker's intra-op threads (default: one less than the machine's, at least one: the
+            caller keeps one while it iterates).
 
     Yields:
         :class:`ObservedBatch` es.
@@ -176,7 +180,7 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
         return
     threads = torch.get_num_threads()
     frames = _ObservedFrames(folder, observer, start, stop, batch, None, keep_images, cell_m,
-                             worker_threads or max(1, threads - 1))
+                             worker_threads or max(1, MACHINE_THREADS - 1))
     loader = DataLoader(frames, batch_size=None, num_workers=1, prefetch_factor=PREFETCH_BATCHES,
                         multiprocessing_context="spawn")
     it = None

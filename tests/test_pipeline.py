@@ -1,0 +1,78 @@
+"""The library call `torchtrack.track` (torchtrack.tracking.pipeline): what `torchtrack track` runs, with the
+tracker's intra-op threads set for the call and restored after."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+from conftest import small_walk
+
+FAST = dict(refit_passes=0, log_every=0, workers=0)
+
+
+@pytest.fixture(scope="module")
+def seq(tmp_path_factory):
+    return small_walk(tmp_path_factory.mktemp("pipeline") / "seq", duration_s=0.4, video_format="png")
+
+
+def test_import_torchtrack_stays_light_and_track_is_the_pipeline():
+    code = ("import sys, torchtrack; assert 'torch' not in sys.modules, 'torch imported'; "
+            "from torchtrack.tracking.pipeline import track; assert torchtrack.track is track; print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_the_library_call_writes_what_the_cli_writes(seq, tmp_path):
+    import torchtrack
+    from torchtrack.cli import main
+    from torchtrack.io.poses import load_poses
+
+    result = torchtrack.track(seq, **FAST, progress=False)
+    assert main(["track", str(seq), "--out", str(tmp_path / "cli"), "--refit-passes", "0", "--log-every", "0",
+                 "--workers", "0"]) == 0
+    cli = load_poses(tmp_path / "cli" / "poses.npz")
+    assert result.poses.valid.all() and result.refinement_tracks == 1 and result.refits == ()
+    np.testing.assert_array_equal(result.poses.angles, cli.angles)
+    np.testing.assert_array_equal(result.poses.joints3d, cli.joints3d)
+    assert set(result.poses.extra) == set(cli.extra)
+
+
+def test_the_tracker_runs_with_the_threads_asked_for(seq, monkeypatch):
+    import torchtrack
+    from torchtrack.tracking.markerless import MarkerlessTracker
+
+    seen = []
+    step = MarkerlessTracker.step
+
+    def recording(self, obs):
+        seen.append(torch.get_num_threads())
+        return step(self, obs)
+
+    monkeypatch.setattr(MarkerlessTracker, "step", recording)
+    before = torch.get_num_threads()
+    torchtrack.track(seq, **FAST, stop=2, progress=False)  # the default: one thread
+    assert seen and set(seen) == {1} and torch.get_num_threads() == before
+    seen.clear()
+    torchtrack.track(seq, **FAST, stop=2, progress=False, threads=None)  # as they are
+    assert set(seen) == {before}
+
+
+def test_nobody_in_the_video_is_an_error_naming_the_sequence(seq, tmp_path):
+    import torchtrack
+    from torchtrack.checks import InputError
+    from torchtrack.tracking.pipeline import NothingTracked
+
+    empty = tmp_path / "empty"
+    shutil.copytree(seq, empty)
+    shutil.rmtree(empty / "video")
+    shutil.copytree(empty / "background", empty / "video")
+    with pytest.raises(NothingTracked, match=f"none of the 4 frames of {empty} was tracked") as exc:
+        torchtrack.track(empty, **FAST, progress=False)
+    assert not exc.value.poses.valid.any()
+    with pytest.raises(InputError, match="threads must be >= 1"):
+        torchtrack.track(seq, **FAST, threads=0)

@@ -1,0 +1,288 @@
+"""Track a sequence folder as `torchtrack track` does, in one library call: :func:`track`.
+
+The background (measured from ``background/`` frames or estimated from the video), the observation model, the
+start (the starfish, or a given pose), the track, the background refinement, the body refit and the smoothing in
+time, with the settings of a tracking config (``configs/markerless.yaml``) and the overrides the CLI has. The CLI
+and the evaluation scripts call it, so that what is measured is what users run.
+
+Threads: the tracker is thousands of small tensor operations a frame, which one intra-op thread runs as fast as
+several on an idle machine, and which several run many times slower beside a busy process (they wait for each
+other). :func:`track` runs with ``threads`` intra-op threads (default 1) and gives an observation worker the
+machine's other cores (:func:`~torchtrack.tracking.stream.observe_batches`); ``scripts/bench_busy.py`` measures
+both beside a busy process (docs/results.md, "Speed").
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from torchtrack.checks import InputError
+from torchtrack.io.poses import Poses
+
+if TYPE_CHECKING:
+    import torch
+
+log = logging.getLogger(__name__)
+
+#: The built-in tracking config.
+DEFAULT_CONFIG = "markerless.yaml"
+_SECTIONS = ("observation", "tracker", "background_refinement", "body_refit", "smoothing")
+
+
+class NothingTracked(Exception):
+    """A track without a single valid frame (nobody found, or every frame refused); ``poses`` holds it."""
+
+    def __init__(self, message: str, poses: Poses) -> None:
+        super().__init__(message)
+        self.poses = poses
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """What :func:`track` returns.
+
+    Attributes:
+        poses: the track (docs/formats.md), smoothed in time as the config says.
+        refinement_tracks: the background refinement's tracks (1 without refinement; the kept one, tracked again
+            for its logs, counts too).
+        refits: per body refit pass, whether it was kept.
+        seconds: the call's wall-clock time.
+    """
+
+    poses: Poses
+    refinement_tracks: int
+    refits: tuple[bool, ...]
+    seconds: float
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """The YAML tracking config as a dict with ``observation``, ``tracker``, ``background_refinement``,
+    ``body_refit`` and ``smoothing`` sections (and ``source``). ``name``: a built-in config's name
+    (``markerless_fast``) or a YAML path. A file may start from another with ``extends: NAME`` and override some
+    settings."""
+    import yaml
+
+    from torchtrack.resources import config_path
+
+    path = config_path(name)
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not valid YAML ({exc})") from None
+    if not isinstance(doc, dict) or set(doc) - {*_SECTIONS, "extends"}:
+        raise InputError(f"{path}: expected the sections 'observation', 'tracker', 'background_refinement', "
+                         "'body_refit' and 'smoothing' (and 'extends') only")
+    if "extends" in doc:
+        if str(path) in _seen:
+            raise InputError(f"{path}: 'extends' loops back to itself")
+        base = load_config(str(doc.pop("extends")), _seen + (str(path),))
+        base.pop("source", None)
+        doc = _merge(base, doc)
+    for section in _SECTIONS:
+        doc.setdefault(section, {})
+    doc["source"] = str(path)
+    return doc
+
+
+def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
+    """The :class:`~torchtrack.tracking.observation.Observer` of a config's ``observation`` section."""
+    from torchtrack.occupancy import HullConfig
+    from torchtrack.tracking.observation import Observer
+
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull", "fill_static_subject", "workers"}
+    unknown = set(ocfg) - known
+    if unknown:
+        raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
+    try:
+        hull = HullConfig(**(ocfg.get("hull") or {}))
+    except TypeError as exc:
+        raise InputError(f"observation config, hull: {exc}") from None
+    return Observer(rig, background, model, voxel_m, threshold=float(ocfg.get("threshold", 0.5)),
+                    min_views=ocfg.get("min_views"), hull=hull)
+
+
+def read_start_pose(poses: Poses | str | Path) -> tuple[torch.Tensor, float | None, Any]:
+    """The first valid frame's angles ``(D,)`` of a poses file (or :class:`Poses`), its subject height
+    (``subject_height_m``) and its subject's body (``body_urdf``: :func:`~torchtrack.tracking.refine.track_body`),
+    each None where the file has none."""
+    import numpy as np
+    import torch
+
+    from torchtrack.io.poses import load_poses
+    from torchtrack.tracking.refine import track_body
+
+    source = "the start pose" if isinstance(poses, Poses) else str(poses)
+    if not isinstance(poses, Poses):
+        poses = load_poses(poses)
+    body = track_body(poses, source)  # checks the DOFs of both
+    ok = np.flatnonzero(poses.valid)
+    if ok.size == 0:
+        raise InputError(f"{source}: no valid frame to start from")
+    height = poses.extra.get("subject_height_m")
+    return torch.as_tensor(poses.angles[ok[0]], dtype=torch.float32), (
+        float(height) if height is not None else None), body
+
+
+@contextlib.contextmanager
+def intra_op_threads(threads: int | None) -> Iterator[None]:
+    """torch's intra-op threads set to ``threads`` for the block (None: as they are), restored after."""
+    import torch
+
+    before = torch.get_num_threads()
+    if threads is not None:
+        if threads < 1:
+            raise InputError(f"threads must be >= 1, got {threads}")
+        torch.set_num_threads(int(threads))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAULT_CONFIG, model: str | None = None,
+          voxel_m: float | None = None, scale: float | None = None, init_pose: Poses | str | Path | None = None,
+          height_m: float | None = None, start: int = 0, stop: int | None = None, batch: int = 4,
+          device: str | torch.device = "cpu", workers: int | None = None, fill_static_subject: bool | None = None,
+          refine_passes: int | None = None, refit_passes: int | None = None, smooth_hz: float | None = None,
+          background_from_track: Poses | str | Path | None = None, threads: int | None = 1,
+          log_dir: str | Path | None = None, log_every: int = 10, progress: bool = True) -> TrackResult:
+    """Track the sequence folder ``seq`` as `torchtrack track` does (module docstring).
+
+    Args:
+        seq: a sequence folder (docs/formats.md) or a :class:`~torchtrack.io.sequence.SequenceFolder`.
+        config: a tracking config's name or YAML path, or a config dict as :func:`load_config` returns it.
+        model, voxel_m, scale, workers, fill_static_subject, refine_passes, refit_passes, smooth_hz: override the
+            config's ``observation.model``, ``observation.voxel_m``, ``observation.scale``, ``observation.workers``,
+            ``observation.fill_static_subject``, ``background_refinement.passes``, ``body_refit.passes`` and
+            ``smoothing.cutoff_hz`` (None: the config's).
+        init_pose: start from the first valid frame of this poses file (with its body where it has one) instead of
+            the starfish. height_m: the subject's height for an ``init_pose`` without a body (default: its
+            ``subject_height_m``, else meta.toml's, else 1.75); with a body, the body scaled to it.
+        start, stop: the frames ``[start, stop)`` to track. batch: frames read and observed together.
+        device: torch device. threads: intra-op threads of this process while it tracks (None: as they are).
+        background_from_track: start from the background re-estimated from this earlier track of ``seq``.
+        log_dir: TensorBoard logs there (the kept track at its top, each body refit in ``body_refit_N``); None:
+            none. log_every: images and the 3D view every N frames (0: never). progress: progress bars.
+
+    Returns:
+        the :class:`TrackResult`.
+
+    Raises:
+        InputError: a bad setting or input, naming it. NothingTracked: no frame was tracked.
+    """
+    import torch
+
+    t0 = time.perf_counter()
+    with torch.no_grad(), intra_op_threads(threads):
+        return _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device,
+                      workers, fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track,
+                      log_dir, log_every, progress, t0)
+
+
+def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device, workers,
+           fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track, log_dir, log_every,
+           progress, t0) -> TrackResult:
+    import torch
+
+    from torchtrack.background import BackgroundConfig, BackgroundModel
+    from torchtrack.io.poses import load_poses
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.logging import RunLogger
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.tracking.body_refit import BodyRefitConfig, track_with_body_refit
+    from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+    from torchtrack.tracking.refine import RefineConfig, background_from_track as refined_from_track
+    from torchtrack.tracking.refine import track_with_background_refinement
+    from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
+
+    cfg = config if isinstance(config, dict) else load_config(config)
+    source = cfg.get("source", "the tracking config")
+    ocfg = dict(cfg["observation"])
+    model = model or ocfg.get("model", "bayes")
+    voxel_m = float(voxel_m if voxel_m is not None else ocfg.get("voxel_m", 0.03))
+    scale = float(scale if scale is not None else ocfg.get("scale", 1.0))
+    if not 0.05 <= scale <= 1.0:
+        raise InputError(f"scale must be in [0.05, 1], got {scale:g}")
+    if not 0.005 <= voxel_m <= 0.2:
+        raise InputError(f"the voxel size must be in [0.005, 0.2] m, got {voxel_m:g}")
+    tcfg = TrackerConfig.from_dict(cfg["tracker"], source)
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise InputError("device cuda: no CUDA device is available to PyTorch")
+    workers = workers if workers is not None else ocfg.get("workers", 0)
+    if workers not in (0, 1):
+        raise InputError(f"{source}: observation.workers must be 0 or 1, got {workers!r}")
+    rcfg = RefineConfig.from_dict(cfg["background_refinement"], source)
+    if refine_passes is not None:
+        rcfg = replace(rcfg, passes=refine_passes)
+    bcfg = BodyRefitConfig.from_dict(cfg["body_refit"], source)
+    if refit_passes is not None:
+        bcfg = replace(bcfg, passes=refit_passes)
+    scfg = SmoothingConfig.from_dict(cfg["smoothing"], source)
+    if smooth_hz is not None:
+        scfg = replace(scfg, cutoff_hz=smooth_hz)
+
+    folder = seq if isinstance(seq, SequenceFolder) else SequenceFolder(seq)
+    W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
+    rig = folder.rig.resized(W, H).float().to(device)
+    fill = bool(fill_static_subject if fill_static_subject is not None else ocfg.get("fill_static_subject", False))
+    bg_config = BackgroundConfig(fill_static_subject=fill)
+    if background_from_track is not None:
+        name = "the earlier track" if isinstance(background_from_track, Poses) else str(background_from_track)
+        earlier = background_from_track if isinstance(background_from_track, Poses) else load_poses(
+            background_from_track)
+        bg = refined_from_track(folder, earlier, bg_config, rcfg, (W, H), device, source=name,
+                                blob_specs=tcfg.blobs)
+    else:
+        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=progress)
+    tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
+    if init_pose is not None:
+        angles, height, body = read_start_pose(init_pose)
+        angles = angles.to(device)
+        if body is not None and height_m is None:  # the file's own subject (e.g. an earlier run's fitted body)
+            tracker.initialize_from_pose(angles, skeleton=body.to(device))
+            if refit_passes is None:  # refitted only when asked (body_refit.given_body, refit_passes)
+                bcfg = bcfg.for_start(body_given=True)
+        else:
+            tracker.initialize_from_pose(angles, height_m or height or folder.meta.subject_height_m or 1.75)
+    if not bg.from_moving_sequence and rcfg.passes:
+        log.info("%s: the background is measured from its background/ frames, not refined from the track",
+                 folder.root)
+        rcfg = replace(rcfg, passes=0)
+
+    def make_observer(background: BackgroundModel) -> Any:
+        return observer_from_config(rig, background, ocfg, model, voxel_m).to(device)
+
+    with contextlib.ExitStack() as stack:
+        tb = stack.enter_context(RunLogger(log_dir)) if log_dir is not None else None
+        passes: list[int] = []  # the passes run (the refinement may stop early)
+        poses, _, bg = track_with_background_refinement(
+            folder, bg, make_observer, tracker, rcfg, bg_config, start, stop, batch, device, logger=tb,
+            log_every=log_every, progress=progress, workers=workers, on_pass=lambda p, _: passes.append(p))
+        refits: list[bool] = []  # whether each body refit pass was kept
+        kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
+        poses, _ = track_with_body_refit(
+            folder, lambda: make_observer(bg), tracker, poses, bcfg, start, stop, batch, device, log_dir=log_dir,
+            log_every=log_every, progress=progress, workers=workers, on_pass=lambda p, _, kept: refits.append(kept))
+    if kept_pass is not None:
+        poses.extra["refinement_pass"] = kept_pass
+    if not poses.valid.any():
+        raise NothingTracked(f"none of the {poses.num_frames} frames of {folder.root} was tracked: " + (
+            "the body was never found in the volume (nobody there, or the start was refused: see the warnings "
+            "above; a start pose can be given, --init-pose)" if tracker.subject is None else
+            "every frame was refused by the fit checks (see the warnings above)"), poses)
+    poses = smooth_track(poses, tracker.subject.skeleton, scfg)
+    return TrackResult(poses, len(passes), tuple(refits), time.perf_counter() - t0)
