@@ -155,7 +155,7 @@ def intra_op_threads(threads: int | None) -> Iterator[None]:
 def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAULT_CONFIG, model: str | None = None,
           voxel_m: float | None = None, scale: float | None = None, init_pose: Poses | str | Path | None = None,
           height_m: float | None = None, start: int = 0, stop: int | None = None, batch: int = 4,
-          device: str | torch.device = "cpu", workers: int | None = None, fill_static_subject: bool | None = None,
+          device: str | torch.device = "cpu", workers: int | None = 0, fill_static_subject: bool | None = None,
           refine_passes: int | None = None, refit_passes: int | None = None, smooth_hz: float | None = None,
           background_from_track: Poses | str | Path | None = None, threads: int | None = 1,
           log_dir: str | Path | None = None, log_every: int = 10, progress: bool = True) -> TrackResult:
@@ -164,10 +164,14 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
     Args:
         seq: a sequence folder (docs/formats.md) or a :class:`~torchtrack.io.sequence.SequenceFolder`.
         config: a tracking config's name or YAML path, or a config dict as :func:`load_config` returns it.
-        model, voxel_m, scale, workers, fill_static_subject, refine_passes, refit_passes, smooth_hz: override the
-            config's ``observation.model``, ``observation.voxel_m``, ``observation.scale``, ``observation.workers``,
+        model, voxel_m, scale, fill_static_subject, refine_passes, refit_passes, smooth_hz: override the config's
+            ``observation.model``, ``observation.voxel_m``, ``observation.scale``,
             ``observation.fill_static_subject``, ``background_refinement.passes``, ``body_refit.passes`` and
             ``smoothing.cutoff_hz`` (None: the config's).
+        workers: 1 reads and observes the frames in a worker process ahead of the tracker (the same track,
+            faster on a CPU; a calling script then needs an ``if __name__ == "__main__":`` guard, as for any
+            spawned process), 0 in this process (the default here), None the config's ``observation.workers``
+            (`torchtrack track`'s default: 1).
         init_pose: start from the first valid frame of this poses file (with its body where it has one) instead of
             the starfish. height_m: the subject's height for an ``init_pose`` without a body (default: its
             ``subject_height_m``, else meta.toml's, else 1.75); with a body, the body scaled to it.
