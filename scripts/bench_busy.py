@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -21,10 +20,10 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.io.outputs import script_work_folder
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 
-MARK = ".bench_busy"
 #: The busy process: matrix products on all of torch's threads, until it is stopped.
 BUSY = "import torch\na = torch.randn(1024, 1024)\nwhile True:\n    a = torch.tanh(a @ a)\n"
 
@@ -46,12 +45,7 @@ def main() -> None:
                     help="the tracker's intra-op thread counts to compare (default: 1 and torch's default)")
     ap.add_argument("--refit-passes", type=int, default=1, help="body refit passes (default: 1)")
     args = ap.parse_args()
-    if args.out.exists() and any(args.out.iterdir()):
-        if not (args.out / MARK).is_file():  # never delete a folder this script did not write
-            raise SystemExit(f"--out {args.out}: not empty and not this script's work folder; give another")
-        shutil.rmtree(args.out)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / MARK).write_text("work folder of scripts/bench_busy.py\n")
+    script_work_folder(args.out, "bench_busy")
     cfg = SynthConfig(motion="walk", duration_s=1.0, starfish_s=0.2, fps=20, background_frames=4,
                       video_format="png", rig=RigConfig(num_cameras=8, width=320, height=240),
                       scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))

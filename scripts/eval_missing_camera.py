@@ -20,11 +20,11 @@ import numpy as np
 from torchtrack.cli import main as torchtrack
 from torchtrack.io.poses import load_poses
 from torchtrack.io.video import write_video
+from torchtrack.io.outputs import script_work_folder
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, write_sequence
 
 TRACK = ["--log-every", "0", "--refit-passes", "0"]
-MARK = ".eval_missing_camera"
 
 
 def main() -> None:
@@ -35,12 +35,7 @@ def main() -> None:
     ap.add_argument("--camera", type=int, default=2, help="the camera that fails (default: 2)")
     ap.add_argument("--duration", type=float, default=2.0, help="seconds of walk after the start (default: 2)")
     args = ap.parse_args()
-    if args.out.exists() and any(args.out.iterdir()):
-        if not (args.out / MARK).is_file():  # never delete a folder this script did not write
-            raise SystemExit(f"--out {args.out}: not empty and not this script's work folder; give another")
-        shutil.rmtree(args.out)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / MARK).write_text("work folder of scripts/eval_missing_camera.py\n")
+    script_work_folder(args.out, "eval_missing_camera")
     cfg = SynthConfig(motion="walk", duration_s=args.duration, starfish_s=0.2, fps=20, background_frames=4,
                       video_format="png", rig=RigConfig(num_cameras=args.cameras, width=320, height=240),
                       scene=dataclasses.replace(SceneConfig(), noise_std=1 / 255))

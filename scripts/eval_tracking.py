@@ -45,6 +45,7 @@ from torchtrack.conventions import LANDMARKS
 from torchtrack.eval import evaluate
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.video import frame_ranges
 from torchtrack.occupancy.metrics import inside_ellipsoids
 from torchtrack.skeleton import Skeleton, root_rotation_matrix
 from torchtrack.synth.scene import SceneConfig
@@ -174,17 +175,6 @@ class RecordingTracker(MarkerlessTracker):
     def initialize_from_pose(self, *args, **kwargs) -> None:
         self.active = []  # a new track of the sequence (the body refit's)
         super().initialize_from_pose(*args, **kwargs)
-
-
-def frame_ranges(frames: Sequence[int]) -> str:
-    """Sorted frame indices -> runs of consecutive ones, e.g. [3, 4, 5, 9] -> '3-5, 9'."""
-    runs: list[list[int]] = []
-    for f in frames:
-        if runs and f == runs[-1][1] + 1:
-            runs[-1][1] = f
-        else:
-            runs.append([f, f])
-    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
 
 
 def blob_activity(tracker: RecordingTracker) -> list[str]:

@@ -201,3 +201,17 @@ def test_init_pose_and_calib_convert_refuse_a_users_file(tmp_path, capsys):
     assert main(["calib", "convert", str(src), str(notes), "--overwrite"]) == 2
     assert "not a calibration file torchtrack wrote" in capsys.readouterr().err
     assert notes.read_text() == "title = 'my notes'\n"
+
+
+def test_a_scripts_work_folder_is_deleted_only_when_the_script_wrote_it(tmp_path):
+    from torchtrack.io.outputs import script_work_folder
+
+    mine = user_folder(tmp_path / "mine")
+    before = snapshot(mine)
+    with pytest.raises(InputError, match="not the work folder of bench_busy"):
+        script_work_folder(mine, "bench_busy")
+    assert snapshot(mine) == before
+    work = script_work_folder(tmp_path / "work", "bench_busy")
+    (work / "seq").mkdir()
+    assert script_work_folder(work, "bench_busy") == work and snapshot(work) == {
+        ".bench_busy": b"work folder of scripts/bench_busy.py\n"}

@@ -41,7 +41,8 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 log = logging.getLogger(__name__)
 
 __all__ = ["OutputKind", "TRACK_DIR", "OBSERVE_DIR", "SEQUENCE_DIR", "EASYMOCAP_FILE", "POSES_FILE", "JSON_REPORT",
-           "CALIBRATION_FILE", "check_output", "replacing"]
+           "CALIBRATION_FILE", "check_output", "replacing",
+           "script_work_folder"]
 
 
 @dataclass(frozen=True)
@@ -271,3 +272,17 @@ def replacing(folder: str | Path, kind: OutputKind) -> Iterator[Path]:
         raise
     if aside is not None:
         shutil.rmtree(aside, ignore_errors=True)
+
+
+def script_work_folder(path: str | Path, script: str) -> Path:
+    """A measurement script's work folder, made empty: a new or empty folder, or one this ``script`` wrote before
+    (marked by a ``.<script>`` file), which is deleted first; anything else is refused (a typo in ``--out``
+    must not delete a user's folder)."""
+    path, mark = Path(path), f".{script}"
+    if path.exists() and any(path.iterdir()):
+        if not (path / mark).is_file():
+            raise InputError(f"--out {path}: not empty and not the work folder of {script}; give another")
+        shutil.rmtree(path)
+    path.mkdir(parents=True, exist_ok=True)
+    (path / mark).write_text(f"work folder of scripts/{script}.py\n")
+    return path
