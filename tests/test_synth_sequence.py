@@ -165,3 +165,50 @@ def test_is_current_sees_other_settings_and_body_model(seq, tmp_path, monkeypatc
     shutil.copytree(seq, half)
     (half / "gt.npz").unlink()
     assert not synth_sequence.is_current(half, _cfg())
+
+
+def test_overhead_camera_looks_straight_down():
+    """The overhead camera sits above the target and sees world +X as image +x; a point on the floor at
+    (x, y) projects to the closed-form pinhole position (no distortion)."""
+    rig = make_ring_rig(RigConfig(num_cameras=4, k1=0.0, overhead=True, overhead_height_m=3.0,
+                                  overhead_hfov_deg=90.0))
+    assert rig.names[-1] == "cam4" and rig.num_cameras == 5
+    torch.testing.assert_close(rig.centers()[-1], torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))
+    f = 640 / 2 / np.tan(np.radians(45.0))
+    pts = torch.tensor([[0.4, 0.0, 0.0], [0.0, 0.5, 1.0]], dtype=torch.float64)
+    uv, valid = rig.project(pts)
+    expect = torch.tensor([[319.5 + f * 0.4 / 3.0, 239.5], [319.5, 239.5 - f * 0.5 / 2.0]], dtype=torch.float64)
+    assert bool(valid[-1].all())
+    torch.testing.assert_close(uv[-1], expect, atol=1e-9, rtol=0)
+
+
+def test_body_path_and_start_style_reach_the_ground_truth(tmp_path):
+    """Bone scale, girth and colours change the rendered body; the path moves the whole motion by the eased
+    waypoint offsets; the starfish style sets the arms' abduction (read back from gt.npz, against the plain
+    sequence's)."""
+    from torchtrack.synth.sequence import BodyConfig
+
+    import tomllib
+
+    plain = load_poses(write_sequence(_cfg(motion="walk"), tmp_path / "a", progress=False) / "gt.npz")
+    body = BodyConfig(bone_scale=(("l_thigh", 1.2),), girth=1.3, colours=(("chest", (0.1, 0.9, 0.2)),))
+    cfg = _cfg(motion="walk", body=body, path=((0.0, 0.0, 0.0), (0.6, 1.0, -0.5)), starfish_arms=0.9)
+    other = load_poses(write_sequence(cfg, tmp_path / "b", progress=False) / "gt.npz")
+    height = [tomllib.loads((tmp_path / n / "meta.toml").read_text())["subject_height_m"] for n in "ab"]
+    bones = list(plain.extra["bone_names"])
+    ratio = other.extra["bone_lengths"] / plain.extra["bone_lengths"]
+    assert ratio[bones.index("l_thigh")] == pytest.approx(1.2, rel=1e-5)
+    assert ratio[bones.index("r_thigh")] == pytest.approx(1.0, rel=1e-5)
+    girth = 1.3 * height[1] / height[0]  # the cross semi-axes also scale with the height the longer thigh adds
+    np.testing.assert_allclose(other.extra["blob_semi_axes"][:, 1:], girth * plain.extra["blob_semi_axes"][:, 1:],
+                               rtol=1e-3)
+    # the pelvis moved by the path's offset: 0 at t = 0, the last waypoint from 0.6 s on, halfway at 0.3 s
+    pelvis = plain.joint_names.index("pelvis")
+    shift = other.joints3d[:, pelvis, :2] - plain.joints3d[:, pelvis, :2]
+    np.testing.assert_allclose(shift[0], [0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(shift[3], [0.5, -0.25], atol=1e-5)  # 10 fps: smoothstep(0.5) = 0.5
+    np.testing.assert_allclose(shift[-1], [1.0, -0.5], atol=1e-5)
+    dof = list(plain.dof_names).index("l_shoulder_abd")
+    assert other.angles[0, dof] == pytest.approx(0.9, abs=1e-5) and plain.angles[0, dof] == pytest.approx(1.25, abs=1e-5)
+    with pytest.raises(InputError, match="unknown blob"):
+        write_sequence(_cfg(body=BodyConfig(colours=(("tail", (0, 0, 0)),))), tmp_path / "c", progress=False)

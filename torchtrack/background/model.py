@@ -8,6 +8,10 @@ Conventions of this module:
   both ``(C, 3, H, W)``. The stored std is final: floored at ``min_std`` on every channel, **then** Y multiplied by
   ``luminance_relax`` (Caillette: a relaxed luminance variance keeps shadows and illumination changes out of
   the foreground). Flooring first means the relaxation is never absorbed by the floor.
+* Shadows (``shadow_min_gain``): a cast shadow darkens a surface without changing its chromaticity, i.e. it
+  scales the background's YUV by one factor ``alpha`` (Horprasert et al. 1999's brightness distortion). Each
+  pixel is also scored against ``alpha B`` with the ``alpha`` in ``[shadow_min_gain, 1]`` that fits it best (closed
+  form, unrelaxed std), and the better of the two background densities is kept.
 * Global gain (``compensate_gain``): for each frame and camera, ``g = median_p(Y_frame / Y_mean)`` over the
   pixels with ``Y_mean >= DARK_Y``, clamped to ``GAIN_RANGE`` (warning, naming the camera, when it had to be).
   A global gain multiplies RGB, hence Y, U and V: the whole YUV image is divided by ``g``. The likelihood is
@@ -61,6 +65,12 @@ class BackgroundConfig:
             ``[r, 1 / r]`` times its background's: a shadow or a change of illumination scales the luminance by a
             bounded factor, and a part darker than any shadow (black hair over a light wall) is judged with the
             unrelaxed Y std (see :meth:`BackgroundModel.mahalanobis2_yuv`). 0: the paper's plain relaxation.
+        shadow_min_gain: the darkest shadow: a pixel whose colour is the background's scaled by a factor in
+            ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise) is background. Cast
+            shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors Horprasert et al.
+            1999 and Cucchiara et al. 2003 use); a part darker than that against its background stays foreground,
+            and so does a grey part over a lighter grey surface only below the bound. 1 turns the shadow test
+            off (docs/results.md, "Occupancy").
         compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
             (also applied to the estimation frames, so the model is in gain-normalised units).
         max_frames: frames used for estimation, evenly sampled over the given ones.
@@ -81,6 +91,7 @@ class BackgroundConfig:
     min_std: float = 0.012
     luminance_relax: float = 3.0
     shadow_min_ratio: float = 0.7
+    shadow_min_gain: float = 0.4
     compensate_gain: bool = True
     max_frames: int = 60
     fill_static_subject: bool = False
@@ -93,6 +104,8 @@ class BackgroundConfig:
             raise InputError(f"BackgroundConfig.luminance_relax must be >= 1, got {self.luminance_relax}")
         if not 0 <= self.shadow_min_ratio < 1:
             raise InputError(f"BackgroundConfig.shadow_min_ratio must be in [0, 1), got {self.shadow_min_ratio}")
+        if not 0 < self.shadow_min_gain <= 1:
+            raise InputError(f"BackgroundConfig.shadow_min_gain must be in (0, 1], got {self.shadow_min_gain}")
         if not math.isfinite(self.fill_prior_log_odds):
             raise InputError(f"BackgroundConfig.fill_prior_log_odds must be finite, got {self.fill_prior_log_odds}")
         if self.max_frames < MIN_FRAMES:
@@ -321,40 +334,61 @@ class BackgroundModel(nn.Module):
         caller that needs both the colours and the distances convert and gain-correct once).
 
         Where Y is outside ``[r, 1 / r]`` times the background's (``r = shadow_min_ratio``) the Y term uses the
-        unrelaxed std, i.e. it is ``luminance_relax^2`` times larger."""
+        unrelaxed std, i.e. it is ``luminance_relax^2`` times larger. Where the shadow model explains the pixel
+        better (a higher density, see :meth:`log_likelihood`) it is the distance to the shadowed background."""
         return self._mahalanobis2(yuv)[0]
 
     def _mahalanobis2(self, yuv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """:meth:`mahalanobis2_yuv` (..., C, H, W) and where the luminance relaxation was lifted (..., C, H, W)
-        bool, or None when the bound is off."""
+        """:meth:`mahalanobis2_yuv` (..., C, H, W) and the log normaliser's correction (..., C, H, W) of the model
+        that gave it (``log luminance_relax`` where the Y std is unrelaxed), or None when it is 0 everywhere."""
         mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
         inv_std = self.inv_std_yuv.to(device=yuv.device, dtype=yuv.dtype)
         z = (yuv - mean) * inv_std  # (..., C, 3, H, W)
         d2 = z.square().sum(-3)
         r, relax = self.config.shadow_min_ratio, self.config.luminance_relax
-        if r == 0 or relax == 1:
-            return d2, None
-        y, y_bg = yuv[..., 0, :, :], mean[:, 0]
-        unrelaxed = (y < r * y_bg) | (r * y > y_bg)  # (..., C, H, W); NaN: False
-        return d2 + (relax * relax - 1.0) * z[..., 0, :, :].square() * unrelaxed, unrelaxed
+        log_relax = math.log(relax)
+        corr = None
+        if r > 0 and relax > 1:
+            y, y_bg = yuv[..., 0, :, :], mean[:, 0]
+            unrelaxed = (y < r * y_bg) | (r * y > y_bg)  # (..., C, H, W); NaN: False
+            d2 = d2 + (relax * relax - 1.0) * z[..., 0, :, :].square() * unrelaxed
+            corr = unrelaxed.to(d2.dtype) * log_relax
+        lo = self.config.shadow_min_gain
+        if lo >= 1:
+            return d2, corr
+        # the shadowed background alpha * mean, alpha fitted in closed form (weighted least squares over Y, U, V
+        # with the unrelaxed std) and clamped to the shadow's range
+        inv_sh = inv_std * inv_std.new_tensor([relax, 1.0, 1.0])[:, None, None]  # (C, 3, H, W)
+        w = mean * inv_sh.square()
+        alpha = ((yuv * w).sum(-3) / (mean * w).sum(-3).clamp(min=1e-12)).clamp(lo, 1.0)  # (..., C, H, W)
+        d2_sh = ((yuv - alpha.unsqueeze(-3) * mean) * inv_sh).square().sum(-3)
+        # log density up to the common -log_norm: -d2 / 2 + correction; the shadow's std is the unrelaxed one
+        base = d2 if corr is None else d2 - 2.0 * corr
+        shadow = d2_sh - 2.0 * log_relax < base  # NaN: False
+        d2 = torch.where(shadow, d2_sh, d2)
+        corr_sh = torch.full_like(d2, log_relax)
+        corr = torch.where(shadow, corr_sh, corr_sh.new_zeros(()) if corr is None else corr)
+        return d2, corr
 
     def log_likelihood(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.
 
         ``log N(I / g; mean, diag std^2) - 3 log g`` (the density of ``I = g B``; ``g = 1`` without gain
         compensation), directly comparable with :attr:`log_uniform`; the Y std unrelaxed outside the shadow band
-        (``shadow_min_ratio``, as :meth:`mahalanobis2_yuv`). NaN where the image is NaN or dead.
+        (``shadow_min_ratio``, as :meth:`mahalanobis2_yuv`). Where it is higher, the shadow's density
+        ``N(I / g; alpha mean, diag std_unrelaxed^2)`` with the best ``alpha`` in ``[shadow_min_gain, 1]`` instead
+        (the larger of the two: a shadow is one more way of being background). NaN where the image is NaN or dead.
         """
         return self.log_likelihood_and_yuv(images)[0]
 
     def log_likelihood_and_yuv(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`log_likelihood` (B, C, H, W) and :meth:`normalise` (B, C, 3, H, W) from one normalisation."""
         yuv, g, _ = self._normalise(images)
-        d2, unrelaxed = self._mahalanobis2(yuv)  # (B, C, H, W)
+        d2, corr = self._mahalanobis2(yuv)  # (B, C, H, W)
         log_norm = self.log_norm.to(device=yuv.device, dtype=yuv.dtype)  # (C, H, W)
         log_p = -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
-        if unrelaxed is not None:  # the unrelaxed Gaussian's normaliser there
-            log_p = log_p + unrelaxed.to(log_p.dtype) * math.log(self.config.luminance_relax)
+        if corr is not None:  # the unrelaxed Gaussian's normaliser where it scored the pixel
+            log_p = log_p + corr
         return log_p, yuv
 
     def extra_repr(self) -> str:

@@ -41,15 +41,16 @@ def bvh_world_positions(path: str | Path, fps: float, duration_s: float | None =
     return list(bvh.joint_names), pos
 
 
-def bvh_motion(path: str | Path, skel: Skeleton, fps: float, duration_s: float | None, starfish_s: float
-               ) -> tuple[Skeleton, torch.Tensor]:
-    """A BVH file as our skeleton's motion: retargeted, starfish start prepended, soles on the floor.
+def bvh_motion(path: str | Path, skel: Skeleton, fps: float, duration_s: float | None, starfish_s: float,
+               **starfish: float) -> tuple[Skeleton, torch.Tensor]:
+    """A BVH file as our skeleton's motion: retargeted, starfish start prepended (``starfish``: its style, see
+    :func:`~torchtrack.synth.motion.with_starfish_start`), soles on the floor.
 
     Returns:
         the skeleton scaled to the BVH subject, (T, D) state vectors.
     """
     result = retarget_bvh(path, skel, fps, duration_s)
-    angles = with_starfish_start(result.skeleton, result.angles, fps, starfish_s)
+    angles = with_starfish_start(result.skeleton, result.angles, fps, starfish_s, **starfish)
     return result.skeleton, on_the_floor(result.skeleton, angles)
 
 

@@ -107,17 +107,19 @@ _GENERATORS: dict[str, Callable[[Skeleton, torch.Tensor, torch.Tensor], None]] =
 
 
 def with_starfish_start(skel: Skeleton, motion: torch.Tensor, fps: float, starfish_s: float = 1.0,
-                        blend_s: float = 0.5) -> torch.Tensor:
+                        blend_s: float = 0.5, arm_abduction: float = 1.25, leg_abduction: float = 0.3
+                        ) -> torch.Tensor:
     """Prepend ``starfish_s`` seconds of the starfish pose, placed where the motion starts, then blend into it.
 
     Args:
         motion: (T, D) trajectory.
+        arm_abduction, leg_abduction: the starfish's style (:meth:`Skeleton.starfish_angles`, radians).
 
     Returns:
         (T + round(starfish_s * fps), D); the first ``round(blend_s * fps)`` frames of ``motion`` are blended.
     """
     n_star, n_blend = round(starfish_s * fps), min(round(blend_s * fps), motion.shape[0])
-    star = skel.starfish_angles().to(motion).expand(n_star, -1).clone()  # (n_star, D)
+    star = skel.starfish_angles(arm_abduction, leg_abduction).to(motion).expand(n_star, -1).clone()  # (n_star, D)
     star[:, :2] = motion[0, :2]  # stand where the motion begins, facing the same way
     star[:, 3] = motion[0, 3]
     if n_star == 0:
@@ -129,13 +131,14 @@ def with_starfish_start(skel: Skeleton, motion: torch.Tensor, fps: float, starfi
     return out
 
 
-def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, starfish_s: float = 1.0
-                      ) -> torch.Tensor:
+def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, starfish_s: float = 1.0,
+                      **starfish: float) -> torch.Tensor:
     """A procedural motion with the starfish start.
 
     Args:
         kind: one of :data:`MOTIONS`.
         duration_s: length of the motion itself (the starfish second comes on top).
+        starfish: ``arm_abduction`` and ``leg_abduction`` of the starfish (:func:`with_starfish_start`).
 
     Returns:
         (T, D) float32 state vectors within the skeleton's joint limits.
@@ -147,7 +150,7 @@ def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, 
     t = torch.arange(round(duration_s * fps), dtype=torch.float32) / fps  # (T,)
     a = skel.rest_angles().float().expand(t.shape[0], -1).clone()  # (T, D)
     _GENERATORS[kind](skel, t, a)
-    return on_the_floor(skel, with_starfish_start(skel, skel.clamp(a), fps, starfish_s))
+    return on_the_floor(skel, with_starfish_start(skel, skel.clamp(a), fps, starfish_s, **starfish))
 
 
 def on_the_floor(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:

@@ -12,6 +12,7 @@ import copy
 import hashlib
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -25,7 +26,7 @@ from torchtrack.io.atomic import atomic_dir
 from torchtrack.io.poses import Poses, save_poses
 from torchtrack.resources import builtin_config
 from torchtrack.skeleton import Skeleton
-from torchtrack.synth.motion import MOTIONS, procedural_motion
+from torchtrack.synth.motion import MOTIONS, on_the_floor, procedural_motion
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 
 log = logging.getLogger(__name__)
@@ -42,6 +43,8 @@ class RigConfig:
         hfov_deg: horizontal field of view.
         k1: radial distortion of every camera (OpenCV k1), a mild barrel by default.
         target_m: the point every camera looks at.
+        overhead: one more camera (the last) straight above ``target_m`` looking down, at ``overhead_height_m``
+            with a horizontal field of view of ``overhead_hfov_deg``, its image x along world +X.
     """
 
     num_cameras: int = 8
@@ -52,6 +55,9 @@ class RigConfig:
     hfov_deg: float = 62.0
     k1: float = -0.04
     target_m: tuple[float, float, float] = (0.0, 0.0, 0.95)
+    overhead: bool = False
+    overhead_height_m: float = 3.6
+    overhead_hfov_deg: float = 90.0
 
 
 def make_ring_rig(cfg: RigConfig = RigConfig(), dtype: torch.dtype = torch.float64) -> CameraRig:
@@ -59,7 +65,7 @@ def make_ring_rig(cfg: RigConfig = RigConfig(), dtype: torch.dtype = torch.float
     if cfg.num_cameras < 1 or cfg.width < 16 or cfg.height < 16:
         raise InputError(f"rig: need >= 1 camera and images of >= 16 px, got {cfg}")
     C = cfg.num_cameras
-    az = torch.arange(C, dtype=dtype) * (2 * math.pi / C)  # (C,)
+    az = torch.arange(C, dtype=dtype) * (2 * math.pi / C)  # (C,) the ring
     centres = torch.stack([cfg.radius_m * az.cos(), cfg.radius_m * az.sin(),
                            torch.full_like(az, cfg.height_m)], dim=1)  # (C, 3)
     forward = torch.tensor(cfg.target_m, dtype=dtype) - centres
@@ -69,14 +75,65 @@ def make_ring_rig(cfg: RigConfig = RigConfig(), dtype: torch.dtype = torch.float
     right = right / right.norm(dim=1, keepdim=True)  # camera x
     down = torch.cross(forward, right, dim=1)  # camera y
     R_cam_world = torch.stack([right, down, forward], dim=1)  # rows: camera axes in world, (C, 3, 3)
-    t_cam_world = -(R_cam_world @ centres[..., None])[..., 0]
     f = 0.5 * cfg.width / math.tan(math.radians(cfg.hfov_deg) / 2)
-    K = torch.tensor([[f, 0, (cfg.width - 1) / 2], [0, f, (cfg.height - 1) / 2], [0, 0, 1]], dtype=dtype)
+    focal = [f] * C
+    if cfg.overhead:
+        if not cfg.target_m[2] < cfg.overhead_height_m:
+            raise InputError(f"rig: the overhead camera ({cfg.overhead_height_m} m) must be above the target "
+                             f"{cfg.target_m}")
+        top = torch.tensor([[cfg.target_m[0], cfg.target_m[1], cfg.overhead_height_m]], dtype=dtype)
+        down_view = torch.tensor([[[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]], dtype=dtype)
+        centres, R_cam_world = torch.cat([centres, top]), torch.cat([R_cam_world, down_view])
+        focal.append(0.5 * cfg.width / math.tan(math.radians(cfg.overhead_hfov_deg) / 2))
+        C += 1
+    t_cam_world = -(R_cam_world @ centres[..., None])[..., 0]
+    K = torch.tensor([[[fc, 0, (cfg.width - 1) / 2], [0, fc, (cfg.height - 1) / 2], [0, 0, 1]] for fc in focal],
+                     dtype=dtype)
     dist = torch.zeros(C, 5, dtype=dtype)
     dist[:, 0] = cfg.k1
     size = torch.tensor([[cfg.width, cfg.height]] * C, dtype=torch.int64)
-    return CameraRig([f"cam{i}" for i in range(C)], K.expand(C, 3, 3).clone(), R_cam_world, t_cam_world, size,
-                     dist=dist)
+    return CameraRig([f"cam{i}" for i in range(C)], K, R_cam_world, t_cam_world, size, dist=dist)
+
+
+@dataclass(frozen=True)
+class BodyConfig:
+    """The rendered subject's body beyond its height (the defaults: the template of configs/blobs.yaml).
+
+    Attributes:
+        bone_scale: ``(bone, factor)`` pairs: those bones' lengths times the factor, after the skeleton is
+            scaled to the subject's height (the height then follows from the bones).
+        girth: every blob's two cross semi-axes times this (a slimmer or a stouter body).
+        colours: ``(blob, (r, g, b))`` pairs replacing those blobs' colours (clothing, skin, hair), RGB in [0, 1].
+    """
+
+    bone_scale: tuple[tuple[str, float], ...] = ()
+    girth: float = 1.0
+    colours: tuple[tuple[str, tuple[float, float, float]], ...] = ()
+
+    def __post_init__(self) -> None:
+        if not 0.3 <= self.girth <= 3.0:
+            raise InputError(f"BodyConfig.girth must be in [0.3, 3], got {self.girth}")
+        for name, rgb in self.colours:
+            if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
+                raise InputError(f"BodyConfig.colours: {name!r} needs an RGB triple in [0, 1], got {rgb}")
+
+    def apply(self, skel: Skeleton, blobs: BlobModel) -> None:
+        """Set ``blobs``' cross semi-axes and colours in place (``skel``: for the bone names in messages)."""
+        blobs.semi_axes[:, 1:] *= self.girth
+        for name, rgb in self.colours:
+            if name not in blobs.names:
+                raise InputError(f"BodyConfig.colours: unknown blob {name!r}; blobs: {list(blobs.names)}")
+            blobs.colour[blobs.names.index(name)] = torch.tensor(rgb, dtype=blobs.colour.dtype)
+
+    def skeleton(self, skel: Skeleton) -> Skeleton:
+        """``skel`` with the bones scaled by ``bone_scale``."""
+        if not self.bone_scale:
+            return skel
+        length = dict(zip(skel.bone_names, (float(v) for v in skel.bone_lengths)))
+        unknown = [b for b, _ in self.bone_scale if b not in length]
+        if unknown:
+            raise InputError(f"BodyConfig.bone_scale: unknown bones {unknown}; bones: {list(skel.bone_names)}")
+        return skel.with_bone_lengths({b: length[b] * float(f) for b, f in self.bone_scale})
 
 
 @dataclass(frozen=True)
@@ -92,6 +149,11 @@ class SynthConfig:
         background_frames: empty-scene frames written to background/.
         video_format: "mp4" or "png".
         rig, scene: camera ring and scene options (noise, illumination change, shadow, distractor).
+        body: the subject's proportions, girth and colours beyond the template's.
+        starfish_arms, starfish_legs: the starfish's arm and leg abduction (rad), its style.
+        path: ``(time_s, x, y)`` waypoints: the subject is carried over the floor by this offset (m) from where
+            the motion puts them, eased between waypoints (smoothstep), held before the first and after the
+            last; times from the sequence's start, starfish included. Empty: no offset.
         seed: seeds the sensor noise.
     """
 
@@ -104,20 +166,52 @@ class SynthConfig:
     video_format: str = "mp4"
     rig: RigConfig = field(default_factory=RigConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
+    body: BodyConfig = field(default_factory=BodyConfig)
+    starfish_arms: float = 1.25
+    starfish_legs: float = 0.3
+    path: tuple[tuple[float, float, float], ...] = ()
     seed: int = 0
 
 
 def motion_angles(cfg: SynthConfig, skel: Skeleton) -> tuple[Skeleton, torch.Tensor]:
-    """The skeleton (scaled to the subject) and its (T, D) state vectors for ``cfg.motion``."""
+    """The skeleton (scaled to the subject, its bones as ``cfg.body`` says) and its (T, D) state vectors for
+    ``cfg.motion``, carried along ``cfg.path``."""
+    style = {"arm_abduction": cfg.starfish_arms, "leg_abduction": cfg.starfish_legs}
     if cfg.motion in MOTIONS:
-        skel = skel.scaled_to_height(cfg.subject_height_m)
-        return skel, procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s)
-    path = Path(cfg.motion)
-    if path.suffix.lower() != ".bvh":
-        raise InputError(f"motion {cfg.motion!r}: not one of {', '.join(MOTIONS)} and not a .bvh file")
-    from torchtrack.synth.bvh_motion import bvh_motion  # BVH import and retargeting
+        skel = cfg.body.skeleton(skel.scaled_to_height(cfg.subject_height_m))
+        angles = procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s, **style)
+    else:
+        path = Path(cfg.motion)
+        if path.suffix.lower() != ".bvh":
+            raise InputError(f"motion {cfg.motion!r}: not one of {', '.join(MOTIONS)} and not a .bvh file")
+        from torchtrack.synth.bvh_motion import bvh_motion  # BVH import and retargeting
 
-    return bvh_motion(path, skel, cfg.fps, cfg.duration_s, cfg.starfish_s)
+        skel, angles = bvh_motion(path, skel, cfg.fps, cfg.duration_s, cfg.starfish_s, **style)
+        if cfg.body.bone_scale:
+            skel = cfg.body.skeleton(skel)
+            angles = on_the_floor(skel, angles)
+    return skel, carried_along(skel, angles, cfg.path, cfg.fps)
+
+
+def carried_along(skel: Skeleton, angles: torch.Tensor, path: Sequence[Sequence[float]], fps: float
+                  ) -> torch.Tensor:
+    """(T, D) ``angles`` with the root moved over the floor by the offset of ``path`` (``(time_s, x, y)``
+    waypoints, see :class:`SynthConfig`) at each frame's time ``t / fps``."""
+    if not path:
+        return angles
+    way = torch.tensor([list(p) for p in path], dtype=torch.float64)  # (P, 3)
+    if way.ndim != 2 or way.shape[1] != 3 or not bool((way[1:, 0] > way[:-1, 0]).all()):
+        raise InputError(f"path: (time_s, x, y) waypoints in increasing time, got {path}")
+    t = torch.arange(angles.shape[0], dtype=torch.float64) / fps  # (T,)
+    seg = torch.searchsorted(way[:, 0].contiguous(), t).clamp(1, max(1, way.shape[0] - 1))  # (T,) segment end
+    t0, t1 = way[seg - 1, 0], way[seg, 0]
+    u = ((t - t0) / (t1 - t0).clamp(min=1e-9)).clamp(0, 1) if way.shape[0] > 1 else torch.zeros_like(t)
+    u = u * u * (3 - 2 * u)  # smoothstep: no jump in speed at a waypoint
+    offset = (1 - u)[:, None] * way[seg - 1, 1:] + u[:, None] * way[seg, 1:]  # (T, 2)
+    out = angles.clone()
+    idx = skel.dof_index(["root_tx", "root_ty"])
+    out[:, idx] += offset.to(out)
+    return out
 
 
 def _to_uint8(images: torch.Tensor) -> np.ndarray:
@@ -154,6 +248,7 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
     table = _synth_table(cfg)  # the body model's digest as of the start, before the body is read
     skel, angles = motion_angles(cfg, Skeleton.from_urdf())
     blobs = BlobModel.from_config(skel)
+    cfg.body.apply(skel, blobs)
     rig = make_ring_rig(cfg.rig)
     # .float() and .to() convert a module in place: the renderer gets its own copy, the saved calibration
     # keeps the rig's float64 values
@@ -165,7 +260,7 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
         centres, R = blobs.ellipsoids(fk.bone_frames)  # (T, K, 3), (T, K, 3, 3)
     semi = blobs.semi_axes.float().to(device)
     colours = blobs.colour.float().to(device)
-    C, (W, H) = rig.num_cameras, (cfg.rig.width, cfg.rig.height)
+    C, (W, H) = rig.num_cameras, (cfg.rig.width, cfg.rig.height)  # C: the ring and any overhead camera
     with atomic_dir(out) as tmp:
         save_calibration(rig, tmp / "calibration.toml")
         bg = np.lib.format.open_memmap(tmp / "bg.npy", mode="w+", dtype=np.uint8,
@@ -213,13 +308,22 @@ def body_model_digest() -> str:
     return h.hexdigest()[:16]
 
 
+def _plain(value):
+    """A config value as TOML holds it: tuples as lists, None dropped from tables."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (tuple, list)):
+        return [_plain(v) for v in value]
+    return value
+
+
 def _synth_table(cfg: SynthConfig) -> dict:
     """meta.toml's ``[synth]`` table for ``cfg``: what rendered the sequence."""
-    scene = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.scene).items() if v is not None}
-    rig = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(cfg.rig).items()}
     return {"motion": cfg.motion, "duration_s": cfg.duration_s, "starfish_s": cfg.starfish_s, "seed": cfg.seed,
             "subject_height_m": cfg.subject_height_m, "background_frames": cfg.background_frames,
-            "video_format": cfg.video_format, "body_model": body_model_digest(), "rig": rig, "scene": scene}
+            "video_format": cfg.video_format, "body_model": body_model_digest(), "rig": _plain(asdict(cfg.rig)),
+            "scene": _plain(asdict(cfg.scene)), "body": _plain(asdict(cfg.body)),
+            "starfish": [cfg.starfish_arms, cfg.starfish_legs], "path": _plain(cfg.path)}
 
 
 def is_current(out: str | Path, cfg: SynthConfig) -> bool:

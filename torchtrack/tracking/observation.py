@@ -15,7 +15,7 @@ from torch import nn
 
 from torchtrack.blobs.model import SURFACE_MAHALANOBIS2
 from torchtrack.checks import InputError
-from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, grid_from_rig, hull_from_images
+from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, capture_views, grid_from_rig, hull_from_images
 
 MODELS = ("bayes", "hull")
 
@@ -137,8 +137,11 @@ class Observer(nn.Module):
     Args:
         rig: CameraRig at the processing image size. background: BackgroundModel of the same size.
         model: "bayes" or "hull". voxel_size_m: grid voxel (bayes) or finest hull voxel.
-        lower_m, upper_m: the tracking volume (default: the cameras' common view, floor to 2.1 m).
+        lower_m, upper_m: the tracking volume (default: the box over the floor that ``min_views`` cameras see,
+            floor to 2.1 m).
         threshold: occupancy probability above which a Bayesian voxel is kept.
+        min_views: a voxel counts where at least this many cameras see it (None:
+            :func:`~torchtrack.occupancy.capture_views`, all but two and at least three).
         bayes, hull: optional model configs (their volume and voxel fields are overridden).
     """
 
@@ -150,6 +153,11 @@ class Observer(nn.Module):
         if model not in MODELS:
             raise InputError(f"observation model must be one of {MODELS}, got {model!r}")
         self.model, self.threshold, self.rig, self.background = model, threshold, rig, background
+        if min_views is None:
+            min_views = capture_views(rig.num_cameras)
+        elif not 1 <= int(min_views) <= rig.num_cameras:
+            raise InputError(f"observation min_views: {min_views} cameras of the rig's {rig.num_cameras}")
+        self.min_views = int(min_views)
         if lower_m is None or upper_m is None:
             spec = grid_from_rig(rig, voxel_size_m, min_views=min_views)
         else:

@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 
 #: The built-in tracking config.
 DEFAULT_CONFIG = "markerless.yaml"
-_SECTIONS = ("observation", "tracker", "background_refinement", "body_refit", "smoothing")
+_SECTIONS = ("observation", "background", "tracker", "background_refinement", "body_refit", "smoothing")
 
 
 class NothingTracked(Exception):
@@ -69,8 +69,8 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """The YAML tracking config as a dict with ``observation``, ``tracker``, ``background_refinement``,
-    ``body_refit`` and ``smoothing`` sections (and ``source``). ``name``: a built-in config's name
+    """The YAML tracking config as a dict with ``observation``, ``background``, ``tracker``,
+    ``background_refinement``, ``body_refit`` and ``smoothing`` sections (and ``source``). ``name``: a built-in config's name
     (``markerless_fast``) or a YAML path. A file may start from another with ``extends: NAME`` and override some
     settings."""
     import yaml
@@ -83,8 +83,8 @@ def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(doc, dict) or set(doc) - {*_SECTIONS, "extends"}:
-        raise InputError(f"{path}: expected the sections 'observation', 'tracker', 'background_refinement', "
-                         "'body_refit' and 'smoothing' (and 'extends') only")
+        raise InputError(f"{path}: expected the sections 'observation', 'background', 'tracker', "
+                         "'background_refinement', 'body_refit' and 'smoothing' (and 'extends') only")
     if "extends" in doc:
         if str(path) in _seen:
             raise InputError(f"{path}: 'extends' loops back to itself")
@@ -243,7 +243,10 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
     rig = folder.rig.resized(W, H).float().to(device)
     fill = bool(fill_static_subject if fill_static_subject is not None else ocfg.get("fill_static_subject", False))
-    bg_config = BackgroundConfig(fill_static_subject=fill)
+    try:
+        bg_config = BackgroundConfig(**{**(cfg.get("background") or {}), "fill_static_subject": fill})
+    except TypeError as exc:
+        raise InputError(f"{source}, background: {exc}") from None
     if background_from_track is not None:
         name = "the earlier track" if isinstance(background_from_track, Poses) else str(background_from_track)
         earlier = background_from_track if isinstance(background_from_track, Poses) else load_poses(

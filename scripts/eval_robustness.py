@@ -1,0 +1,244 @@
+#!/usr/bin/env python
+"""The stress table: the markerless tracker on synthetic recordings unlike the template's, as `torchtrack track`
+tracks them (torchtrack.track with the default config).
+
+Each case fixes a motion (procedural, or a real CMU capture retargeted), a camera count, a start and where the
+subject goes; its seed draws the rest: body height, bone proportions and girth, clothing colours (normal, or close
+to the floor's and the walls'), a floor shadow and the light, the ring's radius and height, lens distortion.
+Sequences are rendered once under --work (re-rendered when their settings change).
+
+    .venv/bin/python scripts/eval_robustness.py                     # every case (about an hour on 2 cores)
+    .venv/bin/python scripts/eval_robustness.py --cases walk_8 cross_8    # a subset
+    .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before
+
+Columns: MPJPE over the 16 landmarks (mm) on the frames where the subject is in view (every landmark inside at
+least 3 images), the worst such frame, invalid frames among them, and the start: the first frame within 50 mm
+(its time from the first frame), as docs/results.md's stress table reports them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from torchtrack.cameras import load_calibration
+from torchtrack.checks import InputError
+from torchtrack.conventions import LANDMARKS
+from torchtrack.io.outputs import script_work_folder
+from torchtrack.io.poses import load_poses
+from torchtrack.synth.scene import _WALL_PALETTE, SceneConfig
+from torchtrack.synth.sequence import BodyConfig, RigConfig, SynthConfig, is_current, write_sequence
+from torchtrack.tracking.pipeline import NothingTracked, load_config, track
+
+CMU = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap" / "cmu"
+#: The floor's two checker tones (torchtrack/synth/scene.py): low-contrast trousers and shoes are drawn near them.
+FLOOR_TONES = ((0.60, 0.55, 0.47), (0.38, 0.40, 0.44))
+#: Blobs dressed alike.
+GARMENTS = {"top": ("abdomen", "chest", "l_upperarm", "r_upperarm"),
+            "trousers": ("pelvis", "l_thigh", "r_thigh", "l_shank", "r_shank"),
+            "skin": ("neck", "l_forearm", "r_forearm", "l_hand", "r_hand"), "hair": ("head",),
+            "shoes": ("l_foot", "r_foot")}
+#: Bones whose length is drawn (both sides alike), and how far from the template's proportion.
+BONES = ("torso", "head", "upperarm", "forearm", "thigh", "shank")
+BONE_SPREAD = 0.08
+#: Starfish styles: (arm abduction, leg abduction) in radians; "none" starts in the motion itself.
+STARTS = {"starfish": (1.25, 0.3), "high": (1.75, 0.25), "low": (0.95, 0.35), "none": None}
+#: Start target: within this MPJPE (m) ...
+START_MM = 50.0
+#: ... by this time from the first frame (s).
+START_S = 1.0
+#: A frame is "in view" when every landmark projects inside at least this many images.
+IN_VIEW = 3
+
+
+@dataclass(frozen=True)
+class Case:
+    """One row of the table. path: "none", "cross" (to where only some cameras see the subject and back) or
+    "leave" (out of the capture area and back)."""
+
+    name: str
+    motion: str
+    cameras: int
+    seed: int
+    start: str = "starfish"
+    path: str = "none"
+    overhead: bool = False
+    low_contrast: bool = False
+
+
+CASES = (
+    Case("walk_8", "walk", 8, 1, start="high"),
+    Case("turn_12", "turn", 12, 2, start="low", overhead=True),
+    Case("arm_raise_6", "arm_raise", 6, 3, start="none", low_contrast=True),
+    Case("squat_10", "squat", 10, 4, start="starfish"),
+    Case("kick_8", "kick", 8, 5, start="none"),
+    Case("cmu131_01_8", "cmu:131_01", 8, 6, start="starfish", low_contrast=True),
+    Case("cmu131_02_12", "cmu:131_02", 12, 7, start="high", overhead=True),
+    Case("cross_8", "walk", 8, 8, start="starfish", path="cross"),
+    Case("leave_8", "walk", 8, 9, start="low", path="leave"),
+    Case("walk_4", "walk", 4, 10, start="starfish"),
+    Case("squat_4", "squat", 4, 11, start="none", low_contrast=True),
+    Case("cmu131_01_4", "cmu:131_01", 4, 12, start="high"),
+)
+
+
+def _colour(rng: np.random.Generator, near: tuple[float, float, float] | None) -> tuple[float, float, float]:
+    if near is None:
+        return tuple(float(v) for v in rng.uniform(0.05, 0.95, 3))
+    return tuple(float(np.clip(v + rng.uniform(-0.05, 0.05), 0, 1)) for v in near)
+
+
+def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
+    """The case's sequence: its fixed settings and the seed's draws."""
+    rng = np.random.default_rng(case.seed)
+    skin = tuple(float(v) for v in np.array([0.85, 0.62, 0.48]) * rng.uniform(0.45, 1.1))
+    colours = []
+    for garment, blobs in GARMENTS.items():
+        if garment == "skin":
+            rgb = skin
+        elif case.low_contrast and garment in ("trousers", "shoes"):
+            rgb = _colour(rng, FLOOR_TONES[int(rng.integers(2))])
+        elif case.low_contrast and garment == "top":
+            rgb = _colour(rng, _WALL_PALETTE[int(rng.integers(len(_WALL_PALETTE)))])
+        else:
+            rgb = _colour(rng, None)
+        colours += [(b, rgb) for b in blobs]
+    scale = [(side + bone, f) for bone in BONES for f in [float(rng.uniform(1 - BONE_SPREAD, 1 + BONE_SPREAD))]
+             for side in (("l_", "r_") if bone not in ("torso", "head") else ("",))]
+    body = BodyConfig(bone_scale=tuple(scale), girth=float(rng.uniform(0.85, 1.3)), colours=tuple(colours))
+    elevation, azimuth = rng.uniform(math.radians(45), math.radians(80)), rng.uniform(0, 2 * math.pi)
+    light = (math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation))
+    scene = replace(SceneConfig(), light_dir=light, ambient=float(rng.uniform(0.3, 0.5)), shadow=True,
+                    shadow_strength=float(rng.uniform(0.3, 0.55)), illumination_change=float(rng.uniform(0, 0.15)),
+                    seed=case.seed)
+    radius = float(rng.uniform(3.0, 4.5))  # the field of view keeps the default ring's width at the centre
+    rig = RigConfig(num_cameras=case.cameras, radius_m=radius, height_m=float(rng.uniform(1.8, 2.8)),
+                    hfov_deg=math.degrees(2 * math.atan(3.5 * math.tan(math.radians(31.0)) / radius)), k1=float(rng.uniform(-0.12, 0.0)),
+                    overhead=case.overhead)
+    path: tuple[tuple[float, float, float], ...] = ()
+    start = STARTS[case.start]
+    starfish_s = 0.0 if start is None else 1.0
+    t0 = starfish_s + 0.3
+    heading = float(rng.uniform(0, 2 * math.pi))
+    if case.path == "cross":  # to 0.7 of the ring's radius, where only some cameras see the subject, and back
+        far = 0.7 * radius
+        path = ((t0, 0.0, 0.0), (t0 + 1.2, far * math.cos(heading), far * math.sin(heading)),
+                (t0 + 2.0, far * math.cos(heading), far * math.sin(heading)), (t0 + 3.2, 0.0, 0.0))
+    elif case.path == "leave":  # behind the cameras, out of the capture area, and back
+        far = radius + 1.2
+        path = ((t0, 0.0, 0.0), (t0 + 1.5, far * math.cos(heading), far * math.sin(heading)),
+                (t0 + 2.2, far * math.cos(heading), far * math.sin(heading)), (t0 + 3.7, 0.0, 0.0))
+    if path:
+        duration = max(duration, path[-1][0] - starfish_s + 0.7)
+    motion = str(CMU / f"{case.motion[4:]}.bvh") if case.motion.startswith("cmu:") else case.motion
+    arms, legs = start if start is not None else (1.25, 0.3)
+    return SynthConfig(motion=motion, duration_s=duration, starfish_s=starfish_s, fps=fps,
+                       subject_height_m=float(rng.uniform(1.55, 1.95)), rig=rig, scene=scene, body=body,
+                       starfish_arms=arms, starfish_legs=legs, path=path, seed=case.seed)
+
+
+def in_view(seq: Path, truth: np.ndarray) -> np.ndarray:
+    """(T,) bool: every landmark of the frame inside at least IN_VIEW images (truth: (T, J, 3))."""
+    rig = load_calibration(seq / "calibration.toml")
+    T, J, _ = truth.shape
+    _, valid = rig.project(torch.from_numpy(truth.reshape(-1, 3)).double())  # (C, T * J)
+    return (valid.reshape(-1, T, J).sum(0) >= IN_VIEW).all(-1).numpy()
+
+
+def score(seq: Path, poses) -> dict:
+    gt = load_poses(seq / "gt.npz")
+    idx = [gt.joint_names.index(n) for n in LANDMARKS]
+    truth = gt.joints3d[:, idx]  # (T, J, 3)
+    seen = in_view(seq, truth)
+    T = truth.shape[0]
+    pred = np.full_like(truth, np.nan)
+    valid = np.zeros(T, dtype=bool)
+    if poses is not None:
+        pidx = [poses.joint_names.index(n) for n in LANDMARKS]
+        frames = poses.frame_index
+        pred[frames] = poses.joints3d[:, pidx]
+        valid[frames] = poses.valid
+    err = np.linalg.norm(pred - truth, axis=-1).mean(-1) * 1e3  # (T,) mm, NaN where not tracked
+    ok = valid & seen
+    fps = gt.fps
+    within = np.nonzero(valid & (err <= START_MM))[0]
+    first = int(within[0]) if within.size else None
+    return {"frames": T, "in_view": int(seen.sum()), "invalid": int((seen & ~valid).sum()),
+            "mpjpe": float(np.nanmean(err[ok])) if ok.any() else float("nan"),
+            "worst": float(np.nanmax(err[ok])) if ok.any() else float("nan"),
+            "start_s": None if first is None else first / fps}
+
+
+def run_case(case: Case, work: Path, duration: float, fps: float, config: dict) -> dict:
+    seq = work / case.name
+    cfg = synth_config(case, duration, fps)
+    if not is_current(seq, cfg):
+        write_sequence(cfg, seq, progress=False)
+    t0 = time.perf_counter()
+    note = ""
+    try:
+        poses = track(seq, config=config, workers=None, progress=False).poses  # workers: the config's, as the CLI
+    except NothingTracked as e:
+        poses, note = e.poses, f"nothing tracked: {e}"
+    except InputError as e:
+        poses, note = None, f"refused: {str(e).splitlines()[0][:90]}"
+    out = score(seq, poses)
+    out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead))
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cases", nargs="+", default=[c.name for c in CASES], metavar="NAME",
+                    help=f"cases to run (default: all: {' '.join(c.name for c in CASES)})")
+    ap.add_argument("--duration", type=float, default=3.0, help="seconds of motion after the start (default: 3)")
+    ap.add_argument("--fps", type=float, default=30.0, help="frame rate of the sequences (default: 30)")
+    ap.add_argument("--work", type=Path, default=Path("out/eval_robustness"), help="rendered sequences")
+    ap.add_argument("--config", default="markerless.yaml", help="tracking config (default: markerless.yaml)")
+    ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override config settings, e.g. background.shadow_min_gain=1 (YAML values)")
+    ap.add_argument("--all-views", action="store_true",
+                    help="voxels must be seen by every camera (observation.min_views = the rig's count)")
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    by_name = {c.name: c for c in CASES}
+    unknown = [n for n in args.cases if n not in by_name]
+    if unknown:
+        raise SystemExit(f"unknown cases {unknown}; cases: {list(by_name)}")
+    work = script_work_folder(args.work, "eval_robustness.py")
+    print(f"{'case':<14} {'cams':>4} {'start':<8} {'path':<6} {'MPJPE':>7} {'worst':>7} {'invalid':>9} "
+          f"{'start within 50 mm':>19} {'s':>5}  note")
+    config = load_config(args.config)
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        section, dot, field = key.partition(".")
+        if not sep or not dot or section not in config:
+            raise SystemExit(f"--set {item!r}: expected SECTION.KEY=VALUE with a section of {args.config}")
+        config[section][field] = yaml.safe_load(value)
+    rows = []
+    for name in args.cases:
+        case = by_name[name]
+        if args.all_views:
+            config["observation"]["min_views"] = case.cameras + int(case.overhead)
+        r = run_case(case, work, args.duration, args.fps, config)
+        rows.append((case, r))
+        start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
+        print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
+              f"{r['invalid']:>4}/{r['in_view']:<4} {start:>19} {r['seconds']:>5.0f}  {r['note']}", flush=True)
+    for label, sel in (("8 cameras and more", lambda c: c.cameras >= 8), ("fewer", lambda c: c.cameras < 8)):
+        vals = [r["mpjpe"] for c, r in rows if sel(c)]
+        if vals:
+            print(f"mean MPJPE, {label}: {np.nanmean(vals):.1f} mm over {len(vals)} cases "
+                  f"({sum(math.isnan(v) for v in vals)} without a track)")
+
+
+if __name__ == "__main__":
+    main()
