@@ -24,7 +24,10 @@ Renders each sequence once (cached under --work), tracks it with the library's d
     .venv/bin/python scripts/eval_tracking.py --motions kick --cameras 4 --models hull --cutoffs 3 4 6 10
 
 The row is the finished track as `torchtrack track` writes it: after the body refit, smoothed in time (the
-config's ``smoothing`` section); the column ``unsm.`` is its MPJPE before the smoothing.
+config's ``smoothing`` section); the column ``unsm.`` is its MPJPE before the smoothing. Rows come from the
+library call `torchtrack.track`; the diagnostics that look inside a track (--true-body, --oracle-margin,
+--outside, --coverage, --blob-activity, --hips, --refit-passes) assemble the same pipeline from its parts with a
+recording tracker and observer.
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
 from torchtrack.tracking.pipeline import load_config, observer_from_config
+from torchtrack.tracking.pipeline import track as library_track
+from torchtrack.tracking.refine import track_body
 from torchtrack.tracking.markerless import BONE_FIT_VOXEL_M, FrameResult, MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 from torchtrack.tracking.run import track_sequence
@@ -227,6 +232,23 @@ def track(seq: Path, model: str, config: dict, background: BackgroundConfig = Ba
             tracker.initialize_from_pose(start[0], skeleton=start[1])
     poses, elapsed = track_sequence(folder, observer, tracker, progress=False)  # in this process, frames in order
     return poses, poses.num_frames / elapsed, tracker, observer
+
+
+def with_settings(config: dict, section: str, items: Sequence[str], validated) -> dict:
+    """``config`` with the ``FIELD=VALUE`` items of a command-line option set in ``section``, each value as the
+    option's dataclass ``validated`` parsed it."""
+    out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in config.items()}
+    for item in items:
+        name = item.partition("=")[0]
+        out.setdefault(section, {})[name] = getattr(validated, name)
+    return out
+
+
+def track_plain(seq: Path, model: str, config: dict) -> tuple[object, Skeleton, float]:
+    """``seq`` tracked by :func:`torchtrack.track` as `torchtrack track` tracks it, before the smoothing: the
+    track, its body and frames per second (the whole call's, refits included)."""
+    result = library_track(seq, config=config, model=model, smooth_hz=0, workers=None, progress=False)
+    return result.poses, track_body(result.poses, str(seq)), result.poses.num_frames / result.seconds
 
 
 def refit_passes(seq: Path, model: str, config: dict, background: BackgroundConfig, poses, tracker: MarkerlessTracker,
@@ -407,8 +429,10 @@ def main() -> None:
                          "the body's shape)")
     ap.add_argument("--refit", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="overrides of the config's body_refit section (BodyRefitConfig), e.g. passes=0 (the first "
-                         "track alone) or min_gain=0 (every pass that lowers the IK residual kept); each pass's "
-                         "error, IK residual and refitted proportions are printed, the row is the kept track's")
+                         "track alone) or min_gain=0 (every pass that lowers the IK residual kept)")
+    ap.add_argument("--refit-passes", action="store_true",
+                    help="print each body refit pass's error, IK residual and refitted proportions (the row is the "
+                         "kept track's)")
     ap.add_argument("--smoothing", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="overrides of the config's smoothing section (SmoothingConfig), e.g. cutoff_hz=0 (off)")
     ap.add_argument("--cutoffs", nargs="*", type=float, default=[], metavar="HZ",
@@ -421,14 +445,21 @@ def main() -> None:
         logging.getLogger("torchtrack.tracking.markerless").setLevel(logging.DEBUG)
     config = load_config(args.config)
     try:
-        background = with_overrides(BackgroundConfig(), args.background, "--background")
-        with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker, "--tracker")
+        background = with_overrides(BackgroundConfig(**config["background"]), args.background, "--background")
+        tracker_cfg = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]), args.tracker,
+                                     "--tracker")
         refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,
                                "--refit")
         smoothing = with_overrides(SmoothingConfig.from_dict(config["smoothing"], config["source"]),
                                    args.smoothing, "--smoothing")
     except InputError as exc:
         raise SystemExit(str(exc)) from None
+    plain_config = config
+    for section, items, validated in (("background", args.background, background),
+                                      ("tracker", args.tracker, tracker_cfg), ("body_refit", args.refit, refit)):
+        plain_config = with_settings(plain_config, section, items, validated)
+    internals = (args.true_body or args.oracle_margin is not None or args.outside or args.coverage
+                 or args.blob_activity or args.hips or args.refit_passes)
     torch.set_grad_enabled(False)
     rows = []
     print(f"{'motion':12s} {'cams':>4s} {'model':6s} {'MPJPE':>7s} {'unsm.':>7s} {'worst':>7s} {'PCK50':>6s} "
@@ -442,20 +473,25 @@ def main() -> None:
                     print(f"{motion} {cams} cameras {model}: the bone fit at the true pose", flush=True)
                     fit_rounds(seq, model, config, args.fit_rounds, background, args.tracker)
                     continue
-                poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
-                                                  args.oracle_margin)
-                if not args.true_body:
-                    poses = refit_passes(seq, model, config, background, poses, tracker, refit, args.oracle_margin,
-                                         truth, f"{motion} {cams} {model}")
+                tracker = seen = None
+                if internals:
+                    poses, fps, tracker, seen = track(seq, model, config, background, args.tracker, args.true_body,
+                                                      args.oracle_margin)
+                    if not args.true_body:
+                        poses = refit_passes(seq, model, config, background, poses, tracker, refit,
+                                             args.oracle_margin, truth, f"{motion} {cams} {model}")
+                    body = tracker.subject.skeleton if tracker.subject is not None else None
+                else:
+                    poses, body, fps = track_plain(seq, model, plain_config)
                 unsmoothed = evaluate(poses, truth).mpjpe_mm
-                if tracker.subject is not None and args.cutoffs:  # the same track smoothed at other cut-offs
+                if body is not None and args.cutoffs:  # the same track smoothed at other cut-offs
                     sweep = []
                     for hz in args.cutoffs:
-                        other = smooth_track(poses, tracker.subject.skeleton, replace(smoothing, cutoff_hz=hz))
+                        other = smooth_track(poses, body, replace(smoothing, cutoff_hz=hz))
                         sweep.append(f"{hz:g} Hz {evaluate(other, truth).mpjpe_mm:.1f}")
                     print("    cut-offs (MPJPE mm): " + ", ".join(sweep), flush=True)
-                if tracker.subject is not None:
-                    poses = smooth_track(poses, tracker.subject.skeleton, smoothing)
+                if body is not None:
+                    poses = smooth_track(poses, body, smoothing)
                 rep = evaluate(poses, truth)
                 worst = sorted(zip(rep.per_landmark_mm, rep.landmark_names), reverse=True)[:3]
                 pck50 = rep.pck[list(rep.pck_thresholds_m).index(0.05)] if 0.05 in rep.pck_thresholds_m else float("nan")
@@ -466,11 +502,11 @@ def main() -> None:
                       f"{rep.max_frame_mm:7.1f} {100 * pck50:5.1f}% {rep.frames_lost:5d} {fps:5.1f}  "
                       + ", ".join(f"{n} {e:.0f}" for e, n in worst) + ("" if ok else "  MISS"), flush=True)
                 if args.trunk:
-                    tilt, at_limit = trunk_errors(poses, truth, tracker.subject.skeleton)
+                    tilt, at_limit = trunk_errors(poses, truth, body)
                     print(f"    pelvis tilt off the true one: mean {tilt.mean():.1f}, worst frame {tilt.max():.1f} "
                           f"deg; a thigh at its extension limit in {100 * at_limit.mean():.0f}% of the frames",
                           flush=True)
-                    print("    " + headings_line(trunk_headings(poses, truth, tracker.generic)), flush=True)
+                    print("    " + headings_line(trunk_headings(poses, truth, Skeleton.from_urdf())), flush=True)
                 if args.outside:
                     print(f"    voxel weight outside the body (+{OUTSIDE_M * 100:g} cm): "
                           f"{100 * sum(seen.outside) / len(seen.outside):.1f}%", flush=True)
@@ -484,8 +520,8 @@ def main() -> None:
                     print("    " + coverage_line(*coverage(seen.first, seen.truth)), flush=True)
                 if args.blob_activity:
                     print("\n".join("    " + line for line in blob_activity(tracker)), flush=True)
-                if args.proportions and tracker.subject is not None:
-                    fit = tracker.subject.skeleton.proportions()
+                if args.proportions and body is not None:
+                    fit = body.proportions()
                     true = Skeleton.from_urdf(seq / "body.urdf").proportions()
                     print("    fitted (true) m: " + ", ".join(f"{k} {fit[k]:.3f} ({true[k]:.3f})"
                                                           for k in PROPORTIONS), flush=True)

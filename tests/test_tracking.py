@@ -837,16 +837,40 @@ def test_frames_with_nobody_are_invalid_and_tracking_resumes(skel):
 
 
 def test_no_starfish_start_gives_a_clear_error(skel):
+    """The starfish start refuses a crouch with the advice; the frame is then invalid and the next one tried."""
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     crouch = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[12]  # mid-squat, arms forward
     obs = _observation(subj, blobs, crouch)
-    tracker = MarkerlessTracker(skel)
+    tracker = MarkerlessTracker(skel, TrackerConfig(start="starfish"))
     with pytest.raises(InputError, match="--init-pose"):
-        tracker.step(obs)
+        tracker.initialize(obs)
     assert not tracker.initialized
-    with pytest.raises(InputError, match="--init-pose"):  # the same clear error again, not a crash
-        tracker.step(obs)
+    for _ in range(2):  # a frame not to start from: invalid, the reason kept, no crash
+        assert not tracker.step(obs).valid
+    assert len(tracker.start_refusals) == 2 and "--init-pose" in tracker.start_refusals[0]
+
+
+@pytest.mark.parametrize("frame, turn", [(12, 0.0), (20, 2.5), (5, -1.9)])
+def test_the_search_starts_from_any_pose(skel, frame, turn):
+    """The default start finds a subject 1.68 m tall mid-squat, arms forward, at any heading and off the centre,
+    from the voxels of the true pose alone: landmarks within 50 mm of the truth (ground truth: the pose's forward
+    kinematics)."""
+    subj = skel.scaled_to_height(1.68)
+    blobs = BlobModel.from_config(subj)
+    truth = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[frame].clone()
+    names = list(skel.dof_names)
+    truth[names.index("root_rz")] = turn
+    truth[names.index("root_tx")] += 0.4
+    truth[names.index("root_ty")] -= 0.3
+    obs = _observation(subj, blobs, truth)
+    tracker = MarkerlessTracker(skel)
+    res = tracker.step(obs)
+    assert res.valid and res.reinitialised
+    want = subj.forward(truth[None].double()).output_points[0]
+    err = (res.output_points.double() - want).norm(dim=-1).mean()
+    assert float(err) < 0.05, float(err)
+    assert abs(tracker.height_m - 1.68) < 0.1
 
 
 def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
@@ -862,9 +886,9 @@ def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
     obs = VoxelObservation(torch.cat([obs.points, col]), torch.cat([obs.sizes, obs.sizes[:n]]),
                            torch.cat([obs.weights, obs.weights[:n]]),
                            torch.cat([obs.colours, obs.colours[:1].expand(n, -1, -1)]), obs.cameras_valid)
-    tracker = MarkerlessTracker(skel)
+    tracker = MarkerlessTracker(skel, TrackerConfig(start="starfish"))
     with pytest.raises(InputError, match=r"the right arm is not raised.*--init-pose"):
-        tracker.step(obs)
+        tracker.initialize(obs)
     assert not tracker.initialized
 
 
@@ -884,9 +908,9 @@ def test_a_starfish_inside_phantom_volume_is_refused(skel, contact):
     obs = VoxelObservation(torch.cat([obs.points, box]), torch.cat([obs.sizes, size]),
                            torch.cat([obs.weights, size ** 3]), colours, obs.cameras_valid)
     body_m3 = float((4 / 3 * math.pi * blobs.semi_axes.double().prod(-1)).sum())  # the 1.75 m body's blobs
-    tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact))
+    tracker = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact, start="starfish"))
     with pytest.raises(InputError, match=r"times the volume of a body as tall as they are.*--init-pose") as err:
-        tracker.step(obs)
+        tracker.initialize(obs)
     found = re.search(r"hold ([0-9.]+) times .* \(([0-9.]+) m;", str(err.value))
     ratio, height = float(found.group(1)), float(found.group(2))
     assert abs(height - 1.75) < 0.12  # the voxels' quantiles: the box's many voxels dilute the head's top
@@ -894,6 +918,9 @@ def test_a_starfish_inside_phantom_volume_is_refused(skel, contact):
     assert ratio > 4.0
     assert tracker.start_check.volume_ratio == pytest.approx(ratio, abs=0.05)  # the measures stay readable
     assert not tracker.initialized
+    searching = MarkerlessTracker(skel, TrackerConfig(floor_contact=contact))  # the search's start refuses it too
+    with pytest.raises(InputError, match=r"times the volume of a body|does not fit a person"):
+        searching.initialize(obs)
 
 
 @pytest.mark.parametrize("flip_better_mm, flipped", [(1.0, False), (3.0, True)])
@@ -924,7 +951,7 @@ def test_starfish_heading_the_toes_point_along_wins_a_near_tie(skel, monkeypatch
         return 0.02 - (flip_better_mm * 1e-3 if back else 0.0)
 
     monkeypatch.setattr(markerless.MarkerlessTracker, "_fit_cost", staticmethod(cost))
-    tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=False))
+    tracker = MarkerlessTracker(skel, TrackerConfig(fit_bone_lengths=False, start="starfish"))
     res = tracker.step(obs)
     assert markerless.HEADING_MARGIN_M == pytest.approx(0.002)
     assert len(headings) >= 2 and math.cos(headings[0]) > 0.9 and math.cos(headings[1]) < -0.9  # toes', flip

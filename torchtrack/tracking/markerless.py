@@ -88,6 +88,12 @@ BONE_FIT_RIDGE = 0.02
 
 #: TrackerConfig.bone_fit's choices.
 BONE_FITS = ("blobs", "shape")
+#: How the first pose is found (TrackerConfig.start).
+STARTS = ("search", "starfish")
+#: While lost, the re-acquisition searches for the whole state (a few seconds on a CPU) every this many frames.
+REACQUIRE_SEARCH_EVERY = 5
+#: The search's start is refused where more of the body than this lies out of the observed volume.
+START_MAX_OUTSIDE = 0.2
 
 #: The shape fit's ridge (bone_fit "shape"; the same form as BONE_FIT_RIDGE's, on an energy in m^2, a mean of
 #: squared distances between the voxels and the body: 2e-6 weighs a group's 10 % change like 0.14 mm of mean
@@ -130,7 +136,8 @@ STARFISH_MIN_ARM_RAISE_DEG = 45.0
 STARFISH_MAX_VOLUME_RATIO = 3.0
 
 #: What every refusal of the automatic initialisation tells the user to do.
-START_ADVICE = ("Start the sequence with the subject standing arms and legs spread, or give an initial pose with "
+START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
+                "starfish start (tracker start: starfish), in the starfish pose. Or give an initial pose with "
                 "--init-pose START.npz: a poses.npz of this subject whose first valid frame is the pose (an earlier "
                 "run's output), or one fitted to 3D keypoints of the first frame by `torchtrack init-pose "
                 "KEYPOINTS.trc --out START.npz`")
@@ -174,6 +181,10 @@ class TrackerConfig:
         min_explained: fraction of the voxel weight the blobs must take (else diverging).
         lost_frames: diverging frames in a row before re-initialising.
         init_passes: EM/IK passes on the first frame during initialisation.
+        start: how the first pose is found. ``"search"``: from any pose, by the batched search of
+            :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
+            ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
+            starfish start (Caillette §4.2), which refuses any other pose.
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -253,6 +264,9 @@ class TrackerConfig:
     min_explained: float = 0.6
     lost_frames: int = 3
     init_passes: int = 12
+    start: str = "search"
+    start_hypotheses: int = 3
+    search_seed: int = 0
     fit_bone_lengths: bool = True
     bone_fit: str = "blobs"
     em_cell_m: float = 0.0
@@ -278,6 +292,10 @@ class TrackerConfig:
         if self.functional_hips_min_cameras < 0:
             raise InputError(f"TrackerConfig.functional_hips_min_cameras must be >= 0, got "
                              f"{self.functional_hips_min_cameras}")
+        if self.start not in STARTS:
+            raise InputError(f"TrackerConfig.start must be one of {', '.join(STARTS)}, got {self.start!r}")
+        if self.start_hypotheses < 1:
+            raise InputError(f"TrackerConfig.start_hypotheses must be >= 1, got {self.start_hypotheses}")
         if self.bone_fit not in BONE_FITS:
             raise InputError(f"TrackerConfig.bone_fit must be one of {', '.join(BONE_FITS)}, got {self.bone_fit!r}")
         if isinstance(self.lost_hand_frames, bool) or not isinstance(self.lost_hand_frames, int) or \
@@ -455,6 +473,7 @@ class MarkerlessTracker:
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
         self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
+        self.start_refusals: list[str] = []  # why each frame before the start was not one to start from
         # hold_lost_feet: each foot's ankle and toe where last observed, and whether they were still then
         self.feet_seen: torch.Tensor | None = None  # (2, 2, 3)
         self.feet_still: torch.Tensor | None = None  # (2, 2) bool
@@ -555,14 +574,65 @@ class MarkerlessTracker:
         return res
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
-        pts, w = obs.points, obs.weights
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
-        # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them.
-        # Each voxel's own extent: the hull's coarse interior cubes (12 cm) would add 5 cm to the height
-        half = 0.5 * obs.sizes.to(pts.dtype)
-        sole = float(torch.quantile(pts[:, 2] - half, 0.002))
-        top = float(torch.quantile(pts[:, 2] + half, 0.998))
+        if self.config.start == "starfish":
+            res, height, body_m3, toe, tried = self._starfish_fit(obs)
+        else:
+            res, height, body_m3, tried = self._search_fit(obs)
+            toe = math.nan
+        return self._finish_start(obs, res, height, body_m3, toe, tried)
+
+    def _sole(self, obs: VoxelObservation) -> float:
+        """The soles' height: the lowest voxels' bottom (each voxel's own extent: the hull's coarse interior
+        cubes, 12 cm, would put it 5 cm low at their centres)."""
+        return float(torch.quantile(obs.points[:, 2] - 0.5 * obs.sizes.to(obs.points.dtype), 0.002))
+
+    def _search_fit(self, obs: VoxelObservation) -> tuple[FrameResult, float, float, tuple]:
+        """The search's best hypotheses (:func:`~torchtrack.tracking.search.search_pose`), each finished by
+        ``init_passes`` EM/IK passes; the least :meth:`_fit_cost` wins. Returns the fit, the subject's height,
+        the body's volume and ``(hypothesis, cost)`` of each tried."""
+        from torchtrack.tracking.search import SearchConfig, score_states, search_pose
+
+        dev = obs.points.device
+        gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
+        self.generic.to(dev)
+        found = search_pose(obs, self.generic, BlobModel(self.generic, *self.blob_specs), SearchConfig(), gen,
+                            n=self.config.start_hypotheses)
+        if float(found.outside[0]) > START_MAX_OUTSIDE:
+            raise InputError(f"initialisation: {100 * float(found.outside[0]):.0f}% of the body found lies out of "
+                             "the capture volume: not started on a body partly out of it")
+        height = self.generic.height() * float(found.scale[0])
+        self._setup(height, dev)
+        self._set_floor(self._sole(obs))
+        fits, tried = [], []
+        for k in range(found.angles.shape[0]):
+            self.angles = self.previous = found.angles[k].to(obs.points.dtype)
+            self.colour, self.lost = None, 0
+            res = None
+            for _ in range(self.config.init_passes):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False)
+                self.angles = self.previous = res.angles
+            fits.append(res)
+        # the finished hypotheses compared as the search compares them (EM/IK's own cost cannot tell a body turned
+        # front to back from the right one: both fit the voxels' blobs)
+        score = score_states(obs, self.subject.skeleton, self.subject.blobs, torch.stack([r.angles for r in fits]))
+        for k, res in enumerate(fits):
+            tried.append((float(k), float(score[k])))
+            log.debug("start search: hypothesis %d (search score %.3f): score %.3f after EM/IK, residual %.1f mm, "
+                      "explained %.2f", k, float(found.score[k]), float(score[k]), 1e3 * res.residual_m,
+                      res.explained)
+        res = fits[int(score.argmax())]
+        self.angles = self.previous = res.angles
+        return res, height, self.subject.body_volume_m3, tuple(tried)
+
+    def _starfish_fit(self, obs: VoxelObservation) -> tuple[FrameResult, float, float, float, tuple]:
+        """The starfish start's fit (Caillette §4.2, module docstring). Returns the fit, the subject's height, the
+        body's volume, how far the toes point ahead and ``(heading, cost)`` of each heading tried."""
+        pts, w = obs.points, obs.weights
+        # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them
+        sole = self._sole(obs)
+        top = float(torch.quantile(pts[:, 2] + 0.5 * obs.sizes.to(pts.dtype), 0.998))
         height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
         self._setup(height, pts.device)
         body_m3 = self.subject.body_volume_m3
@@ -615,6 +685,13 @@ class MarkerlessTracker:
                 best = (cost, res, best is None and toe > 0.0)
         res = best[1]
         self.angles = self.previous = res.angles
+        return res, height, body_m3, toe, tuple(tried)
+
+    def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
+                      tried: tuple) -> FrameResult:
+        """From a start's fit: the bone fit, the checks (the starfish's raised arms only for its start), the
+        colours learnt."""
+        pts = obs.points
         # the bone fit's rounds explain ghosts away: so does the fit they must improve on
         for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):
             res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
@@ -663,7 +740,8 @@ class MarkerlessTracker:
                 "who stands still). " + START_ADVICE)
         # an arm is missing when its blobs found no voxels where the starfish puts it, or the fit found it hanging
         missing = [side for side, deg, f in zip(("left", "right"), raise_deg, fill)
-                   if deg < STARFISH_MIN_ARM_RAISE_DEG or f < self.config.em.min_fill]  # NaN fill: not judged
+                   if deg < STARFISH_MIN_ARM_RAISE_DEG or f < self.config.em.min_fill  # NaN fill: not judged
+                   ] if self.config.start == "starfish" else []
         if missing:
             raise InputError(
                 f"initialisation: the first frame does not look like the starfish pose: the {' and '.join(missing)} "
@@ -673,8 +751,9 @@ class MarkerlessTracker:
                 + START_ADVICE)
         if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
             self.subject = None
+            pose = " in the starfish pose" if self.config.start == "starfish" else ""
             raise InputError(
-                f"initialisation: the first frame does not fit a person in the starfish pose (goal residual "
+                f"initialisation: the first frame does not fit a person{pose} (goal residual "
                 f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
                 + START_ADVICE)
         # learn the colours on the initial frame
@@ -1006,7 +1085,11 @@ class MarkerlessTracker:
         if self.config.em_cell_m > 0:
             obs = obs.pooled(self.config.em_cell_m)
         if not self.initialized:
-            return self.initialize(obs)
+            try:
+                return self.initialize(obs)
+            except InputError as exc:  # not a frame to start from: the next one may be
+                self.start_refusals.append(str(exc))
+                return self._invalid()
         if self.angles is not None and self.lost >= self.config.lost_frames:
             return self._reacquire(obs)
         res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
@@ -1158,8 +1241,26 @@ class MarkerlessTracker:
     def _diverging(self, res: FrameResult) -> bool:
         return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
 
+    def _searched(self, obs: VoxelObservation) -> FrameResult | None:
+        """The subject's body searched for in ``obs`` from any pose (:mod:`torchtrack.tracking.search`, its size
+        fixed), the best hypothesis finished by EM/IK; None where it lies out of the observed volume."""
+        from torchtrack.tracking.search import SearchConfig, search_pose
+
+        gen = torch.Generator(device=obs.points.device).manual_seed(self.config.search_seed)
+        found = search_pose(obs, self.subject.skeleton, self.subject.blobs, SearchConfig(scale_range=(1.0, 1.0)),
+                            gen, n=1)
+        if float(found.outside[0]) > START_MAX_OUTSIDE:
+            return None
+        self.angles = self.previous = found.angles[0].to(obs.points.dtype)
+        res = None
+        for _ in range(max(2, self.config.init_passes // 2)):
+            res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            self.angles = self.previous = res.angles
+        return res
+
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
-        """Re-initialise around the last good pose: moved onto the voxels' centroid, four headings, the fit with
+        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings), and where
+        that fails, every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the start's search; the fit with
         the least residual wins; the colour model is kept."""
         pts, w = obs.points, obs.weights
         c = (w[:, None] * pts).sum(0) / w.sum()
@@ -1178,6 +1279,11 @@ class MarkerlessTracker:
                 self.angles = self.previous = res.angles
             if best is None or self._fit_cost(res) < self._fit_cost(best):
                 best = res
+        # where that fails, the whole state is searched for (at once, then every REACQUIRE_SEARCH_EVERY frames)
+        if self._diverging(best) and (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
+            found = self._searched(obs)
+            if found is not None and self._fit_cost(found) < self._fit_cost(best):
+                best = found
         if self._diverging(best):  # keep searching from the last good pose on the next frame
             self.angles = self.previous = base
             self.lost += 1

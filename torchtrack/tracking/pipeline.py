@@ -70,9 +70,9 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]:
     """The YAML tracking config as a dict with ``observation``, ``background``, ``tracker``,
-    ``background_refinement``, ``body_refit`` and ``smoothing`` sections (and ``source``). ``name``: a built-in config's name
-    (``markerless_fast``) or a YAML path. A file may start from another with ``extends: NAME`` and override some
-    settings."""
+    ``background_refinement``, ``body_refit`` and ``smoothing`` sections (and ``source``). ``name``: a built-in
+    config's name (``markerless_fast``) or a YAML path. A file may start from another with ``extends: NAME`` and
+    override some settings."""
     import yaml
 
     from torchtrack.resources import config_path
@@ -287,9 +287,13 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     if kept_pass is not None:
         poses.extra["refinement_pass"] = kept_pass
     if not poses.valid.any():
-        raise NothingTracked(f"none of the {poses.num_frames} frames of {folder.root} was tracked: " + (
-            "the body was never found in the volume (nobody there, or the start was refused: see the warnings "
-            "above; a start pose can be given, --init-pose)" if tracker.subject is None else
-            "every frame was refused by the fit checks (see the warnings above)"), poses)
+        if tracker.subject is not None:
+            why = "every frame was refused by the fit checks (see the warnings above)"
+        elif tracker.start_refusals:
+            why = (f"no frame was one to start from ({len(tracker.start_refusals)} with voxels; the first: "
+                   f"{tracker.start_refusals[0]})")
+        else:
+            why = "nobody was found in the capture volume in any frame"
+        raise NothingTracked(f"none of the {poses.num_frames} frames of {folder.root} was tracked: {why}", poses)
     poses = smooth_track(poses, tracker.subject.skeleton, scfg)
     return TrackResult(poses, len(passes), tuple(refits), time.perf_counter() - t0)

@@ -113,6 +113,7 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                 bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
     restate(tracker, angles, joints3d, version)
     _report_cameras(folder, list(rig.names), cameras_valid, start, need)
+    _report_start(folder, tracker, reinit, start)
     elapsed = time.perf_counter() - t_start
     extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
              "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
@@ -123,6 +124,18 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                   joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
                   confidence=confidence, extra=extra)
     return poses, elapsed
+
+
+def _report_start(folder: SequenceFolder, tracker: MarkerlessTracker, reinit: np.ndarray, start: int) -> None:
+    """Warn once per folder when the start was refused on frames (they are invalid), saying why."""
+    refused = tracker.start_refusals
+    if not refused or "start" in folder.reported:
+        return
+    folder.reported.add("start")
+    started = np.flatnonzero(reinit)
+    where = f"started at frame {start + int(started[0])}" if started.size else "never started"
+    log.warning("%s: %s; %d earlier frame(s) with voxels were not started from (invalid), the first because: %s",
+                folder.root, where, len(refused), refused[0])
 
 
 def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.ndarray, start: int,

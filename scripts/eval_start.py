@@ -1,0 +1,123 @@
+#!/usr/bin/env python
+"""The start search on its own: started from random frames of every motion, how often it lands within 50 mm.
+
+For each motion (the procedural ones and the real CMU captures, retargeted) and rig (8 and 4 cameras), a sequence
+is rendered once under --work (a drawn body, colours and shadow as scripts/eval_robustness.py draws them); from
+--frames random frames of it (fixed seed) the tracker is started cold, as on the first frame of a recording
+(:meth:`MarkerlessTracker.initialize`: the search, then EM/CCD and the bone fit), and the started pose is scored
+against the ground truth: MPJPE over the 16 landmarks. Prints per motion and rig the share within 50 mm, the
+median error and the seconds per start; and the search's own error before EM/CCD (``--search-only`` skips the
+tracker).
+
+    .venv/bin/python scripts/eval_start.py                       # 50 frames per motion and rig
+    .venv/bin/python scripts/eval_start.py --motions walk squat --cameras 8 --frames 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.blobs.model import BlobModel, load_blob_specs
+from torchtrack.checks import InputError
+from torchtrack.conventions import LANDMARKS
+from torchtrack.io.outputs import script_work_folder
+from torchtrack.io.poses import load_poses
+from torchtrack.io.sequence import SequenceFolder
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.sequence import is_current, write_sequence
+from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.pipeline import load_config, observer_from_config
+from torchtrack.tracking.search import SearchConfig, search_pose
+
+import eval_robustness as rob
+
+MOTIONS = ("walk", "turn", "arm_raise", "squat", "kick", "cmu:131_01", "cmu:131_02")
+WITHIN_MM = 50.0
+
+
+def sequence(work: Path, motion: str, cameras: int, seed: int) -> Path:
+    case = rob.Case(f"start_{motion.replace(':', '_')}_{cameras}", motion, cameras, seed, start="none")
+    seq = work / case.name
+    cfg = rob.synth_config(case, duration=4.0, fps=30.0)
+    if not is_current(seq, cfg):
+        write_sequence(cfg, seq, progress=False)
+    return seq
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--motions", nargs="+", default=list(MOTIONS))
+    ap.add_argument("--cameras", nargs="+", type=int, default=[8, 4])
+    ap.add_argument("--frames", type=int, default=50, help="random start frames per motion and rig (default: 50)")
+    ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
+    ap.add_argument("--work", type=Path, default=Path("out/eval_start"))
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR)
+    torch.set_grad_enabled(False)
+    torch.set_num_threads(1)
+    work = script_work_folder(args.work, "eval_start.py")
+    config = load_config("markerless.yaml")
+    tcfg = TrackerConfig.from_dict(config["tracker"], config["source"])
+    template = Skeleton.from_urdf()
+    blobs = BlobModel(template, *load_blob_specs(tcfg.blobs))
+    print(f"{'motion':<12} {'cams':>4} {'within 50 mm':>12} {'median':>7} {'search':>7} {'s/start':>7}", flush=True)
+    totals: dict[int, list[bool]] = {}
+    for cams in args.cameras:
+        for i, motion in enumerate(args.motions):
+            seq = sequence(work, motion, cams, seed=100 + i)
+            folder = SequenceFolder(seq)
+            scale = float(config["observation"]["scale"])
+            W, H = (int(round(float(v) * scale)) for v in folder.rig.image_size_wh[0])
+            rig = folder.rig.resized(W, H).float()
+            bg = BackgroundModel.from_folder(folder, BackgroundConfig(**config["background"]), size_wh=(W, H))
+            observer = observer_from_config(rig, bg, config["observation"], "bayes", 0.03)
+            truth = load_poses(seq / "gt.npz")
+            idx = [truth.joint_names.index(n) for n in LANDMARKS]
+            rng = np.random.default_rng(i)
+            frames = np.sort(rng.choice(truth.num_frames, size=min(args.frames, truth.num_frames), replace=False))
+            errors, search_errors, seconds = [], [], []
+            for t in frames.tolist():
+                fb = next(iter(folder.iter_batches(1, t, t + 1, size_wh=(W, H))))
+                obs = observer(fb.images, fb.valid)[0]
+                gen = torch.Generator().manual_seed(t)
+                t0 = time.perf_counter()
+                found = search_pose(obs, template, blobs, generator=gen)
+                body = template.scaled_to_height(template.height() * float(found.scale[0]))
+                lm = body.forward(found.angles[:1].double()).output_points[0].numpy()
+                names = list(body.output_names)
+                search_errors.append(1e3 * np.linalg.norm(lm[[names.index(n) for n in LANDMARKS]]
+                                                          - truth.joints3d[t, idx], axis=-1).mean())
+                if args.search_only:
+                    seconds.append(time.perf_counter() - t0)
+                    errors.append(search_errors[-1])
+                    continue
+                tracker = MarkerlessTracker(Skeleton.from_urdf(), tcfg)
+                t0 = time.perf_counter()
+                try:
+                    res = tracker.initialize(obs)
+                    p = res.output_points.numpy()
+                    onames = list(tracker.subject.skeleton.output_names)
+                    err = 1e3 * np.linalg.norm(p[[onames.index(n) for n in LANDMARKS]] - truth.joints3d[t, idx],
+                                               axis=-1).mean()
+                except InputError:
+                    err = float("inf")
+                seconds.append(time.perf_counter() - t0)
+                errors.append(err)
+            e = np.asarray(errors)
+            ok = e <= WITHIN_MM
+            totals.setdefault(cams, []).extend(ok.tolist())
+            print(f"{motion:<12} {cams:>4} {100 * ok.mean():>11.0f}% {np.median(e):>7.1f} "
+                  f"{np.median(search_errors):>7.1f} {np.mean(seconds):>7.2f}", flush=True)
+    for cams, ok in totals.items():
+        print(f"{cams} cameras: {100 * np.mean(ok):.1f}% of {len(ok)} starts within {WITHIN_MM:g} mm")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,364 @@
+"""Start anywhere: the whole body's state searched for in one frame's voxels (ALGORITHMS.md §6).
+
+A batch of hypotheses of the state (each a pose, a heading, a size and a place on the floor) is scored against
+the voxels in both directions (:func:`two_way_score`): the share of the voxel weight inside the body's blobs
+and the share of the body's volume on occupied voxels; the best are refined by an annealed search (the
+hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps). The tracker's own
+EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage is one batched tensor
+computation over the hypotheses, on the device of the voxels.
+
+The hypotheses: the skeleton's poses from a structured prior (:func:`pose_prior`: arms hanging, bent, forward,
+sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking), at
+every heading; placed with their lowest point on the floor (the voxels' lowest) and the centroid of their blobs
+over the voxels' centroid, scaled so that their top meets the voxels' top (within ``scale_range``: the template
+is the prior of the subject's size, whose proportions the tracker's bone fit then measures).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from torchtrack.blobs.model import BlobModel
+from torchtrack.blobs.shape import unit_ball_samples
+from torchtrack.checks import InputError
+from torchtrack.skeleton.model import Skeleton
+from torchtrack.tracking.observation import VoxelObservation
+
+__all__ = ["SearchConfig", "SearchResult", "pose_prior", "score_states", "search_pose", "two_way_score"]
+
+#: Arm poses of the prior, per side: (shoulder flexion, shoulder abduction, elbow flexion) in radians.
+ARM_POSES = ((0.0, 0.1, 0.15), (0.3, 0.15, 1.5), (1.5, 0.1, 0.1), (0.0, 0.75, 0.1), (0.0, 1.5, 0.1),
+             (2.7, 0.3, 0.2))
+#: Leg poses of the prior: {dof: value} on top of the rest pose (both legs named).
+LEG_POSES = (
+    {},
+    {"l_hip_abd": 0.3, "r_hip_abd": 0.3},
+    {"l_hip_flex": 0.45, "r_hip_flex": -0.3, "l_knee_flex": 0.2, "r_knee_flex": 0.3},
+    {"r_hip_flex": 0.45, "l_hip_flex": -0.3, "r_knee_flex": 0.2, "l_knee_flex": 0.3},
+    {"l_hip_flex": 1.3, "r_hip_flex": 1.3, "l_knee_flex": 2.0, "r_knee_flex": 2.0, "l_ankle_flex": 0.4,
+     "r_ankle_flex": 0.4, "spine_flex": 0.4},
+    {"l_hip_flex": 1.3, "l_knee_flex": 1.6},
+    {"r_hip_flex": 1.3, "r_knee_flex": 1.6},
+    {"l_hip_flex": 1.2, "l_knee_flex": 0.2, "spine_flex": -0.1},
+)
+#: The body's DOFs the annealed search perturbs, with the step (rad) of its first layer.
+STEP_RAD = 0.3
+#: A voxel counts as inside a blob within this factor of its ellipsoid (voxels stick out of the body's surface by
+#: half a voxel, and the blobs are the template's, not the subject's, shape).
+INSIDE_GROW = 1.2
+#: Occupancy of the body's volume is looked up on a grid of this cell, dilated by one cell (m).
+CELL_M = 0.03
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """How hard the start search looks.
+
+    Attributes:
+        headings: headings tried for every prior pose (evenly all round).
+        keep: hypotheses carried from one stage to the next (and into the annealed search).
+        particles: hypotheses per layer of the annealed search.
+        layers: layers of the annealed search; the steps shrink by ``shrink`` per layer.
+        shrink: step factor per layer.
+        max_voxels: voxels the voxel-to-body term is evaluated on (a weighted subsample beyond).
+        samples: points per blob of the body-to-voxel term.
+        scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
+            subject 1.40-2.10 m tall; a known body, re-acquired: 1).
+    """
+
+    headings: int = 24
+    keep: int = 16
+    particles: int = 192
+    layers: int = 14
+    shrink: float = 0.7
+    max_voxels: int = 1500
+    samples: int = 24
+    scale_range: tuple[float, float] = (0.8, 1.2)
+
+    def __post_init__(self) -> None:
+        if min(self.headings, self.keep, self.particles, self.max_voxels, self.samples) < 1 or self.layers < 0:
+            raise InputError(f"SearchConfig: counts must be >= 1 (layers >= 0), got {self}")
+        if not 0 < self.shrink <= 1 or not 0 < self.scale_range[0] <= self.scale_range[1]:
+            raise InputError(f"SearchConfig: shrink in (0, 1] and 0 < scale_range[0] <= [1], got {self}")
+
+
+@dataclass(frozen=True)
+class SearchResult:
+    """The best hypotheses, best first (``n`` of them).
+
+    Attributes:
+        angles: (n, D) state vectors of the skeleton scaled by ``scale`` (root placed in the world).
+        scale: (n,) size relative to the skeleton searched with.
+        score: (n,) :func:`two_way_score`; explained, filled: (n,) its two terms.
+        outside: (n,) share of the body's volume out of the observed volume.
+        hypotheses: how many were scored in all.
+    """
+
+    angles: torch.Tensor
+    scale: torch.Tensor
+    score: torch.Tensor
+    explained: torch.Tensor
+    filled: torch.Tensor
+    outside: torch.Tensor
+    hypotheses: int
+
+
+def pose_prior(skel: Skeleton, symmetric_arms: bool = False) -> torch.Tensor:
+    """(P, D) the prior's poses: every arm pose on each side (or the same on both: ``symmetric_arms``) with every
+    leg pose, root at the origin facing +X (root translation and rotation zero)."""
+    names = list(skel.dof_names)
+    rest = torch.zeros(skel.num_dofs, dtype=skel.lower.dtype, device=skel.lower.device)
+    out = []
+    arm_pairs = ([(a, a) for a in ARM_POSES] if symmetric_arms else
+                 [(a, b) for a in ARM_POSES for b in ARM_POSES])
+    for legs in LEG_POSES:
+        for left, right in arm_pairs:
+            a = rest.clone()
+            for side, (flex, abd, elbow) in (("l", left), ("r", right)):
+                a[names.index(f"{side}_shoulder_flex")] = flex
+                a[names.index(f"{side}_shoulder_abd")] = abd
+                a[names.index(f"{side}_elbow_flex")] = elbow
+            for dof, v in legs.items():
+                a[names.index(dof)] = v
+            out.append(a)
+    return skel.clamp(torch.stack(out))
+
+
+class _Voxels:
+    """The frame's voxels as the score reads them: a weighted subsample, and a dense occupancy grid."""
+
+    def __init__(self, obs: VoxelObservation, max_voxels: int, generator: torch.Generator | None) -> None:
+        pts, w = obs.points.float(), obs.weights.float()
+        if pts.shape[0] > max_voxels:  # a weighted subsample without replacement: the same share per weight
+            pick = torch.multinomial(w.cpu(), max_voxels, replacement=False, generator=generator).to(pts.device)
+            pts, w = pts[pick], w[pick]
+        self.points, self.weights = pts, w / w.sum()
+        fine = obs.split(CELL_M)
+        p = fine.points.float()
+        self.lower = p.amin(0) - 3 * CELL_M
+        shape = ((p.amax(0) + 3 * CELL_M - self.lower) / CELL_M).ceil().long() + 1
+        self.shape = shape
+        idx = ((p - self.lower) / CELL_M).floor().long()
+        grid = torch.zeros(tuple(shape.tolist()), dtype=torch.float32, device=p.device)
+        grid[idx[:, 0], idx[:, 1], idx[:, 2]] = 1.0
+        self.grid = F.max_pool3d(grid[None, None], 3, stride=1, padding=1)[0, 0] > 0  # dilated by one cell
+        self.volume = None if obs.volume_m is None else tuple(torch.tensor(v, dtype=torch.float32,
+                                                                           device=p.device) for v in obs.volume_m)
+        self.centroid = (obs.weights.float()[:, None] * obs.points.float()).sum(0) / obs.weights.float().sum()
+        half = 0.5 * obs.sizes.float()
+        self.floor = float(torch.quantile(obs.points[:, 2].float() - half, 0.002))
+        self.top = float(torch.quantile(obs.points[:, 2].float() + half, 0.998))
+
+    def occupied(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(..., 3) points -> (occupied, observed) bool: on an occupied cell; inside the observed volume."""
+        idx = ((q - self.lower) / CELL_M).floor().long()
+        inside = ((idx >= 0) & (idx < self.shape)).all(-1)
+        i = idx.clamp(min=0)
+        i = torch.minimum(i, self.shape - 1)
+        occ = self.grid[i[..., 0], i[..., 1], i[..., 2]] & inside
+        observed = q[..., 2] >= self.floor
+        if self.volume is not None:
+            lo, hi = self.volume
+            observed = observed & (q[..., :2] >= lo[:2]).all(-1) & (q <= hi).all(-1)
+        return occ, observed
+
+
+def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,
+                  samples: torch.Tensor, chunk: int = 64) -> tuple[torch.Tensor, ...]:
+    """How well each hypothesis' blobs and the voxels explain each other.
+
+    Args:
+        centres (H, K, 3), R (H, K, 3, 3) (columns: the ellipsoids' axes), semi_axes (H, K, 3): the blobs as
+            solid ellipsoids. vox: the frame's voxels. samples: (S, 3) points in the unit ball.
+
+    Returns:
+        score (H,): the harmonic mean of ``explained`` (the share of the voxel weight inside some blob grown by
+        INSIDE_GROW) and ``filled`` (the share of the body's volume, over what the cameras observe, on
+        occupied voxels); ``explained``, ``filled`` and ``outside`` (the share of the body's volume out of the
+        observed volume), each (H,).
+    """
+    H, K, _ = centres.shape
+    vol = semi_axes.prod(-1)  # (H, K) proportional to each blob's volume
+    out = []
+    for s in range(0, H, chunk):
+        c, Rs, a = centres[s:s + chunk], R[s:s + chunk], semi_axes[s:s + chunk]
+        # voxels -> body: |diag(1/a) R^T (p - c)|^2 <= grow^2 for some blob
+        d = vox.points[None, None] - c[:, :, None]  # (h, K, N, 3)
+        local = torch.einsum("hkji,hknj->hkni", Rs, d) / a[:, :, None]  # (h, K, N, 3)
+        inside = (local.square().sum(-1) <= INSIDE_GROW ** 2).any(1)  # (h, N)
+        explained = (inside.float() * vox.weights).sum(-1)  # (h,)
+        # body -> voxels: each blob's sample points on occupied cells, over the observed ones
+        q = c[:, :, None] + torch.einsum("hkij,hksj->hksi", Rs, a[:, :, None] * samples[None, None])  # (h,K,S,3)
+        occ, seen = vox.occupied(q)
+        v = vol[s:s + chunk]
+        seen_v = (seen.float().mean(-1) * v).sum(-1)  # (h,)
+        filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
+        outside = 1.0 - seen_v / v.sum(-1)
+        out.append(torch.stack([explained, filled, outside], -1))
+    e, f, o = torch.cat(out).unbind(-1)
+    return 2 * e * f / (e + f).clamp(min=1e-12), e, f, o
+
+
+class _Hypotheses:
+    """Poses at the origin (root translation and rotation zero), a heading, a scale and a place: the blobs of
+    each in the world, and the state vector of the scaled skeleton."""
+
+    def __init__(self, skel: Skeleton, blobs: BlobModel, vox: _Voxels) -> None:
+        self.skel, self.blobs, self.vox = skel, blobs, vox
+        names = list(skel.dof_names)
+        self.root = [names.index(n) for n in ("root_tx", "root_ty", "root_tz", "root_rz", "root_ry", "root_rx")]
+
+    def place(self, poses: torch.Tensor, heading: torch.Tensor, scale: torch.Tensor, shift: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(H, D) poses (root rotation ry/rx kept, the rest of the root ignored), (H,) headings and scales, (H, 2)
+        shifts on the floor -> blob centres (H, K, 3), axes (H, K, 3, 3), semi-axes (H, K, 3) in the world and
+        the (H, D) state vectors of the skeleton scaled by ``scale``."""
+        a = poses.clone()
+        a[:, self.root[:4]] = 0.0
+        fk = self.skel.forward(a)
+        c, R = self.blobs.ellipsoids(fk.bone_frames)  # (H, K, 3), (H, K, 3, 3) at the origin
+        semi = self.blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
+        reach = (R * semi[:, :, None, :]).square().sum(-1).sqrt()  # (H, K, 3) half extent along x, y, z
+        low = (c[..., 2] - reach[..., 2]).amin(1)  # (H,) lowest point of the body
+        vol = semi.prod(-1)  # (H, K)
+        mid = (vol[..., None] * c).sum(1) / vol.sum(1, keepdim=True)  # (H, 3) the blobs' centroid
+        cz, sz = heading.cos(), heading.sin()
+        Rz = torch.zeros(heading.shape[0], 3, 3, dtype=c.dtype, device=c.device)
+        Rz[:, 0, 0], Rz[:, 0, 1], Rz[:, 1, 0], Rz[:, 1, 1], Rz[:, 2, 2] = cz, -sz, sz, cz, 1.0
+        base = c - torch.stack([mid[:, 0], mid[:, 1], low], -1)[:, None]  # centroid over the origin, feet at 0
+        s = scale[:, None, None]
+        centres = torch.einsum("hij,hkj->hki", Rz, s * base)
+        offset = torch.cat([self.vox.centroid[:2].to(c) + shift, c.new_full((1,), self.vox.floor).expand(
+            shift.shape[0], 1)], -1)  # (H, 3)
+        centres = centres + offset[:, None]
+        axes = Rz[:, None] @ R
+        root = torch.einsum("hij,hj->hi", Rz, scale[:, None] * (-torch.stack([mid[:, 0], mid[:, 1], low], -1)))
+        root = root + offset
+        state = poses.clone()
+        state[:, self.root[0]], state[:, self.root[1]], state[:, self.root[2]] = root.unbind(-1)
+        state[:, self.root[3]] = heading
+        return centres, axes, s * semi, state
+
+    def initial_scale(self, poses: torch.Tensor, scale_range: tuple[float, float]) -> torch.Tensor:
+        """(H,) the scale at which each pose's top meets the voxels' top, within ``scale_range``."""
+        a = poses.clone()
+        a[:, self.root[:4]] = 0.0
+        c, R = self.blobs.ellipsoids(self.skel.forward(a).bone_frames)
+        semi = self.blobs.semi_axes.to(c)[None]
+        zr = (R[..., 2, :] * semi).norm(dim=-1)  # (H, K) half extent along z
+        height = (c[..., 2] + zr).amax(1) - (c[..., 2] - zr).amin(1)
+        return ((self.vox.top - self.vox.floor) / height).clamp(*scale_range)
+
+
+#: The parts of the body the annealed search changes one at a time (DOF name prefixes; "root_r": the tilt, with
+#: the place).
+GROUPS = (("root_ry", "root_rx"), ("spine_", "neck_"), ("l_shoulder", "l_elbow", "l_wrist"),
+          ("r_shoulder", "r_elbow", "r_wrist"), ("l_hip", "l_knee", "l_ankle"), ("r_hip", "r_knee", "r_ankle"))
+
+
+def _dof_groups(skel: Skeleton) -> torch.Tensor:
+    """(G, D) float masks of :data:`GROUPS`' DOFs."""
+    out = torch.zeros(len(GROUPS), skel.num_dofs, device=skel.lower.device)
+    for g, prefixes in enumerate(GROUPS):
+        for d, name in enumerate(skel.dof_names):
+            if name.startswith(prefixes):
+                out[g, d] = 1.0
+    return out
+
+
+def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles: torch.Tensor,
+                 samples: int = SearchConfig.samples, max_voxels: int = SearchConfig.max_voxels) -> torch.Tensor:
+    """(n,) :func:`two_way_score` of the states ``angles (n, D)`` of ``skel`` (placed as they are) on ``obs``: to
+    compare hypotheses that EM/IK has finished. The voxel subsample is the same for every call on ``obs``."""
+    vox = _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
+    c, R = blobs.ellipsoids(skel.forward(angles.to(skel.lower)).bone_frames)
+    semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
+    pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
+    return two_way_score(c.float(), R.float(), semi.float(), vox, pts)[0]
+
+
+def _top(score: torch.Tensor, n: int) -> torch.Tensor:
+    return score.topk(min(n, score.shape[0])).indices
+
+
+def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config: SearchConfig = SearchConfig(),
+                generator: torch.Generator | None = None, n: int = 3) -> SearchResult:
+    """The ``n`` best whole-body states for the voxels of ``obs`` (module docstring).
+
+    Args:
+        obs: one frame's voxels (one person). skel, blobs: the body searched with (the template, or the tracked
+            subject's for a re-acquisition with ``scale_range`` (1, 1)). generator: for the subsample and the
+            annealed search's steps (on the voxels' device).
+
+    Raises:
+        InputError: no voxels.
+    """
+    if obs.num_voxels == 0:
+        raise InputError("start search: no voxels")
+    dev = obs.points.device
+    skel = skel.to(dev)
+    vox = _Voxels(obs, config.max_voxels, generator)
+    hyp = _Hypotheses(skel, blobs, vox)
+    samples = unit_ball_samples(config.samples, dtype=torch.float32, device=dev)
+    headings = torch.arange(config.headings, dtype=torch.float32, device=dev) * (2 * math.pi / config.headings)
+    total = 0
+
+    def scored(poses, heading, scale, shift):
+        nonlocal total
+        c, R, a, state = hyp.place(poses, heading, scale, shift)
+        total += poses.shape[0]
+        return two_way_score(c, R, a, vox, samples), state
+
+    # stage 1: legs x arms alike x every heading
+    base = pose_prior(skel, symmetric_arms=True).float()
+    P, Hh = base.shape[0], headings.shape[0]
+    poses, heading = base.repeat_interleave(Hh, 0), headings.repeat(P)
+    scale = hyp.initial_scale(poses, config.scale_range)
+    shift = poses.new_zeros(poses.shape[0], 2)
+    (score, *_), _ = scored(poses, heading, scale, shift)
+    best = _top(score, config.keep)
+    # stage 2: each kept (legs, heading) with every pair of arm poses
+    arms = pose_prior(skel).float()  # (legs x arm pairs, D), grouped by legs
+    per_legs = len(ARM_POSES) ** 2
+    names = list(skel.dof_names)
+    arm_dofs = [names.index(f"{s}_{d}") for s in ("l", "r") for d in ("shoulder_flex", "shoulder_abd", "elbow_flex")]
+    pairs = arms[:per_legs, arm_dofs]  # (A, 6) the arm poses (the first legs' block)
+    poses = poses[best].repeat_interleave(per_legs, 0)
+    poses[:, arm_dofs] = pairs.repeat(best.shape[0], 1)
+    heading = heading[best].repeat_interleave(per_legs)
+    scale = hyp.initial_scale(poses, config.scale_range)
+    shift = poses.new_zeros(poses.shape[0], 2)
+    (score, *_), _ = scored(poses, heading, scale, shift)
+    best = _top(score, config.keep)
+    poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
+    # stage 3: annealed search around them; each new hypothesis changes one part of the body (the place, the
+    # trunk, one limb), as a partitioned search: a step in every joint at once mostly makes a hypothesis worse
+    lo, hi = skel.lower.float(), skel.upper.float()
+    groups = _dof_groups(skel)  # (G, D) bool; group 0: the place (heading, shift, scale, tilt)
+    step = 1.0
+    for _ in range(config.layers):
+        m = config.particles
+        parent = torch.randint(poses.shape[0], (m,), generator=generator, device=dev)
+        group = torch.randint(groups.shape[0], (m,), generator=generator, device=dev)
+        noise = torch.randn(m, skel.num_dofs + 4, generator=generator, device=dev) * step
+        child = poses[parent] + STEP_RAD * noise[:, :skel.num_dofs] * groups[group]
+        child = torch.maximum(torch.minimum(child, hi), lo)
+        place = (group == 0).float()
+        c_heading = heading[parent] + 0.35 * noise[:, -4] * place
+        c_scale = (scale[parent] * torch.exp(0.04 * noise[:, -3] * place)).clamp(*config.scale_range)
+        c_shift = shift[parent] + 0.05 * noise[:, -2:] * place[:, None]
+        (c_score, *_), _ = scored(child, c_heading, c_scale, c_shift)
+        poses = torch.cat([poses, child])
+        heading, scale = torch.cat([heading, c_heading]), torch.cat([scale, c_scale])
+        shift, score = torch.cat([shift, c_shift]), torch.cat([score, c_score])
+        best = _top(score, config.keep)
+        poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
+        step *= config.shrink
+    best = _top(score, n)
+    (score, explained, filled, outside), state = scored(poses[best], heading[best], scale[best], shift[best])
+    total -= best.shape[0]  # re-scored, not new
+    return SearchResult(state, scale[best], score, explained, filled, outside, total)
