@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -21,13 +22,16 @@ RGB2YUV = np.array([[0.299, 0.587, 0.114], [-0.147, -0.289, 0.436], [0.615, -0.5
 
 
 def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, shadow_min_ratio: float = 0.0,
-               luminance_relax: float = 1.0) -> np.ndarray:
+               luminance_relax: float = 1.0, shadow_min_gain: float = 1.0) -> np.ndarray:
     """Posterior P(G=1) per voxel, computed the slow way.
 
     Voxel centres are projected with cv2.projectPoints (an independent projection); each camera's pixels in
     the k x k window around the nearest pixel multiply p(I|G) into both hypotheses (in log space). ``bg_std``
     is the relaxed std; a pixel whose Y lies outside ``[r, 1 / r]`` times the background's Y is judged with the
-    unrelaxed Y std ``bg_std / luminance_relax`` (the background model's shadow band).
+    unrelaxed Y std ``bg_std / luminance_relax`` (the background model's shadow band). For a voxel of the floor
+    layer (``cfg.shadow_layer_m``) the background density is the larger of that and the shadow's: the
+    background times the alpha in ``[shadow_min_gain, 1]`` that fits best by weighted least squares, with the
+    unrelaxed std.
     """
     C, _, H, W = images.shape
     s1, r1 = cfg.p_sample, cfg.p_other
@@ -39,6 +43,7 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
     out = np.empty(len(centres))
     half = cfg.window // 2
     for v, X in enumerate(centres):
+        in_layer = shadow_min_gain < 1 and X[2] < spec.lower_m[2] + cfg.shadow_layer_m
         log1 = log0 = math.log(cfg.prior), math.log(1 - cfg.prior)
         log1, log0 = log1[0], log0[1]
         for c in range(C):
@@ -63,6 +68,14 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
                         if ch == 0 and not in_band:
                             s = s / luminance_relax
                         normal *= math.exp(-0.5 * ((yuv[c, ch, qv, qu] - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+                    if in_layer:
+                        m = bg_mean[c, :, qv, qu]
+                        s = bg_std[c, :, qv, qu] / np.array([luminance_relax, 1.0, 1.0])
+                        alpha = float(np.clip((yuv[c, :, qv, qu] * m / s ** 2).sum() / (m * m / s ** 2).sum(),
+                                              shadow_min_gain, 1.0))
+                        shadowed = np.prod(np.exp(-0.5 * ((yuv[c, :, qv, qu] - alpha * m) / s) ** 2)
+                                           / (s * math.sqrt(2 * math.pi)))
+                        normal = max(normal, float(shadowed))
                     log1 += math.log(pf1 * uniform + (1 - pf1) * normal)
                     log0 += math.log(pf0 * uniform + (1 - pf0) * normal)
         out[v] = 1.0 / (1.0 + math.exp(log0 - log1))
@@ -78,22 +91,27 @@ def scene():
     bg = BackgroundModel.from_frames(empty.clamp(0, 1), BackgroundConfig(compensate_gain=False))
     images = empty[:2].clone()
     images[:, :, :, 10:22, 15:26] = torch.rand(2, 3, 3, 12, 11, generator=g, dtype=torch.float64)  # "body"
+    images[:, :, :, 20:30, 5:20] *= 0.6  # a "shadow": the background darkened
     spec = GridSpec((-0.487, -0.493, 0.31), (0.5, 0.5, 1.5), 0.2)  # off-centre: no voxel projects on a half pixel
     return rig, bg, images, spec
 
 
 @pytest.mark.parametrize("cfg", [BayesConfig(), BayesConfig(pd=0.8, pfa=0.2, window=1, prior=0.3),
-                                 BayesConfig(window=5, p_sample=0.7, p_other=0.3)])
+                                 BayesConfig(window=5, p_sample=0.7, p_other=0.3, shadow_layer_m=0.5),
+                                 BayesConfig(shadow_layer_m=0.0)])
 def test_fast_grid_equals_algorithm1(scene, cfg):
     rig, bg, images, spec = scene
     fast = BayesianGrid(rig, spec, bg, cfg)(images).probability()  # (B, V)
     assert bg.config.shadow_min_ratio > 0 and bg.config.luminance_relax > 1  # the shadow band is exercised
     for b in range(images.shape[0]):
         ref = algorithm1(rig, bg.mean_yuv.numpy(), bg.std_yuv.numpy(), images[b].numpy(), spec, cfg,
-                         bg.config.shadow_min_ratio, bg.config.luminance_relax)
+                         bg.config.shadow_min_ratio, bg.config.luminance_relax, bg.config.shadow_min_gain)
         # tolerance: float64 throughout; differences only from summation order
         np.testing.assert_allclose(fast[b].numpy(), ref, atol=1e-9, rtol=0)
     assert 0.0 < float(fast.mean()) < 1.0  # not a degenerate case: some voxels are occupied, some are not
+    if cfg.shadow_layer_m > 0:  # the shadow test is exercised: it changes the floor layer's voxels
+        plain = BayesianGrid(rig, spec, bg, dataclasses.replace(cfg, shadow_layer_m=0.0))(images).probability()
+        assert float((plain - fast).abs().max()) > 0.01
 
 
 def test_window_sum_by_hand():
@@ -121,7 +139,7 @@ def test_lookup_matches_opencv(scene):
 
 def test_unreadable_camera_gives_no_evidence(scene):
     rig, bg, images, spec = scene
-    grid = BayesianGrid(rig, spec, bg)
+    grid = BayesianGrid(rig, spec, bg, BayesConfig(shadow_layer_m=0.0))  # evidence() has no shadow test
     bad = images.clone()
     bad[:, 1] = float("nan")
     with warnings.catch_warnings():

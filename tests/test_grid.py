@@ -66,3 +66,18 @@ def test_points_in_messages_are_rounded():
 
     assert format_point((-1.1999999999999997, 0.0, 2.1000000000000005)) == "(-1.2, 0, 2.1)"
     assert format_point((0.12345, -3.0, 10.0)) == "(0.123, -3, 10)"
+
+
+def test_capture_views_all_but_two_at_least_three():
+    from torchtrack.occupancy import capture_views
+
+    assert [capture_views(c) for c in (1, 2, 3, 4, 5, 6, 8, 12)] == [1, 2, 3, 3, 3, 4, 6, 10]
+
+
+def test_fewer_views_cover_more_floor():
+    """The box that all but two of 8 ring cameras see holds the one all 8 see."""
+    rig = make_ring_rig(RigConfig(num_cameras=8))
+    every, most = grid_from_rig(rig, 0.05), grid_from_rig(rig, 0.05, min_views=6)
+    assert all(m <= e for m, e in zip(most.lower_m, every.lower_m))
+    assert all(m >= e for m, e in zip(most.upper_m, every.upper_m))
+    assert most.num_voxels > 1.5 * every.num_voxels

@@ -8,10 +8,13 @@ Conventions of this module:
   both ``(C, 3, H, W)``. The stored std is final: floored at ``min_std`` on every channel, **then** Y multiplied by
   ``luminance_relax`` (Caillette: a relaxed luminance variance keeps shadows and illumination changes out of
   the foreground). Flooring first means the relaxation is never absorbed by the floor.
-* Shadows (``shadow_min_gain``): a cast shadow darkens a surface without changing its chromaticity, i.e. it
-  scales the background's YUV by one factor ``alpha`` (Horprasert et al. 1999's brightness distortion). Each
-  pixel is also scored against ``alpha B`` with the ``alpha`` in ``[shadow_min_gain, 1]`` that fits it best (closed
-  form, unrelaxed std), and the better of the two background densities is kept.
+* Shadows (``shadow_min_gain``; ``shadows=True`` in :meth:`BackgroundModel.mahalanobis2` and the like): a cast
+  shadow darkens a surface without changing its chromaticity, i.e. it scales the background's YUV by one factor
+  ``alpha`` (Horprasert et al. 1999's brightness distortion). Each pixel is then also scored against ``alpha B``
+  with the ``alpha`` in ``[shadow_min_gain, 1]`` that fits it best (closed form, unrelaxed std), and the better of
+  the two background densities is kept. Grey or dark clothing over a lighter floor or wall is such a darker copy
+  too, so a pixel cannot tell: the Bayesian grid uses the shadow-tolerant evidence only for the voxels near the
+  floor, where a shadow's ghost volume lies (:class:`torchtrack.occupancy.BayesConfig`'s ``shadow_layer_m``).
 * Global gain (``compensate_gain``): for each frame and camera, ``g = median_p(Y_frame / Y_mean)`` over the
   pixels with ``Y_mean >= DARK_Y``, clamped to ``GAIN_RANGE`` (warning, naming the camera, when it had to be).
   A global gain multiplies RGB, hence Y, U and V: the whole YUV image is divided by ``g``. The likelihood is
@@ -160,6 +163,7 @@ class BackgroundModel(nn.Module):
         self.camera_names = _camera_names(camera_names, mean_yuv.shape[0])
         #: True when estimated from a moving sequence (:meth:`from_sequence`), not from empty-scene frames
         self.from_moving_sequence = False
+
         self.register_buffer("mean_yuv", mean_yuv)
         self.register_buffer("std_yuv", std_yuv)
         # derived once, used every frame: 1 / std and the Gaussian's log normaliser (C, H, W)
@@ -323,22 +327,28 @@ class BackgroundModel(nn.Module):
         g = g.masked_fill(dead, float("nan"))
         return est.rgb_to_yuv(images, g), g, dead  # (B, C, 3, H, W), the gain folded into the conversion
 
-    def mahalanobis2(self, images: torch.Tensor) -> torch.Tensor:
+    def mahalanobis2(self, images: torch.Tensor, shadows: bool = False) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) squared Mahalanobis distance to each pixel's background,
         ``sum_k ((I_k / g - mean_k) / std_k)^2`` over Y, U, V (Y's std unrelaxed outside the shadow band, see
         :meth:`mahalanobis2_yuv`). NaN where the image is NaN or the frame dead."""
-        return self.mahalanobis2_yuv(self._normalise(images)[0])
+        return self.mahalanobis2_yuv(self._normalise(images)[0], shadows)
 
-    def mahalanobis2_yuv(self, yuv: torch.Tensor) -> torch.Tensor:
+    def mahalanobis2_yuv(self, yuv: torch.Tensor, shadows: bool = False) -> torch.Tensor:
         """(..., C, 3, H, W) YUV from :meth:`normalise` -> (..., C, H, W) squared Mahalanobis distance (lets a
         caller that needs both the colours and the distances convert and gain-correct once).
 
         Where Y is outside ``[r, 1 / r]`` times the background's (``r = shadow_min_ratio``) the Y term uses the
-        unrelaxed std, i.e. it is ``luminance_relax^2`` times larger. Where the shadow model explains the pixel
-        better (a higher density, see :meth:`log_likelihood`) it is the distance to the shadowed background."""
-        return self._mahalanobis2(yuv)[0]
+        unrelaxed std, i.e. it is ``luminance_relax^2`` times larger. With ``shadows``, where the shadow model
+        explains the pixel better (a higher density, see :meth:`log_likelihood`) it is the distance to the
+        shadowed background."""
+        return self._mahalanobis2(yuv, shadows)[0]
 
-    def _mahalanobis2(self, yuv: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    @property
+    def tests_shadows(self) -> bool:
+        """Whether ``shadows=True`` changes anything (``shadow_min_gain < 1``)."""
+        return self.config.shadow_min_gain < 1
+
+    def _mahalanobis2(self, yuv: torch.Tensor, shadows: bool) -> tuple[torch.Tensor, torch.Tensor | None]:
         """:meth:`mahalanobis2_yuv` (..., C, H, W) and the log normaliser's correction (..., C, H, W) of the model
         that gave it (``log luminance_relax`` where the Y std is unrelaxed), or None when it is 0 everywhere."""
         mean = self.mean_yuv.to(device=yuv.device, dtype=yuv.dtype)
@@ -354,7 +364,7 @@ class BackgroundModel(nn.Module):
             d2 = d2 + (relax * relax - 1.0) * z[..., 0, :, :].square() * unrelaxed
             corr = unrelaxed.to(d2.dtype) * log_relax
         lo = self.config.shadow_min_gain
-        if lo >= 1:
+        if not shadows or lo >= 1:
             return d2, corr
         # the shadowed background alpha * mean, alpha fitted in closed form (weighted least squares over Y, U, V
         # with the unrelaxed std) and clamped to the shadow's range
@@ -370,26 +380,34 @@ class BackgroundModel(nn.Module):
         corr = torch.where(shadow, corr_sh, corr_sh.new_zeros(()) if corr is None else corr)
         return d2, corr
 
-    def log_likelihood(self, images: torch.Tensor) -> torch.Tensor:
+    def log_likelihood(self, images: torch.Tensor, shadows: bool = False) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.
 
         ``log N(I / g; mean, diag std^2) - 3 log g`` (the density of ``I = g B``; ``g = 1`` without gain
         compensation), directly comparable with :attr:`log_uniform`; the Y std unrelaxed outside the shadow band
-        (``shadow_min_ratio``, as :meth:`mahalanobis2_yuv`). Where it is higher, the shadow's density
-        ``N(I / g; alpha mean, diag std_unrelaxed^2)`` with the best ``alpha`` in ``[shadow_min_gain, 1]`` instead
-        (the larger of the two: a shadow is one more way of being background). NaN where the image is NaN or dead.
+        (``shadow_min_ratio``, as :meth:`mahalanobis2_yuv`). With ``shadows``, where it is higher, the shadow's
+        density ``N(I / g; alpha mean, diag std_unrelaxed^2)`` with the best ``alpha`` in ``[shadow_min_gain, 1]``
+        instead (the larger of the two: a shadow is one more way of being background). NaN where the image is NaN
+        or dead.
         """
-        return self.log_likelihood_and_yuv(images)[0]
-
-    def log_likelihood_and_yuv(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`log_likelihood` (B, C, H, W) and :meth:`normalise` (B, C, 3, H, W) from one normalisation."""
         yuv, g, _ = self._normalise(images)
-        d2, corr = self._mahalanobis2(yuv)  # (B, C, H, W)
+        return self._log_likelihood(yuv, g, shadows)
+
+    def log_likelihood_and_yuv(self, images: torch.Tensor, shadows: bool = False
+                               ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+        """From one normalisation: :meth:`log_likelihood` (B, C, H, W) without the shadow test, with it when
+        ``shadows`` and :attr:`tests_shadows` (else None), and :meth:`normalise` (B, C, 3, H, W)."""
+        yuv, g, _ = self._normalise(images)
+        lit = self._log_likelihood(yuv, g, False)
+        return lit, self._log_likelihood(yuv, g, True) if shadows and self.tests_shadows else None, yuv
+
+    def _log_likelihood(self, yuv: torch.Tensor, g: torch.Tensor, shadows: bool) -> torch.Tensor:
+        d2, corr = self._mahalanobis2(yuv, shadows)  # (B, C, H, W)
         log_norm = self.log_norm.to(device=yuv.device, dtype=yuv.dtype)  # (C, H, W)
         log_p = -0.5 * d2 - log_norm - 3.0 * g.log()[:, :, None, None]
         if corr is not None:  # the unrelaxed Gaussian's normaliser where it scored the pixel
             log_p = log_p + corr
-        return log_p, yuv
+        return log_p
 
     def extra_repr(self) -> str:
         C, _, H, W = self.mean_yuv.shape

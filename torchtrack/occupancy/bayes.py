@@ -48,6 +48,11 @@ class BayesConfig:
         window: k of the k x k sampling window (odd).
         prior: prior occupancy probability of a voxel.
         min_views: voxels seen by fewer cameras are unobserved (None: all cameras).
+        shadow_layer_m: voxels whose centre lies less than this above the grid's floor take their evidence from
+            the background model with its shadow test (``BackgroundConfig.shadow_min_gain``), the others without
+            it. A floor shadow seen by every camera carves a ghost slab in this layer around the feet, while grey
+            or dark clothing, which the shadow test cannot tell from a shadow on a lighter floor or wall, is kept
+            everywhere above it (0: no shadow test; docs/results.md, "Occupancy").
     """
 
     pd: float = 0.99
@@ -57,6 +62,7 @@ class BayesConfig:
     window: int = 1
     prior: float = 0.5
     min_views: int | None = None
+    shadow_layer_m: float = 0.2
 
     def __post_init__(self) -> None:
         for name in ("pd", "pfa", "p_sample", "p_other", "prior"):
@@ -65,6 +71,8 @@ class BayesConfig:
                 raise InputError(f"BayesConfig.{name} must be in (0, 1), got {v}")
         if self.window < 1 or self.window % 2 == 0:
             raise InputError(f"BayesConfig.window must be a positive odd number, got {self.window}")
+        if not self.shadow_layer_m >= 0:
+            raise InputError(f"BayesConfig.shadow_layer_m must be >= 0, got {self.shadow_layer_m}")
 
     def detection_probabilities(self) -> tuple[float, float]:
         """(p(F=1 | G=1), p(F=1 | G=0))."""
@@ -142,12 +150,15 @@ class BayesianGrid(nn.Module):
         self.background = background
         need = rig.num_cameras if config.min_views is None else config.min_views
         self.register_buffer("observed", self.lookup.num_views >= need, persistent=False)
+        low = spec.centres(dtype=torch.float64)[:, 2] < spec.lower_m[2] + config.shadow_layer_m  # (V,)
+        self.register_buffer("floor_layer", low.to(self.observed.device), persistent=False)
+        self.register_buffer("floor_index", low.nonzero()[:, 0].to(self.observed.device), persistent=False)
 
     def evidence(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) window-summed per-pixel log ratio; 0 for unreadable pixels."""
         W, H = self.image_size_wh
         check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
-        return self._evidence(self.background.log_likelihood(images))
+        return self._evidence(self.background.log_likelihood(images))  # without the shadow test
 
     def _evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
         r = pixel_log_ratio(log_bg, self.background.log_uniform, self.config)
@@ -164,11 +175,19 @@ class BayesianGrid(nn.Module):
         """
         W, H = self.image_size_wh
         check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
-        return self.from_log_likelihood(self.background.log_likelihood(images))
+        lit, shadowed, _ = self.background.log_likelihood_and_yuv(images, shadows=self.config.shadow_layer_m > 0)
+        return self.from_log_likelihood(lit, shadowed)
 
-    def from_log_likelihood(self, log_bg: torch.Tensor) -> Occupancy:
+    def from_log_likelihood(self, log_bg: torch.Tensor, log_bg_shadows: torch.Tensor | None = None) -> Occupancy:
         """Occupancy from the background log-likelihood of every pixel, ``(B, C, H, W)`` (NaN: no evidence),
-        for callers that computed it already (:meth:`BackgroundModel.log_likelihood_and_yuv`)."""
-        ev = self._evidence(log_bg)  # (B, C, H, W)
+        for callers that computed it already (:meth:`BackgroundModel.log_likelihood_and_yuv`); with
+        ``log_bg_shadows`` (the same with the shadow test) the voxels of the floor layer (``shadow_layer_m``)
+        take theirs from it."""
         prior = math.log(self.config.prior / (1 - self.config.prior))
-        return Occupancy(self.lookup.gather_sum(ev) + prior, self.observed, self.spec)
+        log_odds = self.lookup.gather_sum(self._evidence(log_bg)) + prior  # (B, V)
+        if log_bg_shadows is not None and self.floor_index.numel():
+            ev = self._evidence(log_bg_shadows).flatten(2)  # (B, C, H * W)
+            pix = self.lookup.pixel_index[:, self.floor_index]  # (C, L)
+            low = ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * (pix >= 0)
+            log_odds = log_odds.index_copy(1, self.floor_index, low.sum(1) + prior)
+        return Occupancy(log_odds, self.observed, self.spec)

@@ -34,7 +34,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="Bayesian grid: sample a K x K pixel window around each voxel's projection, K odd "
                         "(default: %(default)s)")
     p.add_argument("--min-views", type=int, default=None, metavar="N",
-                   help="cameras that must see a voxel (default: all)")
+                   help="cameras that must see a voxel; the volume is the floor that many see, up to 2.1 m "
+                        "(default: all but two, at least three)")
     p.add_argument("--start", type=int, default=0, metavar="FRAME",
                    help="first frame to process, a 0-based frame index (default: %(default)s)")
     p.add_argument("--stop", type=int, default=None, metavar="FRAME",
@@ -85,8 +86,8 @@ def _run(args: argparse.Namespace) -> int:
     from torchtrack.io.outputs import OBSERVE_DIR, replacing
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
-    from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, grid_from_rig,
-                                      hull_from_images)
+    from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, capture_views,
+                                      grid_from_rig, hull_from_images)
 
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -111,6 +112,10 @@ def _run(args: argparse.Namespace) -> int:
                                    device=device, source=str(args.background_from_track))
     else:
         bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=True)
+    if args.min_views is None:
+        args.min_views = capture_views(rig.num_cameras)
+    elif not 1 <= args.min_views <= rig.num_cameras:
+        raise InputError(f"--min-views {args.min_views}: the rig has {rig.num_cameras} cameras")
     spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)
     if args.model == "bayes":
         model = BayesianGrid(rig, spec, bg, BayesConfig(window=args.window, min_views=args.min_views)).to(device)

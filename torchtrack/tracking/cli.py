@@ -53,8 +53,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "track", help="markerless 3D body tracking of a sequence folder",
         description="Track the body through a sequence folder from its occupancy (Bayesian grid or colour hull), "
                     "with blobs fitted by EM, joint goals and CCD inverse kinematics. Writes OUT/poses.npz "
-                    "(docs/formats.md) and TensorBoard logs in OUT/tb. The sequence should start with the "
-                    "subject in the starfish pose, or give --init-pose. Options marked 'default from --config' "
+                    "(docs/formats.md) and TensorBoard logs in OUT/tb. The tracker starts at the first frame that "
+                    "shows one whole person, in any pose (or give --init-pose). Options marked 'default from --config' "
                     "override that setting of the tracking config.")
     p.add_argument("seq", type=Path, metavar="SEQ",
                    help="sequence folder (calibration.toml, video/ or frames/, background/)")
@@ -75,7 +75,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         f"({conf('observation.scale')})")
     p.add_argument("--init-pose", type=Path, default=None, metavar="POSES",
                    help="poses.npz whose first valid frame is the initial pose (an earlier run's, or `torchtrack "
-                        "init-pose`'s), with its body where the file has one (default: the starfish start)")
+                        "init-pose`'s), with its body where the file has one (default: the body searched for in the "
+                        "first frame that shows one person)")
     p.add_argument("--height", type=float, default=None, metavar="M",
                    help="with --init-pose: subject height in metres, the body model scaled to it instead of the "
                         "file's body (default: the file's body, else its height, else meta.toml's, else 1.75)")

@@ -2,8 +2,8 @@
 
     torchtrack init-pose KEYPOINTS.trc --out START.npz [--frame N] [--up y|z] [--scale-only]
 
-A recording that does not start in the starfish pose needs its first frame's pose. Another system's 3D
-keypoints of that frame (Pose2Sim's triangulation, joint centres from markers) give it: the pose and the
+The tracker finds the first frame's pose by itself; a recording it starts wrongly on (a pose the few cameras
+leave ambiguous) can be given it. Another system's 3D keypoints of that frame (Pose2Sim's triangulation, joint centres from markers) give it: the pose and the
 subject's bone lengths are fitted to them (:func:`~torchtrack.tracking.landmark_fit.fit_to_landmarks`) and
 written as a one-frame ``poses.npz`` that carries the fitted body.
 """

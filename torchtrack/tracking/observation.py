@@ -142,6 +142,7 @@ class Observer(nn.Module):
         threshold: occupancy probability above which a Bayesian voxel is kept.
         min_views: a voxel counts where at least this many cameras see it (None:
             :func:`~torchtrack.occupancy.capture_views`, all but two and at least three).
+
         bayes, hull: optional model configs (their volume and voxel fields are overridden).
     """
 
@@ -189,8 +190,8 @@ class Observer(nn.Module):
                                             camera_centres=cams.to(v.centres.dtype),
                                             volume_m=self.hull_config.covered_box()))
             return out
-        log_bg, yuv = self.background.log_likelihood_and_yuv(images)  # (B, C, H, W), (B, C, 3, H, W)
-        prob = self.grid.from_log_likelihood(log_bg).probability()  # (B, V)
+        lit, shadowed, yuv = self.background.log_likelihood_and_yuv(images, shadows=True)  # (B, C, H, W) x2, YUV
+        prob = self.grid.from_log_likelihood(lit, shadowed).probability()  # (B, V)
         return self.from_probability(prob, yuv, cameras_valid)
 
     def from_probability(self, prob: torch.Tensor, yuv: torch.Tensor, cameras_valid: torch.Tensor
