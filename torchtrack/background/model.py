@@ -68,12 +68,12 @@ class BackgroundConfig:
             ``[r, 1 / r]`` times its background's: a shadow or a change of illumination scales the luminance by a
             bounded factor, and a part darker than any shadow (black hair over a light wall) is judged with the
             unrelaxed Y std (see :meth:`BackgroundModel.mahalanobis2_yuv`). 0: the paper's plain relaxation.
-        shadow_min_gain: the darkest shadow: a pixel whose colour is the background's scaled by a factor in
-            ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise) is background. Cast
-            shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors Horprasert et al.
-            1999 and Cucchiara et al. 2003 use); a part darker than that against its background stays foreground,
-            and so does a grey part over a lighter grey surface only below the bound. 1 turns the shadow test
-            off (docs/results.md, "Occupancy").
+        shadow_min_gain: the darkest shadow: with ``shadows=True``, a pixel whose colour is the background's
+            scaled by a factor in ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise)
+            is background. Cast shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors
+            of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 (the default) turns the test off: it removes
+            a floor shadow's ghost voxels, but also dark or grey feet and clothing over a grey floor, which are
+            such darker copies of it too (docs/results.md, "Occupancy").
         compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
             (also applied to the estimation frames, so the model is in gain-normalised units).
         max_frames: frames used for estimation, evenly sampled over the given ones.
@@ -94,7 +94,7 @@ class BackgroundConfig:
     min_std: float = 0.012
     luminance_relax: float = 3.0
     shadow_min_ratio: float = 0.7
-    shadow_min_gain: float = 0.4
+    shadow_min_gain: float = 1.0
     compensate_gain: bool = True
     max_frames: int = 60
     fill_static_subject: bool = False
