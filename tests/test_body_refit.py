@@ -146,6 +146,9 @@ def test_a_wrong_body_is_refitted_towards_the_rendered_one_on_a_walk(walk):
     legs = ("l_thigh", "r_thigh", "l_shank", "r_shank")
     wrong = true.with_bone_lengths({"torso": 1.15 * length["torso"], **{b: 0.88 * length[b] for b in legs}})
     cfg = load_config("markerless.yaml")
+    # every camera must see a voxel, as when the measured figures below were taken: a box of 3 of the 4 views
+    # changes the hull's octree, and with it the legs' voxels the refit reads (docs/results.md, "Robustness")
+    cfg["observation"]["min_views"] = 4
     rig = folder.rig.float()
     bg = BackgroundModel.from_folder(folder)
 
