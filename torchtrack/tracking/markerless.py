@@ -595,10 +595,15 @@ class MarkerlessTracker:
         from torchtrack.tracking.search import SearchConfig, score_states, search_pose
 
         dev = obs.points.device
-        gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
         self.generic.to(dev)
-        found = search_pose(obs, self.generic, BlobModel(self.generic, *self.blob_specs), SearchConfig(), gen,
-                            n=self.config.start_hypotheses)
+        blobs = BlobModel(self.generic, *self.blob_specs)
+        largest = SearchConfig().scale_range[1] ** 3 * float(blob_volumes(blobs).sum())  # the largest body searched
+        if obs.volume_m3() > STARFISH_MAX_VOLUME_RATIO * largest:  # checked before the search: a refusal is cheap
+            raise InputError(f"initialisation: the frame's voxels hold {obs.volume_m3() / largest:.1f} times the "
+                             "volume of the largest body searched for: not one person (phantom volume, or a "
+                             "background that keeps parts of the room). " + START_ADVICE)
+        gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
+        found = search_pose(obs, self.generic, blobs, SearchConfig(), gen, n=self.config.start_hypotheses)
         if float(found.outside[0]) > START_MAX_OUTSIDE:
             raise InputError(f"initialisation: {100 * float(found.outside[0]):.0f}% of the body found lies out of "
                              "the capture volume: not started on a body partly out of it")
