@@ -584,9 +584,8 @@ class MarkerlessTracker:
         return self._finish_start(obs, res, height, body_m3, toe, tried)
 
     def _sole(self, obs: VoxelObservation) -> float:
-        """The soles' height: the lowest voxels' bottom (each voxel's own extent: the hull's coarse interior
-        cubes, 12 cm, would put it 5 cm low at their centres)."""
-        return float(torch.quantile(obs.points[:, 2] - 0.5 * obs.sizes.to(obs.points.dtype), 0.002))
+        """The soles' height: the lowest voxels' bottom (:meth:`VoxelObservation.height_span`)."""
+        return obs.height_span()[0]
 
     def _search_fit(self, obs: VoxelObservation) -> tuple[FrameResult, float, float, tuple]:
         """The search's best hypotheses (:func:`~torchtrack.tracking.search.search_pose`), each finished by
@@ -636,8 +635,7 @@ class MarkerlessTracker:
         body's volume, how far the toes point ahead and ``(heading, cost)`` of each heading tried."""
         pts, w = obs.points, obs.weights
         # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them
-        sole = self._sole(obs)
-        top = float(torch.quantile(pts[:, 2] + 0.5 * obs.sizes.to(pts.dtype), 0.998))
+        sole, top = obs.height_span()
         height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
         self._setup(height, pts.device)
         body_m3 = self.subject.body_volume_m3

@@ -56,6 +56,13 @@ class VoxelObservation:
         """Voxels the observation model gave (before any merging per cell)."""
         return self.observed_voxels if self.observed_voxels >= 0 else self.num_voxels
 
+    def height_span(self) -> tuple[float, float]:
+        """(soles, top): the 0.2 % and 99.8 % height quantiles of the voxels' bottoms and tops (m). Each voxel's
+        own extent counts: the hull's coarse interior cubes (12 cm) would put the soles 5 cm low at their
+        centres; the quantiles leave out a few stray voxels."""
+        z, half = self.points[:, 2], 0.5 * self.sizes.to(self.points.dtype)
+        return float(torch.quantile(z - half, 0.002)), float(torch.quantile(z + half, 0.998))
+
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
 

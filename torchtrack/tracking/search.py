@@ -149,9 +149,7 @@ class _Voxels:
         self.volume = None if obs.volume_m is None else tuple(torch.tensor(v, dtype=torch.float32,
                                                                            device=p.device) for v in obs.volume_m)
         self.centroid = (obs.weights.float()[:, None] * obs.points.float()).sum(0) / obs.weights.float().sum()
-        half = 0.5 * obs.sizes.float()
-        self.floor = float(torch.quantile(obs.points[:, 2].float() - half, 0.002))
-        self.top = float(torch.quantile(obs.points[:, 2].float() + half, 0.998))
+        self.floor, self.top = obs.height_span()
 
     def occupied(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) points -> (occupied, observed) bool: on an occupied cell; inside the observed volume."""
