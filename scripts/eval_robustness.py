@@ -2,7 +2,8 @@
 """The stress table: the markerless tracker on synthetic recordings unlike the template's, as `torchtrack track`
 tracks them (torchtrack.track with the default config).
 
-Each case fixes a motion (procedural, or a real CMU capture retargeted), a camera count, a start and where the
+Each case fixes a motion (procedural, or a real capture retargeted: CMU's BVH skeletons, the joint centres of
+the C3D marker captures), a camera count, a start and where the
 subject goes; its seed draws the rest: body height, bone proportions and girth, clothing colours (normal, or close
 to the floor's and the walls'), a floor shadow and the light, the ring's radius and height, lens distortion.
 Sequences are rendered once under --work (re-rendered when their settings change).
@@ -87,6 +88,9 @@ CASES = (
     Case("walk_4", "walk", 4, 10, start="starfish"),
     Case("squat_4", "squat", 4, 11, start="none", low_contrast=True),
     Case("cmu131_01_4", "cmu:131_01", 4, 12, start="high"),
+    Case("cmu85_02_8", "c3d:cmu/85_02.c3d", 8, 13, start="none"),
+    Case("pig_walk_8", "c3d:btk/c3d/PiG_Motion-FlatFoot-Full.c3d", 8, 14, start="low", low_contrast=True),
+    Case("cmu85_02_4", "c3d:cmu/85_02.c3d", 4, 15, start="starfish"),
 )
 
 
@@ -138,7 +142,12 @@ def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
                 (t0 + 2.2, far * math.cos(heading), far * math.sin(heading)), (t0 + 3.7, 0.0, 0.0))
     if path:
         duration = max(duration, path[-1][0] - starfish_s + 0.7)
-    motion = str(CMU / f"{case.motion[4:]}.bvh") if case.motion.startswith("cmu:") else case.motion
+    if case.motion.startswith("cmu:"):
+        motion = str(CMU / f"{case.motion[4:]}.bvh")
+    elif case.motion.startswith("c3d:"):  # a marker capture's joint centres (torchtrack.synth.c3d_motion)
+        motion = str(CMU.parent / case.motion[4:])
+    else:
+        motion = case.motion
     arms, legs = start if start is not None else (1.25, 0.3)
     return SynthConfig(motion=motion, duration_s=duration, starfish_s=starfish_s, fps=fps,
                        subject_height_m=float(rng.uniform(1.55, 1.95)), rig=rig, scene=scene, body=body,

@@ -20,15 +20,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                    help="replace an earlier synthetic sequence in DIR (a folder holding anything else is refused) "
                         "(default: refuse)")
     p.add_argument("--motion", default="walk", metavar="MOTION",
-                   help=f"procedural motion ({', '.join(MOTIONS)}) or a .bvh file (default: %(default)s)")
+                   help=f"procedural motion ({', '.join(MOTIONS)}), a .bvh file or a .c3d marker capture "
+                        "(default: %(default)s)")
     p.add_argument("--duration", type=float, default=3.0, metavar="SEC",
                    help="seconds of motion after the starfish start (default: %(default)s)")
     p.add_argument("--starfish", type=float, default=1.0, metavar="SEC",
                    help="seconds of starfish pose at the start (default: %(default)s)")
     p.add_argument("--fps", type=float, default=30.0, metavar="HZ",
-                   help="frame rate in frames per second; a .bvh file is resampled to it (default: %(default)s)")
+                   help="frame rate in frames per second; a .bvh or .c3d file is resampled to it "
+                        "(default: %(default)s)")
     p.add_argument("--height", type=float, default=1.75, metavar="M",
-                   help="subject height in metres, procedural motions (a .bvh: its own) (default: %(default)s)")
+                   help="subject height in metres, procedural motions (a .bvh or .c3d: its own) "
+                        "(default: %(default)s)")
     p.add_argument("--cameras", type=int, default=8, metavar="N",
                    help="number of cameras on the ring (default: %(default)s)")
     p.add_argument("--size", default="640x480", metavar="WxH",

@@ -144,7 +144,7 @@ def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, 
         (T, D) float32 state vectors within the skeleton's joint limits.
     """
     if kind not in _GENERATORS:
-        raise InputError(f"unknown motion {kind!r}; choose one of {', '.join(MOTIONS)} or a .bvh file")
+        raise InputError(f"unknown motion {kind!r}; choose one of {', '.join(MOTIONS)}, a .bvh or a .c3d file")
     if duration_s <= 0 or fps <= 0:
         raise InputError(f"duration_s and fps must be positive, got {duration_s}, {fps}")
     t = torch.arange(round(duration_s * fps), dtype=torch.float32) / fps  # (T,)

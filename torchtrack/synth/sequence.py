@@ -182,11 +182,13 @@ def motion_angles(cfg: SynthConfig, skel: Skeleton) -> tuple[Skeleton, torch.Ten
         angles = procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s, **style)
     else:
         path = Path(cfg.motion)
-        if path.suffix.lower() != ".bvh":
-            raise InputError(f"motion {cfg.motion!r}: not one of {', '.join(MOTIONS)} and not a .bvh file")
-        from torchtrack.synth.bvh_motion import bvh_motion  # BVH import and retargeting
-
-        skel, angles = bvh_motion(path, skel, cfg.fps, cfg.duration_s, cfg.starfish_s, **style)
+        if path.suffix.lower() == ".bvh":
+            from torchtrack.synth.bvh_motion import bvh_motion as capture_motion  # BVH import and retargeting
+        elif path.suffix.lower() == ".c3d":
+            from torchtrack.synth.c3d_motion import c3d_motion as capture_motion  # joint centres, retargeting
+        else:
+            raise InputError(f"motion {cfg.motion!r}: not one of {', '.join(MOTIONS)} and not a .bvh or .c3d file")
+        skel, angles = capture_motion(path, skel, cfg.fps, cfg.duration_s, cfg.starfish_s, **style)
         if cfg.body.bone_scale:
             skel = cfg.body.skeleton(skel)
             angles = on_the_floor(skel, angles)
