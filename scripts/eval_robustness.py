@@ -125,8 +125,8 @@ def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
                     seed=case.seed)
     radius = float(rng.uniform(3.0, 4.5))  # the field of view keeps the default ring's width at the centre
     rig = RigConfig(num_cameras=case.cameras, radius_m=radius, height_m=float(rng.uniform(1.8, 2.8)),
-                    hfov_deg=math.degrees(2 * math.atan(3.5 * math.tan(math.radians(31.0)) / radius)), k1=float(rng.uniform(-0.12, 0.0)),
-                    overhead=case.overhead)
+                    hfov_deg=math.degrees(2 * math.atan(3.5 * math.tan(math.radians(31.0)) / radius)),
+                    k1=float(rng.uniform(-0.12, 0.0)), overhead=case.overhead)
     path: tuple[tuple[float, float, float], ...] = ()
     start = STARTS[case.start]
     starfish_s = 0.0 if start is None else 1.0
