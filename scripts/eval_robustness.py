@@ -34,7 +34,7 @@ from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.io.outputs import script_work_folder
-from torchtrack.io.poses import load_poses
+from torchtrack.io.poses import load_poses, save_poses
 from torchtrack.synth.scene import _WALL_PALETTE, SceneConfig
 from torchtrack.synth.sequence import BodyConfig, RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.pipeline import NothingTracked, load_config, track
@@ -186,7 +186,7 @@ def score(seq: Path, poses) -> dict:
             "start_s": None if first is None else first / fps}
 
 
-def run_case(case: Case, work: Path, duration: float, fps: float, config: dict) -> dict:
+def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, save: Path | None = None) -> dict:
     seq = work / case.name
     cfg = synth_config(case, duration, fps)
     if not is_current(seq, cfg):
@@ -199,6 +199,8 @@ def run_case(case: Case, work: Path, duration: float, fps: float, config: dict) 
         poses, note = e.poses, f"nothing tracked: {e}"
     except InputError as e:
         poses, note = None, f"refused: {str(e).splitlines()[0][:90]}"
+    if save is not None and poses is not None:
+        save_poses(poses, save / f"{case.name}.npz")
     out = score(seq, poses)
     out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead))
     return out
@@ -214,6 +216,8 @@ def main() -> None:
     ap.add_argument("--config", default="markerless.yaml", help="tracking config (default: markerless.yaml)")
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
                     help="override config settings, e.g. background.shadow_min_gain=1 (YAML values)")
+    ap.add_argument("--save", type=Path, metavar="DIR",
+                    help="also write each case's track to DIR/<case>.npz (an existing folder), to look into")
     ap.add_argument("--all-views", action="store_true",
                     help="voxels must be seen by every camera (observation.min_views = the rig's count)")
     args = ap.parse_args()
@@ -223,6 +227,8 @@ def main() -> None:
     if unknown:
         raise SystemExit(f"unknown cases {unknown}; cases: {list(by_name)}")
     work = script_work_folder(args.work, "eval_robustness.py")
+    if args.save is not None and not args.save.is_dir():
+        raise SystemExit(f"--save {args.save}: not a folder")
     print(f"{'case':<14} {'cams':>4} {'start':<8} {'path':<6} {'MPJPE':>7} {'worst':>7} {'invalid':>9} "
           f"{'start within 50 mm':>19} {'s':>5}  note")
     config = load_config(args.config)
@@ -237,7 +243,7 @@ def main() -> None:
         case = by_name[name]
         if args.all_views:
             config["observation"]["min_views"] = case.cameras + int(case.overhead)
-        r = run_case(case, work, args.duration, args.fps, config)
+        r = run_case(case, work, args.duration, args.fps, config, args.save)
         rows.append((case, r))
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
