@@ -269,14 +269,16 @@ def _dof_groups(skel: Skeleton) -> torch.Tensor:
 
 
 def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles: torch.Tensor,
-                 samples: int = SearchConfig.samples, max_voxels: int = SearchConfig.max_voxels) -> torch.Tensor:
-    """(n,) :func:`two_way_score` of the states ``angles (n, D)`` of ``skel`` (placed as they are) on ``obs``: to
-    compare hypotheses that EM/IK has finished. The voxel subsample is the same for every call on ``obs``."""
+                 samples: int = SearchConfig.samples, max_voxels: int = SearchConfig.max_voxels
+                 ) -> tuple[torch.Tensor, ...]:
+    """:func:`two_way_score` (score, explained, filled, outside; each (n,)) of the states ``angles (n, D)`` of
+    ``skel`` (placed as they are) on ``obs``: to compare hypotheses that EM/IK has finished. The voxel subsample is
+    the same for every call on ``obs``."""
     vox = _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
     c, R = blobs.ellipsoids(skel.forward(angles.to(skel.lower)).bone_frames)
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
     pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
-    return two_way_score(c.float(), R.float(), semi.float(), vox, pts)[0]
+    return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
 
 
 def _top(score: torch.Tensor, n: int) -> torch.Tensor:
