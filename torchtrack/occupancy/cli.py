@@ -35,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "(default: %(default)s)")
     p.add_argument("--min-views", type=int, default=None, metavar="N",
                    help="cameras that must see a voxel; the volume is the floor that many see, up to 2.1 m "
-                        "(default: all but two, at least three)")
+                        "(default: Bayesian grid all but two, at least four; hull all)")
     p.add_argument("--start", type=int, default=0, metavar="FRAME",
                    help="first frame to process, a 0-based frame index (default: %(default)s)")
     p.add_argument("--stop", type=int, default=None, metavar="FRAME",
@@ -113,7 +113,7 @@ def _run(args: argparse.Namespace) -> int:
     else:
         bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=True)
     if args.min_views is None:
-        args.min_views = capture_views(rig.num_cameras)
+        args.min_views = capture_views(rig.num_cameras, args.model)
     elif not 1 <= args.min_views <= rig.num_cameras:
         raise InputError(f"--min-views {args.min_views}: the rig has {rig.num_cameras} cameras")
     spec = grid_from_rig(rig, args.voxel, min_views=args.min_views)

@@ -148,7 +148,8 @@ class Observer(nn.Module):
             floor to 2.1 m).
         threshold: occupancy probability above which a Bayesian voxel is kept.
         min_views: a voxel counts where at least this many cameras see it (None:
-            :func:`~torchtrack.occupancy.capture_views`, all but two and at least three).
+            :func:`~torchtrack.occupancy.capture_views`: for the grid all but two and at least four, for the hull
+            all).
 
         bayes, hull: optional model configs (their volume and voxel fields are overridden).
     """
@@ -162,7 +163,7 @@ class Observer(nn.Module):
             raise InputError(f"observation model must be one of {MODELS}, got {model!r}")
         self.model, self.threshold, self.rig, self.background = model, threshold, rig, background
         if min_views is None:
-            min_views = capture_views(rig.num_cameras)
+            min_views = capture_views(rig.num_cameras, model)
         elif not 1 <= int(min_views) <= rig.num_cameras:
             raise InputError(f"observation min_views: {min_views} cameras of the rig's {rig.num_cameras}")
         self.min_views = int(min_views)
