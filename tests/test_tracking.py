@@ -852,6 +852,31 @@ def test_no_starfish_start_gives_a_clear_error(skel):
     assert len(tracker.start_refusals) == 2 and "--init-pose" in tracker.start_refusals[0]
 
 
+def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
+    """Tracked walking, then nobody, then back mid-squat and turned 150 degrees 0.5 m away: the re-acquisition
+    (the last pose at four headings and the search, compared by the two-way score) lands within 50 mm of the
+    truth (the pose's forward kinematics)."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    for t in range(walk.shape[0]):
+        assert tracker.step(_observation(subj, blobs, walk[t])).valid
+    nobody = _observation(subj, blobs, walk[-1])
+    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
+                              nobody.cameras_valid)
+    assert not tracker.step(nobody).valid
+    names = list(skel.dof_names)
+    back = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[14].clone()
+    back[names.index("root_rz")] = float(walk[-1, names.index("root_rz")]) + math.radians(150)
+    back[names.index("root_tx")] += 0.5
+    res = tracker.step(_observation(subj, blobs, back))
+    assert res.valid and res.reinitialised
+    truth = subj.forward(back[None].double()).output_points[0]
+    err = (res.output_points.double() - truth).norm(dim=-1).mean()
+    assert float(err) < 0.05, float(err)
+
+
 @pytest.mark.parametrize("frame, turn", [(12, 0.0), (20, 2.5), (5, -1.9)])
 def test_the_search_starts_from_any_pose(skel, frame, turn):
     """The default start finds a subject 1.68 m tall mid-squat, arms forward, at any heading and off the centre,
