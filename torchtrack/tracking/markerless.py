@@ -1263,12 +1263,12 @@ class MarkerlessTracker:
         return res
 
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
-        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings) and, at the
-        first lost frame with a person and every REACQUIRE_SEARCH_EVERY after, from any pose by the start's search.
-        The fits that pass the checks are compared by the search's two-way score (EM/IK's residual cannot tell a
-        body turned round from the right one); none is taken while the best lies partly out of the capture volume
-        (more than START_MAX_OUTSIDE: a body coming back in, whose cut-off limbs any pose fits). The colour model is
-        kept."""
+        """Re-initialise: around the last good pose (moved onto the voxels' centroid): at its heading where that
+        fit passes the checks (it knows limbs that no view shows), else at three more headings, the fits that pass
+        compared by the search's two-way score (EM/IK's residual cannot tell a body turned round from the right
+        one); where none passes, every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the
+        start's search. None is taken while the best lies partly out of the capture volume (more than
+        START_MAX_OUTSIDE: a body coming back in, whose cut-off limbs any pose fits). The colour model is kept."""
         from torchtrack.tracking.search import score_states
 
         pts, w = obs.points, obs.weights
@@ -1287,11 +1287,14 @@ class MarkerlessTracker:
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
                 self.angles = self.previous = res.angles
             fits.append(res)
-        if (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
+            if turn == 0.0 and not self._diverging(res):
+                break
+        ok = [r for r in fits if not self._diverging(r)]
+        if not ok and (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
             found = self._searched(obs)
             if found is not None:
                 fits.append(found)
-        ok = [r for r in fits if not self._diverging(r)]
+                ok = [found] if not self._diverging(found) else []
         best = min(fits, key=self._fit_cost)
         if ok:
             score, _, _, outside = score_states(obs, skel, self.subject.blobs, torch.stack([r.angles for r in ok]))
