@@ -1046,7 +1046,8 @@ def test_track_cli_writes_poses_that_eval_scores(seq, tmp_path, model, refits, c
     # the closing line's rate is the whole command's, in wall-clock time
     rate = re.search(r"; (\d+) s wall clock, ([\d.]+) frames/s;", printed)
     assert rate and abs(float(rate.group(1)) - wall) < 1.5, (printed, wall)
-    assert 0.8 < float(rate.group(2)) * wall / poses.num_frames < 1.05, (printed, wall)
+    slack = 0.005 * wall / poses.num_frames  # the rate is printed to 2 decimals: on a slow run that is a lot
+    assert 0.8 - slack < float(rate.group(2)) * wall / poses.num_frames < 1.05 + slack, (printed, wall)
     for phase in ("background:", "track:", f"body refit 1/{refits}:", f"body refit 1/{refits}: shape:"):
         assert phase in captured.err, phase  # a progress bar in each phase
     refits = re.search(r"; (\d) body refits?, (\d) kept;", printed)

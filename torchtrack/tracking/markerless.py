@@ -1263,20 +1263,15 @@ class MarkerlessTracker:
         return res
 
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
-        """Re-initialise: around the last good pose (moved onto the voxels' centroid): at its heading where that
-        fit passes the checks (it knows limbs that no view shows), else at three more headings, the fits that pass
-        compared by the search's two-way score (EM/IK's residual cannot tell a body turned round from the right
-        one); where none passes, every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the
-        start's search. None is taken while the best lies partly out of the capture volume (more than
-        START_MAX_OUTSIDE: a body coming back in, whose cut-off limbs any pose fits). The colour model is kept."""
-        from torchtrack.tracking.search import score_states
-
+        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings), and where
+        that fails, every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the start's search; the fit with
+        the least residual wins; the colour model is kept."""
         pts, w = obs.points, obs.weights
         c = (w[:, None] * pts).sum(0) / w.sum()
         skel = self.subject.skeleton
         base = self.angles.clone()
         ix, iy, irz = (skel.dof_names.index(n) for n in ("root_tx", "root_ty", "root_rz"))
-        fits = []
+        best = None
         for turn in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
             a = base.clone()
             a[ix], a[iy] = c[0], c[1]
@@ -1286,23 +1281,14 @@ class MarkerlessTracker:
             for _ in range(max(2, self.config.init_passes // 2)):
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
                 self.angles = self.previous = res.angles
-            fits.append(res)
-            if turn == 0.0 and not self._diverging(res):
-                break
-        ok = [r for r in fits if not self._diverging(r)]
-        if not ok and (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
+            if best is None or self._fit_cost(res) < self._fit_cost(best):
+                best = res
+        # where that fails, the whole state is searched for (at once, then every REACQUIRE_SEARCH_EVERY frames)
+        if self._diverging(best) and (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
             found = self._searched(obs)
-            if found is not None:
-                fits.append(found)
-                ok = [found] if not self._diverging(found) else []
-        best = min(fits, key=self._fit_cost)
-        if ok:
-            score, _, _, outside = score_states(obs, skel, self.subject.blobs, torch.stack([r.angles for r in ok]))
-            k = int(score.argmax())
-            best = ok[k]
-            if float(outside[k]) > START_MAX_OUTSIDE:
-                ok = []
-        if not ok:  # keep searching from the last good pose on the next frame
+            if found is not None and self._fit_cost(found) < self._fit_cost(best):
+                best = found
+        if self._diverging(best):  # keep searching from the last good pose on the next frame
             self.angles = self.previous = base
             self.lost += 1
             return replace(best, valid=False, reinitialised=True)
