@@ -8,7 +8,7 @@ subject goes; its seed draws the rest: body height, bone proportions and girth, 
 to the floor's and the walls'), a floor shadow and the light, the ring's radius and height, lens distortion.
 Sequences are rendered once under --work (re-rendered when their settings change).
 
-    .venv/bin/python scripts/eval_robustness.py                     # every case (about an hour on 2 cores)
+    .venv/bin/python scripts/eval_robustness.py                     # every case (about 70 minutes on 2 cores)
     .venv/bin/python scripts/eval_robustness.py --cases walk_8 cross_8    # a subset
     .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before
 

@@ -4,7 +4,7 @@ and observation model (issue targets: 8 cameras <= 30 mm with no frame over 100 
 Renders each sequence once (cached under --work), tracks it with the library's defaults
 (configs/markerless.yaml) and evaluates against its gt.npz.
 
-    .venv/bin/python scripts/eval_tracking.py                       # everything (about 30 minutes on 2 cores)
+    .venv/bin/python scripts/eval_tracking.py                       # everything (about 100 minutes on 2 cores)
     .venv/bin/python scripts/eval_tracking.py --motions walk --cameras 8 --models bayes
     .venv/bin/python scripts/eval_tracking.py --motions squat --cameras 4 --background shadow_min_ratio=0
     .venv/bin/python scripts/eval_tracking.py --motions cmu:131_02 --cameras 8 --proportions
