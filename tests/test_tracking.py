@@ -854,8 +854,8 @@ def test_no_starfish_start_gives_a_clear_error(skel):
 
 def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
     """Tracked walking, then nobody, then back mid-squat and turned 150 degrees 0.5 m away: the re-acquisition
-    (the last pose at four headings and the search, compared by the two-way score) lands within 50 mm of the
-    truth (the pose's forward kinematics)."""
+    (the last pose at four headings, the search where none passes the checks) lands within 50 mm of the truth
+    (the pose's forward kinematics)."""
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)

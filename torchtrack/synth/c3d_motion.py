@@ -13,7 +13,7 @@ which is what gets rendered and is the ground truth.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +24,8 @@ from torchtrack.io.c3d import C3D, read_c3d
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import on_the_floor, with_starfish_start
 from torchtrack.synth.retarget import RetargetResult, retarget_positions
+
+__all__ = ["C3D_JOINT_MAP", "c3d_motion", "c3d_world_positions", "joint_centres", "retarget_c3d"]
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +80,6 @@ def joint_centres(c3d: C3D) -> dict[str, np.ndarray]:
         InputError: a centre cannot be had from the file's labels, naming it and what was looked for.
     """
     have = {n: i for i, n in enumerate(c3d.labels)}
-    T = c3d.positions.shape[0]
 
     def point(name: str) -> np.ndarray | None:
         i = have.get(name)
@@ -134,7 +135,7 @@ def joint_centres(c3d: C3D) -> dict[str, np.ndarray]:
         raise InputError(f"{c3d.source}: cannot place the joint centres {missing} from its points (present in at "
                          f"least {MIN_PRESENT:.0%} of the frames: none of the Plug-in-Gait origins, the CMU or "
                          f"Plug-in-Gait markers they are taken from); it has {c3d.labels}")
-    return {n: p for n, p in out.items() if p is not None and p.shape[0] == T}
+    return {n: p for n, p in out.items() if p is not None}
 
 
 def c3d_world_positions(path: str | Path, fps: float, duration_s: float | None = None
@@ -175,6 +176,3 @@ def c3d_motion(path: str | Path, skel: Skeleton, fps: float, duration_s: float |
     result = retarget_c3d(path, skel, fps, duration_s)
     angles = with_starfish_start(result.skeleton, result.angles, fps, starfish_s, **starfish)
     return result.skeleton, on_the_floor(result.skeleton, angles)
-
-
-__all__: Sequence[str] = ("C3D_JOINT_MAP", "c3d_motion", "c3d_world_positions", "joint_centres", "retarget_c3d")
