@@ -6,7 +6,8 @@ static parts painted out unless ``--no-fill``) and starts with
 the subject balancing arms out. Points compared (``torchtrack.io.pose2sim.LANDMARK_MAP``): pelvis = mean of
 RHip/LHip, neck, shoulders, elbows, wrists, hips, knees, ankles (14 of our 16 landmarks; the reference has no
 thorax and no head centre) and the head top (BODY_25B's ``Head``). Prints MPJPE per landmark and lost frames;
-saves a picture of one tracked frame in the four views.
+saves a picture of one tracked frame in the four views. The track is :func:`torchtrack.track`'s, the library call
+behind `torchtrack track` (only ``--reference-silhouettes``, which replaces the observation, tracks by hand).
 
 ``--init-from-reference`` starts from the pose and the body fitted to the reference's 15 points of frame 0
 (:func:`torchtrack.tracking.landmark_fit.fit_to_landmarks`: bone lengths and the neck's and shoulders' height on
@@ -65,15 +66,15 @@ from torchtrack.io.poses import Poses, load_poses, save_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy.silhouette import carve
 from torchtrack.skeleton import Skeleton
-from torchtrack.tracking.pipeline import load_config, observer_from_config
+from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m
 from torchtrack.tracking.goals import weighted_kabsch
-from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks
+from torchtrack.tracking.landmark_fit import fit_pose, fit_to_landmarks, initial_pose
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import Observer, VoxelObservation
-from torchtrack.tracking.body_refit import BodyRefitConfig, mean_ik_residual_m, track_with_body_refit
+from torchtrack.tracking.pipeline import load_config, observer_from_config, read_start_pose, track
+from torchtrack.tracking.refine import RefineConfig, track_change_m, tracked_body
+from torchtrack.tracking.run import track_sequence
 from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
-from torchtrack.tracking.refine import (RefineConfig, background_from_track, track_change_m, tracked_body,
-                                       track_with_background_refinement)
 
 DEMO = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "pose2sim_demo"
 
@@ -219,6 +220,38 @@ UPPER = ("neck", "head_top", "l_shoulder", "r_shoulder", "l_elbow", "r_elbow", "
 LOWER = ("pelvis", "l_hip", "r_hip", "l_knee", "r_knee", "l_ankle", "r_ankle")
 
 
+def overridden(config: dict, section: str, cls: type, items: list[str], option: str) -> dict:
+    """``config`` with ``FIELD=VALUE`` items set in its ``section``, each parsed and checked as ``cls``'s field."""
+    checked = with_overrides(cls.from_dict(config[section], config["source"]), items, option)
+    names = [item.partition("=")[0] for item in items]
+    return {**config, section: {**(config[section] or {}), **{n: getattr(checked, n) for n in names}}}
+
+
+def smoothing_config(config: dict) -> SmoothingConfig:
+    return SmoothingConfig.from_dict(config["smoothing"], config["source"])
+
+
+def track_on_silhouettes(folder: SequenceFolder, config: dict, args: argparse.Namespace, start_pose: Poses | None,
+                         size_wh: tuple[int, int]) -> tuple[Poses, float]:
+    """``--reference-silhouettes``: one track (no refinement, no body refit) whose observation is carved from the
+    silhouettes drawn from the reference keypoints (:class:`SilhouetteObserver`), unsmoothed, and its seconds.
+    The one path of this script that is not :func:`torchtrack.track`: it replaces the observation itself."""
+    if args.model != "bayes":
+        raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
+    rig = folder.rig.resized(*size_wh).float()
+    bg = BackgroundModel.from_folder(folder, BackgroundConfig(**config["background"]), size_wh=size_wh)
+    observer = SilhouetteObserver(observer_from_config(rig, bg, config["observation"], args.model, args.voxel),
+                                  reference_silhouettes(rig, *reference_keypoints(args.demo)))
+    tracker = MarkerlessTracker(Skeleton.from_urdf(), TrackerConfig.from_dict(config["tracker"], config["source"]))
+    if start_pose is not None:
+        angles, _, body = read_start_pose(start_pose)
+        tracker.initialize_from_pose(angles, skeleton=body)
+    poses, seconds = track_sequence(folder, observer, tracker, progress=False)
+    print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame (a body is about "
+          "0.07)")
+    return poses, seconds
+
+
 def rigid_residuals(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     """(T, L, 3) points x, y -> (T, L) distances after the rigid motion that best takes each frame's x onto its y
     (:func:`~torchtrack.tracking.goals.weighted_kabsch`, batched over the frames)."""
@@ -300,7 +333,7 @@ def main() -> None:
     ap.add_argument("--init-from-reference", action="store_true",
                     help="start from the pose and body fitted to the reference keypoints of frame 0 (Kabsch + CCD "
                          "alternated with the bones' lengths; de Bem's saved initialisation) instead of the "
-                         "automatic starfish initialisation")
+                         "automatic start")
     ap.add_argument("--scale-only", action="store_true",
                     help="with --init-from-reference or --reference-fit: the body is the template scaled to the "
                          "reference's height, without fitting its bones' lengths")
@@ -398,65 +431,50 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))
         W, H = (int(round(float(v) * args.scale)) for v in folder.rig.image_size_wh[0])
-        rig = folder.rig.resized(W, H).float()
-        bg_config = BackgroundConfig(fill_static_subject=not args.no_fill, fill_prior_log_odds=args.fill_prior_log_odds)
-        try:  # the refinement's settings; --background-from draws its background with them too
-            refine = with_overrides(RefineConfig.from_dict(config["background_refinement"], config["source"]),
-                                    args.refine, "--refine")
+        try:  # every override checked against its section's fields before minutes of tracking
+            config = overridden(config, "tracker", TrackerConfig, args.tracker, "--tracker")
+            config = overridden(config, "background_refinement", RefineConfig, args.refine, "--refine")
+            config = overridden(config, "body_refit", BodyRefitConfig, args.refit, "--refit")
+            config = overridden(config, "smoothing", SmoothingConfig, args.smoothing, "--smoothing")
         except InputError as e:
             raise SystemExit(str(e)) from None
+        config["background"] = {**(config.get("background") or {}), "fill_static_subject": not args.no_fill,
+                                 "fill_prior_log_odds": args.fill_prior_log_odds}
+        names, ref = reference_landmarks(args.demo)
+        background = None
         if args.reference_background:
+            bg_config = BackgroundConfig(**config["background"])
             frames = torch.cat([b.images.half() for b in folder.iter_batches(20, size_wh=(W, H))])  # (T, C, 3, H, W)
+            rig = folder.rig.resized(W, H).float()
             masks = dilate(reference_silhouettes(rig, *reference_keypoints(args.demo)), REFERENCE_MARGIN_PX)
-            bg = BackgroundModel.from_sequence(frames, bg_config, folder.camera_names, subject_masks=masks)
+            background = BackgroundModel.from_sequence(frames, bg_config, folder.camera_names, subject_masks=masks)
             del frames
             used = subsample(masks, bg_config.max_frames)  # the frames from_sequence took
             free = (~used).sum(0) >= MIN_CLEAN_FRAMES  # (C, H, W)
             ever = masks.any(0)
             print(f"reference background: {used.shape[0]} frames; {100 * float((free & ever).sum() / ever.sum()):.0f} "
                   f"% of the pixels the masks ever cover are free in >= {MIN_CLEAN_FRAMES} of them")
-        elif args.background_from is not None:  # as the refinement would after that track
-            try:
-                bg = background_from_track(folder, load_poses(args.background_from), bg_config, refine, (W, H),
-                                           source=str(args.background_from))
-            except InputError as e:
-                raise SystemExit(str(e)) from None
-            print(f"the first background re-estimated from the track in {args.background_from}")
-        else:
-            bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H))
-        observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
-        names, ref = reference_landmarks(args.demo)
-        if args.reference_silhouettes:
-            if args.model != "bayes":
-                raise SystemExit("--reference-silhouettes feeds the Bayesian grid: use --model bayes")
-            observer = SilhouetteObserver(observer, reference_silhouettes(rig, *reference_keypoints(args.demo)))
-        try:
-            if args.refine_passes is not None:
-                refine = replace(refine, passes=args.refine_passes)
-            refit = with_overrides(BodyRefitConfig.from_dict(config["body_refit"], config["source"]), args.refit,
-                                   "--refit")
-            smoothing = with_overrides(SmoothingConfig.from_dict(config["smoothing"], config["source"]),
-                                       args.smoothing, "--smoothing")
-        except InputError as e:
-            raise SystemExit(str(e)) from None
-        if args.reference_silhouettes or args.reference_background:
-            refine = replace(refine, passes=0)
-        if args.save_passes is not None and refine.passes == 0:
-            raise SystemExit("--save-passes saves the refinement's passes, and this run has none (--save-poses "
-                             "keeps its one track)")
-        start = None  # --continue-from: its first valid frame's pose and its body
+        start_pose = None  # the start given to the tracker: None, the automatic one
+        if args.init_from_reference:
+            angles, body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[0], fit_bones=not args.scale_only)
+            start_pose = initial_pose(body, angles, fps=folder.fps)
+            print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
+                  f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
+        earlier = args.background_from
         if args.continue_from is not None:
             try:
-                before = load_poses(args.continue_from)
-                bg = background_from_track(folder, before, bg_config, refine, (W, H), source=str(args.continue_from))
-                body = tracked_body(before, str(args.continue_from))
+                start_pose = earlier = load_poses(args.continue_from)
             except InputError as e:
                 raise SystemExit(str(e)) from None
-            observer = observer_from_config(rig, bg, config["observation"], args.model, args.voxel)
-            first = int(np.flatnonzero(before.valid)[0])
-            start = (torch.as_tensor(before.angles[first]), body)
-            print(f"continuing {args.continue_from}: its frame {int(before.frame_index[first])} and body, the "
-                  "background re-estimated from its track")
+            print(f"continuing {args.continue_from}: its first valid frame and body, the background re-estimated "
+                  "from its track")
+        passes_asked = (config["background_refinement"]["passes"] if args.refine_passes is None
+                        else args.refine_passes)
+        if args.reference_silhouettes or args.reference_background:
+            passes_asked = 0
+        if args.save_passes is not None and passes_asked == 0:
+            raise SystemExit("--save-passes saves the refinement's passes, and this run has none (--save-poses "
+                             "keeps its one track)")
         outputs = list(Skeleton.from_urdf().output_names)
         truth = reference_poses(names, ref, folder.fps, outputs)
         filtered = None
@@ -466,64 +484,47 @@ def main() -> None:
         else:
             print(f"(no {REFERENCE_FILTERED} in {args.demo}: no figure against Pose2Sim's filtered keypoints)")
 
-        def track_once(overrides: list[str]) -> tuple[Poses, object, object, int]:
-            """One whole run (every refinement pass) with these --tracker overrides: the track, its report against
-            the raw and (or None) the filtered reference, and its number of passes."""
-            tracker_config = with_overrides(TrackerConfig.from_dict(config["tracker"], config["source"]),
-                                            overrides, "--tracker")
-            tracker = MarkerlessTracker(Skeleton.from_urdf(), tracker_config)
-            if start is not None:
-                tracker.initialize_from_pose(start[0], skeleton=start[1])
-            if args.init_from_reference:
-                angles, body = fit_to_landmarks(tracker.generic, names, ref[0], fit_bones=not args.scale_only)
-                tracker.initialize_from_pose(angles, skeleton=body)
-                print(f"initial pose and body fitted to the reference of frame 0 (height {body.height():.2f} m, "
-                      f"{'bone lengths fitted' if not args.scale_only else 'the template scaled'})")
+        def track_once(velocity: float | None) -> tuple[Poses, object, object, int]:
+            """One whole run of `torchtrack track` (every refinement pass and body refit, unsmoothed), reported pass
+            by pass: the finished track, its report against the raw and (or None) the filtered reference, and its
+            number of passes."""
+            cfg = config if velocity is None else {**config, "tracker": {**config["tracker"], "velocity": velocity}}
             passes: list[Poses] = []
-            again: list[Poses] = []  # the kept pass tracked once more
+            refits: list[bool] = []
 
             def report_pass(p: int, poses: Poses) -> None:  # each pass's error, for the refinement's progress
-                if refine.passes:
-                    r = evaluate(poses, truth, landmarks=names)
-                    if "refinement_pass" in poses.extra:  # the kept pass, tracked once more
-                        print(f"kept pass {int(poses.extra['refinement_pass'])} (the best fit), tracked "
-                              f"again: MPJPE {r.mpjpe_mm:.1f} mm", flush=True)
-                        again.append(poses)
-                        return
-                    moved = (f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before"
-                             if passes else "")
-                    print(f"pass {p + 1} (of at most {refine.passes + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
-                          f"{int((~poses.valid).sum())} lost, IK residual {1e3 * mean_ik_residual_m(poses):.2f} mm"
-                          f"{moved}", flush=True)
-                    passes.append(poses)
-                    if args.save_passes is not None:
-                        save_poses(poses, args.save_passes / f"pass_{len(passes):02d}.npz")
-
-            def make_observer(b):
-                return observer if b is bg else observer_from_config(rig, b, config["observation"], args.model,
-                                                                     args.voxel)
+                if not passes_asked:
+                    return
+                r = evaluate(poses, truth, landmarks=names)
+                if "refinement_pass" in poses.extra:  # the kept pass, tracked once more
+                    print(f"kept pass {int(poses.extra['refinement_pass'])} (the best fit), tracked again: MPJPE "
+                          f"{r.mpjpe_mm:.1f} mm", flush=True)
+                    return
+                moved = f", moved {1e3 * track_change_m(poses, passes[-1]):.1f} mm from the pass before" if passes else ""
+                print(f"pass {p + 1} (of at most {passes_asked + 1}): MPJPE {r.mpjpe_mm:.1f} mm, "
+                      f"{int((~poses.valid).sum())} lost, IK residual {1e3 * mean_ik_residual_m(poses):.2f} mm"
+                      f"{moved}", flush=True)
+                passes.append(poses)
+                if args.save_passes is not None:
+                    save_poses(poses, args.save_passes / f"pass_{len(passes):02d}.npz")
 
             def report_refit(p: int, poses: Poses, kept: bool) -> None:  # each body refit's error
                 r = evaluate(poses, truth, landmarks=names)
-                print(f"body refit {p} (of at most {refit.passes}): MPJPE {r.mpjpe_mm:.1f} mm, IK residual "
-                      f"{1e3 * mean_ik_residual_m(poses):.1f} mm, {int((~poses.valid).sum())} lost, "
-                      f"{'kept' if kept else 'turned down'}", flush=True)
+                print(f"body refit {p}: MPJPE {r.mpjpe_mm:.1f} mm, IK residual {1e3 * mean_ik_residual_m(poses):.1f} "
+                      f"mm, {int((~poses.valid).sum())} lost, {'kept' if kept else 'turned down'}", flush=True)
                 refits.append(kept)
 
-            refits: list[bool] = []
             try:
-                poses, elapsed, last_bg = track_with_background_refinement(
-                    folder, bg, make_observer, tracker, refine, bg_config, progress=False, on_pass=report_pass)
-                # a body fitted to the reference or continued from a track came with the start (given_body)
-                run_refit = refit.for_start(body_given=start is not None or args.init_from_reference)
-                if args.reference_silhouettes:  # its observer counts the frames it has seen: one track only
-                    run_refit = replace(run_refit, passes=0)
-                if run_refit.passes:
-                    print(f"first track: IK residual {1e3 * mean_ik_residual_m(poses):.1f} mm", flush=True)
-                poses, refit_s = track_with_body_refit(folder, lambda: make_observer(last_bg), tracker, poses,
-                                                       run_refit, progress=False, on_pass=report_refit)
-                elapsed += refit_s
-            except InputError as e:  # e.g. no starfish pose in the first frame: the message says what to do
+                if args.reference_silhouettes:
+                    poses, seconds = track_on_silhouettes(folder, cfg, args, start_pose, (W, H))
+                else:
+                    result = track(folder, config=cfg, model=args.model, voxel_m=args.voxel, scale=args.scale,
+                                   init_pose=start_pose, fill_static_subject=not args.no_fill,
+                                   refine_passes=passes_asked, smooth_hz=0.0, background=background,
+                                   background_from_track=earlier, threads=None, progress=False,
+                                   on_pass=report_pass, on_refit=report_refit)
+                    poses, seconds = result.poses, result.seconds
+            except InputError as e:  # e.g. no frame to start from: the message says what to do
                 raise SystemExit(f"tracking failed: {e}") from None
             late = passes[FIRST_COMPARED_PASS - 1:]  # how well the track's own fit ranks the passes' errors
             if len(late) >= 3:
@@ -532,31 +533,28 @@ def main() -> None:
                 print(f"passes {FIRST_COMPARED_PASS}-{len(passes)}: correlation of the mean IK residual with the "
                       f"MPJPE {np.corrcoef(res, err)[0, 1]:.2f} (residual {min(res):.2f}-{max(res):.2f} mm, MPJPE "
                       f"{min(err):.1f}-{max(err):.1f} mm)", flush=True)
-            if tracker.subject is not None and args.cutoffs:  # the same track smoothed at other cut-offs
+            body = tracked_body(poses, "the track")
+            if args.cutoffs:  # the same track smoothed at other cut-offs
                 line = []
                 for hz in args.cutoffs:
-                    other = smooth_track(poses, tracker.subject.skeleton, replace(smoothing, cutoff_hz=hz))
+                    other = smooth_track(poses, body, replace(smoothing_config(cfg), cutoff_hz=hz))
                     f_mm = "" if filtered is None else f" / {evaluate(other, filtered, landmarks=names_f).mpjpe_mm:.1f}"
                     line.append(f"{hz:g} Hz {evaluate(other, truth, landmarks=names).mpjpe_mm:.1f}{f_mm}")
                 print("cut-offs (MPJPE mm, raw / filtered reference): " + ", ".join(line), flush=True)
-            if tracker.subject is not None:  # the finished track smoothed in time, as torchtrack track writes it
-                smoothed = smooth_track(poses, tracker.subject.skeleton, smoothing)
-                if float(smoothed.extra["smoothing_cutoff_hz"]):
-                    r = evaluate(poses, truth, landmarks=names)
-                    line = f"before smoothing: MPJPE {r.mpjpe_mm:.1f} mm, worst frame {r.max_frame_mm:.1f} mm"
-                    if filtered is not None:
-                        line += f"; {evaluate(poses, filtered, landmarks=names_f).mpjpe_mm:.1f} mm from the filtered"
-                    print(line, flush=True)
-                poses = smoothed
+            smoothed = smooth_track(poses, body, smoothing_config(cfg))  # as torchtrack track writes it
+            if float(smoothed.extra["smoothing_cutoff_hz"]):
+                r = evaluate(poses, truth, landmarks=names)
+                line = f"before smoothing: MPJPE {r.mpjpe_mm:.1f} mm, worst frame {r.max_frame_mm:.1f} mm"
+                if filtered is not None:
+                    line += f"; {evaluate(poses, filtered, landmarks=names_f).mpjpe_mm:.1f} mm from the filtered"
+                print(line, flush=True)
+            poses = smoothed
             rep = evaluate(poses, truth, landmarks=names)
+            tracks = max(len(passes), 1) + ("refinement_pass" in poses.extra) + len(refits)
             print(f"Pose2Sim demo, {args.model}, {W}x{H}, {args.voxel * 100:.0f} cm voxels, background refined "
                   f"{max(len(passes) - 1, 0)} times, body refitted {sum(refits)} of {len(refits)} times, "
-                  f"{poses.num_frames * (max(len(passes), 1) + len(again) + len(refits)) / elapsed:.1f} frames/s, "
-                  f"subject "
-                  f"height {float(poses.extra['subject_height_m']):.2f} m")
-            if args.reference_silhouettes:
-                print(f"reference silhouettes: occupied volume {np.mean(observer.volumes_m3):.3f} m^3 per frame "
-                      "(a body is about 0.07)")
+                  f"{poses.num_frames * tracks / seconds:.1f} frames/s, subject height "
+                  f"{float(poses.extra['subject_height_m']):.2f} m")
             print(rep.format())
             rep_f = None
             if filtered is not None:
@@ -566,12 +564,12 @@ def main() -> None:
             return poses, rep, rep_f, max(len(passes), 1)
 
         if not args.velocities:
-            poses, rep, _, _ = track_once(list(args.tracker))
+            poses, rep, _, _ = track_once(None)
         else:  # one whole run per prediction velocity, then the runs side by side and their medians
             runs = []
             for v in args.velocities:
                 print(f"--- velocity {v:g} ---", flush=True)
-                runs.append((v, *track_once(list(args.tracker) + [f"velocity={v!r}"])))
+                runs.append((v, *track_once(v)))
             poses, rep = runs[-1][1], runs[-1][2]
             print(velocity_table([(v, r.mpjpe_mm, None if rf is None else rf.mpjpe_mm,
                                    int((~p.valid).sum()), n) for v, p, r, rf, n in runs]))

@@ -76,3 +76,28 @@ def test_nobody_in_the_video_is_an_error_naming_the_sequence(seq, tmp_path):
     assert not exc.value.poses.valid.any()
     with pytest.raises(InputError, match="threads must be >= 1"):
         torchtrack.track(seq, **FAST, threads=0)
+
+
+def test_a_given_background_is_the_one_tracked_on_and_each_pass_is_reported(seq):
+    """``background=``: the track is the one on that model (here the model the folder's background frames give,
+    built by hand: the same track as the call's own), and a different model changes it; ``on_pass`` hears of the
+    one pass; a background and a track to re-estimate one from are refused together."""
+    import torchtrack
+    from torchtrack.background import BackgroundConfig, BackgroundModel
+    from torchtrack.checks import InputError
+    from torchtrack.io.sequence import SequenceFolder
+
+    folder = SequenceFolder(seq)
+    W, H = (int(round(float(v) * 0.5)) for v in folder.rig.image_size_wh[0])
+    own = torchtrack.track(seq, **FAST, scale=0.5, progress=False)
+    passes = []
+    given = torchtrack.track(seq, **FAST, scale=0.5, progress=False, on_pass=lambda p, q: passes.append((p, q)),
+                             background=BackgroundModel.from_folder(folder, BackgroundConfig(), size_wh=(W, H)))
+    np.testing.assert_array_equal(given.poses.angles, own.poses.angles)
+    assert [p for p, _ in passes] == [0] and passes[0][1].num_frames == own.poses.num_frames
+    brighter = BackgroundModel.from_folder(folder, BackgroundConfig(), size_wh=(W, H))
+    brighter.mean_yuv[:, 0] += 0.02  # every background pixel a little brighter: a different observation
+    moved = torchtrack.track(seq, **FAST, scale=0.5, progress=False, background=brighter)
+    assert not np.array_equal(np.nan_to_num(moved.poses.angles), np.nan_to_num(own.poses.angles))
+    with pytest.raises(InputError, match="not both"):
+        torchtrack.track(seq, **FAST, background=brighter, background_from_track=own.poses)

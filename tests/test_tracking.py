@@ -899,6 +899,61 @@ def test_the_search_starts_from_any_pose(skel, frame, turn):
     assert abs(tracker.height_m - 1.68) < 0.1
 
 
+def test_turned_round_is_the_reflection_through_the_frontal_plane(skel):
+    """The start turned round, against the closed form: for any state (random tilts and limbs within the limits),
+    its output points, left and right swapped, are the original's reflected through the vertical plane through the
+    root across its heading."""
+    from torchtrack.tracking.search import turned_round
+
+    subj = skel.scaled_to_height(1.8)
+    gen = torch.Generator().manual_seed(3)
+    a = subj.lower + (subj.upper - subj.lower) * torch.rand(16, subj.num_dofs, generator=gen, dtype=subj.lower.dtype)
+    a[:, :3] = torch.randn(16, 3, generator=gen, dtype=a.dtype)
+    a[:, 3:6] = torch.randn(16, 3, generator=gen, dtype=a.dtype) * torch.tensor([2.0, 0.3, 0.3], dtype=a.dtype)
+    names = list(subj.output_names)
+    other = {"l_": "r_", "r_": "l_"}
+    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    p = subj.forward(a).output_points.double()
+    q = subj.forward(turned_round(subj, a)).output_points.double()[:, swap]
+    normal = torch.stack([torch.cos(a[:, 3]), torch.sin(a[:, 3]), torch.zeros_like(a[:, 3])], -1).double()
+    along = ((p - a[:, None, :3].double()) * normal[:, None]).sum(-1, keepdim=True)
+    assert torch.allclose(q, p - 2 * along * normal[:, None], atol=1e-5)
+    assert torch.allclose(turned_round(subj, turned_round(subj, a))[:, 4:], a[:, 4:])  # twice: back (heading +2 pi)
+
+
+@pytest.mark.parametrize("race_s", [0.5, 0.0])
+def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
+    """The search's answer forced to face backwards (its states turned round) on a walk from its first frame: the
+    start race tracks the right way round beside it and wins after start_race_s, its frames replacing the
+    backwards ones (take_revised), landmarks within 50 mm of the truth from the first frame (ground truth: the
+    walk's forward kinematics). With the race off the track stays backwards."""
+    import torchtrack.tracking.search as search
+
+    found = search.search_pose
+    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
+        r := found(obs, sk, *a, **k), angles=search.turned_round(sk, r.angles)))
+    subj = skel.scaled_to_height(1.8)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s))
+    tracker.set_frame_rate(30.0)
+    out, revised = [], 0
+    for t in range(24):
+        out.append(tracker.step(_observation(subj, blobs, walk[t])))
+        late = tracker.take_revised()
+        for j, (res, version) in enumerate(late):
+            out[t - len(late) + 1 + j] = res
+            assert version == 0
+        revised += len(late)
+    err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[t]).double()).norm(dim=-1).mean())
+                    for t, r in enumerate(out)])
+    if race_s:
+        assert revised == 15 and out[0].reinitialised  # the race's 0.5 s at 30 fps, from the start frame
+        assert err.max() < 0.05, err
+    else:
+        assert revised == 0 and err.mean() > 0.1, err
+
+
 def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
     """Arms hanging, a person-high phantom column 0.6 m to the side (as a static ghost in an estimated background):
     the voxels span as wide as a starfish, but the arms are not where the starfish puts them."""

@@ -30,6 +30,7 @@ initial state vector and height (de Bem's reusable initialisation, e.g. a previo
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import math
@@ -135,6 +136,13 @@ STARFISH_MIN_ARM_RAISE_DEG = 45.0
 #: Pose2Sim demo's first frame on the filled background well over it (docs/results.md, "Tracker settings").
 STARFISH_MAX_VOLUME_RATIO = 3.0
 
+#: The start race (``TrackerConfig.start_race_s``): the start turned round replaces the search's start only if its
+#: mean two-way score (:func:`~torchtrack.tracking.search.score_states`, 0-1) over the race is higher by more than
+#: this (a tie keeps the search's answer) and its mean fit cost (:meth:`MarkerlessTracker._fit_cost`) is lower too:
+#: on a 4-camera hull's ghosts the score alone preferred the turned round twin of a wrong start, which was wronger
+#: (docs/results.md, "Robustness").
+START_RACE_MARGIN = 0.01
+
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
                 "starfish start (tracker start: starfish), in the starfish pose. Or give an initial pose with "
@@ -185,6 +193,12 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
             starfish start (Caillette §4.2), which refuses any other pose.
+        start_race_s: after a searched start, the start turned round (the same silhouette facing the other way,
+            which one frame's voxels cannot tell from it: :func:`~torchtrack.tracking.search.turned_round`) is
+            tracked beside it for this long, and the one whose poses fit the voxels better over it (the mean
+            two-way score, by more than ``START_RACE_MARGIN``, and EM/IK's fit cost) is kept, its frames replacing
+            the other's (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees
+            and elbows bend one way only (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -267,6 +281,7 @@ class TrackerConfig:
     start: str = "search"
     start_hypotheses: int = 3
     search_seed: int = 0
+    start_race_s: float = 0.5
     fit_bone_lengths: bool = True
     bone_fit: str = "blobs"
     em_cell_m: float = 0.0
@@ -294,6 +309,8 @@ class TrackerConfig:
                              f"{self.functional_hips_min_cameras}")
         if self.start not in STARTS:
             raise InputError(f"TrackerConfig.start must be one of {', '.join(STARTS)}, got {self.start!r}")
+        if not self.start_race_s >= 0:
+            raise InputError(f"TrackerConfig.start_race_s must be >= 0 s, got {self.start_race_s}")
         if self.start_hypotheses < 1:
             raise InputError(f"TrackerConfig.start_hypotheses must be >= 1, got {self.start_hypotheses}")
         if self.bone_fit not in BONE_FITS:
@@ -405,6 +422,17 @@ class FrameResult:
     feet: tuple[torch.Tensor, torch.Tensor] | None = None
 
 
+@dataclass
+class _Race:
+    """A start race in progress: the twin tracker (started turned round), the frames left, each side's scores and
+    the twin's results with the body version each was tracked in."""
+
+    twin: MarkerlessTracker
+    frames_left: int
+    fits: list[tuple[float, float, float, float]] = field(default_factory=list)  # scores, then fit costs
+    results: list[tuple[FrameResult, int]] = field(default_factory=list)
+
+
 class _Subject:
     """The subject-specific models: skeleton scaled to the subject, its blobs, goals and CCD."""
 
@@ -488,6 +516,8 @@ class MarkerlessTracker:
         #: fitted hip (m) and its information then, both (2,) left, right
         self.hip_estimate: tuple[torch.Tensor, torch.Tensor] | None = None
         self.frame_rate: float | None = None  # the sequence's (set_frame_rate); None: velocity as configured
+        self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
+        self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
 
     def set_frame_rate(self, fps: float) -> None:
         """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
@@ -553,6 +583,20 @@ class MarkerlessTracker:
         top = g.forward_frames(g.starfish_angles()[None])[0, g.frame_index(["head_top"])[0], 2, 3]
         return float(top) / g.height()
 
+    def reset(self) -> None:
+        """Back to uninitialised: the next frame with a person in it starts the track again (the automatic start);
+        the refusals of earlier starts are forgotten."""
+        self._clear()
+        self.start_refusals = []
+
+    def _clear(self) -> None:
+        self._race, self._revised = None, []
+        self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
+        self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
+        self.feet_seen = self.feet_still = None
+        self.lost = 0
+        self.hands_off = [0, 0]
+
     def initialize(self, obs: VoxelObservation) -> FrameResult:
         """Automatic initialisation from a starfish frame (see the module docstring).
 
@@ -565,13 +609,71 @@ class MarkerlessTracker:
         try:
             res = self._initialize(obs)
         except InputError:
-            self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
-            self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
-            self.lost = 0
+            self._clear()
             raise
         self._remember_feet()
         self._start_hips(learn=True)
+        if self.config.start == "search" and self.config.start_race_s > 0:
+            self._start_race(obs, res)
         return res
+
+    def _race_frames(self) -> int:
+        return max(1, round(self.config.start_race_s * (self.frame_rate or self.config.velocity_fps or 30.0)))
+
+    def _fork(self) -> MarkerlessTracker:
+        """A copy of this tracker's state that tracks on its own (the models and settings shared, read-only)."""
+        shared = (self.generic, self.config, self.blob_specs, self.subject)
+        return copy.deepcopy(self, memo={id(x): x for x in shared})
+
+    def _start_race(self, obs: VoxelObservation, res: FrameResult) -> None:
+        """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is."""
+        from torchtrack.tracking.search import turned_round
+
+        twin = self._fork()
+        twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
+        twin.colour = None
+        for _ in range(self.config.init_passes):
+            r = twin._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            twin.angles = twin.previous = r.angles
+        r = twin._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        twin.angles = twin.previous = r.angles
+        twin.colour = r.blobs
+        twin._remember_feet()
+        self._race = _Race(twin, self._race_frames())
+        self._race_step(obs, res, replace(r, reinitialised=True), twin.body_version)
+
+    def _race_step(self, obs: VoxelObservation | None, res: FrameResult, twin_res: FrameResult, version: int
+                   ) -> None:
+        """One frame of the race: both scored on ``obs`` (None: not observed), the twin's result kept with the body
+        version it was tracked in, and the race decided at its end."""
+        from torchtrack.tracking.search import score_states
+
+        race = self._race
+        race.results.append((twin_res, version))
+        if obs is not None and math.isfinite(res.residual_m) and math.isfinite(twin_res.residual_m):  # both fitted
+            both = torch.stack([res.angles, twin_res.angles]).to(self.subject.skeleton.lower)
+            score = score_states(obs, self.subject.skeleton, self.subject.blobs, both)[0]
+            race.fits.append((float(score[0]), float(score[1]), self._fit_cost(res), self._fit_cost(twin_res)))
+        race.frames_left -= 1
+        if race.frames_left > 0:
+            return
+        self._race = None
+        if not race.fits:  # nothing both fitted during the race: the search's start stays
+            return
+        own, other, own_cost, other_cost = (sum(col) / len(race.fits) for col in zip(*race.fits))
+        log.debug("start race over %d frames: the search's start scores %.3f, turned round %.3f; fit cost %.1f / %.1f "
+                  "mm", len(race.results), own, other, 1e3 * own_cost, 1e3 * other_cost)
+        if other > own + START_RACE_MARGIN and other_cost < own_cost:
+            revised = race.results
+            self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
+            self._race, self._revised = None, revised
+
+    def take_revised(self) -> list[tuple[FrameResult, int]]:
+        """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
+        it was tracked in (:attr:`body_version`), and forgets them: a start race the start turned round won
+        (``TrackerConfig.start_race_s``). Empty otherwise."""
+        out, self._revised = self._revised, []
+        return out
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
@@ -1077,10 +1179,25 @@ class MarkerlessTracker:
         """A frame that cannot be observed (an unreadable camera frame): not tracked, ``valid = False``; the
         next frame predicts from the last good pose without velocity."""
         self.previous = self.angles
-        return self._invalid()
+        res = self._invalid()
+        if self._race is not None:
+            twin = self._race.twin
+            version = twin.body_version
+            self._race_step(None, res, twin.skip(), version)
+        return res
 
     def step(self, obs: VoxelObservation) -> FrameResult:
-        """Track one frame (initialising on the first frame with a person in it)."""
+        """Track one frame (initialising on the first frame with a person in it). A start race's end may revise
+        the frames before (:meth:`take_revised`)."""
+        racing = self._race is not None  # a race started by this frame's initialisation has scored it already
+        res = self._step(obs)
+        if racing:  # the twin races without a race of its own: its frame is its _step
+            twin = self._race.twin
+            version = twin.body_version
+            self._race_step(obs, res, twin._step(obs), version)
+        return res
+
+    def _step(self, obs: VoxelObservation) -> FrameResult:
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap
             self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back

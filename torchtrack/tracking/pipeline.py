@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -157,8 +157,10 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
           height_m: float | None = None, start: int = 0, stop: int | None = None, batch: int = 4,
           device: str | torch.device = "cpu", workers: int | None = 0, fill_static_subject: bool | None = None,
           refine_passes: int | None = None, refit_passes: int | None = None, smooth_hz: float | None = None,
-          background_from_track: Poses | str | Path | None = None, threads: int | None = 1,
-          log_dir: str | Path | None = None, log_every: int = 10, progress: bool = True) -> TrackResult:
+          background_from_track: Poses | str | Path | None = None, background: Any = None, threads: int | None = 1,
+          log_dir: str | Path | None = None, log_every: int = 10, progress: bool = True,
+          on_pass: Callable[[int, Poses], None] | None = None,
+          on_refit: Callable[[int, Poses, bool], None] | None = None) -> TrackResult:
     """Track the sequence folder ``seq`` as `torchtrack track` does (module docstring).
 
     Args:
@@ -178,8 +180,14 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
         start, stop: the frames ``[start, stop)`` to track. batch: frames read and observed together.
         device: torch device. threads: intra-op threads of this process while it tracks (None: as they are).
         background_from_track: start from the background re-estimated from this earlier track of ``seq``.
+        background: start from this :class:`~torchtrack.background.BackgroundModel` (at the processing size)
+            instead of estimating one; refined from the track as an estimated one is, unless it was measured from
+            background frames.
         log_dir: TensorBoard logs there (the kept track at its top, each body refit in ``body_refit_N``); None:
             none. log_every: images and the 3D view every N frames (0: never). progress: progress bars.
+        on_pass: called with each background refinement pass's number (0 the first track) and its poses, and
+            again with the kept pass tracked once more. on_refit: called with each body refit's number (1 the
+            first), its poses and whether it was kept. Both for reports; the poses are not smoothed.
 
     Returns:
         the :class:`TrackResult`.
@@ -193,12 +201,12 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
     with torch.no_grad(), intra_op_threads(threads):
         return _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device,
                       workers, fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track,
-                      log_dir, log_every, progress, t0)
+                      background, log_dir, log_every, progress, on_pass, on_refit, t0)
 
 
 def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device, workers,
-           fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track, log_dir, log_every,
-           progress, t0) -> TrackResult:
+           fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track, background, log_dir,
+           log_every, progress, on_pass, on_refit, t0) -> TrackResult:
     import torch
 
     from torchtrack.background import BackgroundConfig, BackgroundModel
@@ -247,7 +255,11 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         bg_config = BackgroundConfig(**{**(cfg.get("background") or {}), "fill_static_subject": fill})
     except TypeError as exc:
         raise InputError(f"{source}, background: {exc}") from None
-    if background_from_track is not None:
+    if background is not None and background_from_track is not None:
+        raise InputError("give a background or a track to re-estimate it from, not both")
+    if background is not None:
+        bg = background.to(device)
+    elif background_from_track is not None:
         name = "the earlier track" if isinstance(background_from_track, Poses) else str(background_from_track)
         earlier = background_from_track if isinstance(background_from_track, Poses) else load_poses(
             background_from_track)
@@ -276,14 +288,25 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     with contextlib.ExitStack() as stack:
         tb = stack.enter_context(RunLogger(log_dir)) if log_dir is not None else None
         passes: list[int] = []  # the passes run (the refinement may stop early)
+        refits: list[bool] = []  # whether each body refit pass was kept
+
+        def pass_done(p: int, q: Poses) -> None:
+            passes.append(p)
+            if on_pass is not None:
+                on_pass(p, q)
+
+        def refit_done(p: int, q: Poses, kept: bool) -> None:
+            refits.append(kept)
+            if on_refit is not None:
+                on_refit(p, q, kept)
+
         poses, _, bg = track_with_background_refinement(
             folder, bg, make_observer, tracker, rcfg, bg_config, start, stop, batch, device, logger=tb,
-            log_every=log_every, progress=progress, workers=workers, on_pass=lambda p, _: passes.append(p))
-        refits: list[bool] = []  # whether each body refit pass was kept
+            log_every=log_every, progress=progress, workers=workers, on_pass=pass_done)
         kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
         poses, _ = track_with_body_refit(
             folder, lambda: make_observer(bg), tracker, poses, bcfg, start, stop, batch, device, log_dir=log_dir,
-            log_every=log_every, progress=progress, workers=workers, on_pass=lambda p, _, kept: refits.append(kept))
+            log_every=log_every, progress=progress, workers=workers, on_pass=refit_done)
     if kept_pass is not None:
         poses.extra["refinement_pass"] = kept_pass
     if not poses.valid.any():

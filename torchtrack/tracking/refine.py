@@ -14,7 +14,8 @@ where the body is in every frame, even when it is imperfect, and that is what ea
    frame at least ``clear_fraction`` of the image's larger side away from the body, or, where fewer than
    ``clear_frames`` are, its ``clear_frames`` clearest ones
    (``BackgroundModel.from_sequence(..., subject_masks=...)``);
-4. the sequence is tracked again from the same start;
+4. the sequence is tracked again: from the same start where one was given, else from a start searched for
+   again on the refined observation (a start found on the first, poorest observation is not kept);
 5. of the refined passes, the track that fits its own observation best (``RefineConfig.keep``) is the result.
 
 Ranking the frames instead of trusting the masks is what makes the loop converge from a poor first track: a
@@ -349,6 +350,15 @@ def background_from_track(folder: SequenceFolder, poses: Poses, bg_config: Backg
                               BlobModel.from_config(skeleton, blob_specs))
 
 
+def restart(tracker: MarkerlessTracker, state: tuple[torch.Tensor, Skeleton, float | None] | None) -> None:
+    """Put ``tracker`` at a pass's start: the given ``(angles, skeleton, floor_z)``, or (None) uninitialised, so
+    that the pass searches for its start on its own observation."""
+    if state is None:
+        tracker.reset()
+    else:
+        tracker.initialize_from_pose(state[0], skeleton=state[1], floor_z_m=state[2])
+
+
 def track_with_background_refinement(
         folder: SequenceFolder, background: BackgroundModel, make_observer: Callable[[BackgroundModel], Observer],
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
@@ -361,11 +371,9 @@ def track_with_background_refinement(
     ``config.min_change_m`` the pass after the first whose track moved less than that from the one before
     (:func:`track_change_m`), and tracked as many frames, is the last.
 
-    Every pass starts from the same state at frame ``start``: the tracker's initial pose when it was given one,
-    else the first pass's first tracked frame with the subject's skeleton as the first pass fitted it (the
-    automatic initialisation may refuse the refined observation of a start that is not a clean starfish; when
-    that frame is after ``start``, the frames before it had nobody in the volume and the tracker re-acquires
-    the body from that pose). The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
+    A tracker given its initial pose starts every pass from it; one that was not (the automatic start) is reset
+    before each pass and searches for its start on that pass's observation (:meth:`MarkerlessTracker.reset`), so
+    that a wrong start on the first, poorest background is not carried through the passes. The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
     of ``[start, stop)``, read once (the first background may come from the whole clip). A frame a pass lost
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
     was worse on the Pose2Sim demo (docs/results.md, "Tried and dropped"). Frames never tracked (before the
@@ -374,7 +382,7 @@ def track_with_background_refinement(
 
     The result is the track of the pass ``config.keep`` names: the refined pass that fits its observation best
     (``fit``; its number in ``extra['refinement_pass']``, 1 the first pass), or the last one. The logger gets
-    the result's track: with ``fit`` that pass is tracked once more at the end, from the same start on the
+    the result's track: with ``fit`` that pass is tracked once more at the end, started as it was, on the
     same background (the tracker is deterministic on a CPU: the same track; on CUDA, whose scatter-adds are not,
     a track that differs is warned about), with the logger, and so that the tracker
     ends in that track's state (also without a logger, where the kept pass is not the last); with ``last`` (or
@@ -397,8 +405,9 @@ def track_with_background_refinement(
     if config.passes and stop - start < MIN_SEQUENCE_FRAMES:
         raise InputError(f"{folder.root}: background refinement needs at least {MIN_SEQUENCE_FRAMES} frames, "
                          f"[{start}, {stop}) has {max(stop - start, 0)} (set background_refinement.passes to 0)")
-    start_state = ((tracker.angles.clone(), tracker.subject.skeleton, tracker.floor_z) if tracker.initialized
-                   else None)
+    # a given start is kept by every pass; an automatic one is searched for again on each pass's observation
+    searched = not tracker.initialized
+    start_state = None if searched else (tracker.angles.clone(), tracker.subject.skeleton, tracker.floor_z)
     observer = make_observer(background)
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
@@ -423,14 +432,10 @@ def track_with_background_refinement(
             if p == 1 and start_state is not None and tracker.body_version:
                 # the first pass moved the given start's hips (TrackerConfig.functional_hips): start in that body
                 start_state = (tracker.restate(start_state[0][None], 0)[0], tracker.subject.skeleton, start_state[2])
-            if start_state is None:
-                first = int(np.flatnonzero(poses.valid)[0])
-                start_state = (torch.as_tensor(poses.angles[first]).to(tracker.angles), tracker.subject.skeleton,
-                               tracker.floor_z)  # the floor the first pass measured from its voxels
             background = refined_background(frames, angles, rig, tracker.subject.skeleton, bg_config, config,
                                             folder.camera_names, tracker.subject.blobs)
             observer = make_observer(background)
-            tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
+            restart(tracker, start_state)
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
         before = poses
         # with the selection the logs come from the chosen pass, tracked once more at the end
@@ -468,7 +473,7 @@ def track_with_background_refinement(
         again = logger is not None or chosen != p
         if again:
             observer = make_observer(background)
-            tracker.initialize_from_pose(start_state[0], skeleton=start_state[1], floor_z_m=start_state[2])
+            restart(tracker, start_state)
             poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device, logger=logger,
                                       log_every=log_every, progress=progress, desc=f"pass {chosen + 1} again",
                                       workers=workers)

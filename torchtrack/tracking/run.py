@@ -66,6 +66,16 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
     cameras_valid = np.zeros((T, len(rig.names)), bool)
     need = min_readable_cameras(len(rig.names))
+
+    def record(k: int, res) -> None:
+        joints3d[k] = res.output_points.cpu().numpy()
+        angles[k] = res.angles.cpu().numpy()
+        valid[k] = res.valid
+        confidence[k] = res.confidence.cpu().numpy() if res.valid else 0.0
+        residual[k] = res.residual_m
+        explained[k] = res.explained
+        reinit[k] = res.reinitialised
+
     t_start = time.perf_counter()
     keep = log_every if logger is not None else 0
     stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
@@ -98,14 +108,11 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
                     except Exception as exc:  # numerical or device errors: say where
                         exc.add_note(f"while tracking {folder.root}, frame {t}")
                         raise
-                joints3d[k] = res.output_points.cpu().numpy()
-                angles[k] = res.angles.cpu().numpy()
-                valid[k] = res.valid
-                if res.valid:
-                    confidence[k] = res.confidence.cpu().numpy()
-                residual[k] = res.residual_m
-                explained[k] = res.explained
-                reinit[k] = res.reinitialised
+                record(k, res)
+                revised = tracker.take_revised()  # a start race won by the start turned round: its frames
+                for j, (r, v) in enumerate(revised):
+                    record(k - len(revised) + 1 + j, r)
+                    version[k - len(revised) + 1 + j] = v
                 dt = t_wait + time.perf_counter() - t1
                 if logger is not None:
                     _log_frame(logger, t, obs, res, fb.images[i], rig, dt, t_obs)

@@ -28,7 +28,8 @@ from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
 from torchtrack.tracking.observation import VoxelObservation
 
-__all__ = ["SearchConfig", "SearchResult", "pose_prior", "score_states", "search_pose", "two_way_score"]
+__all__ = ["SearchConfig", "SearchResult", "pose_prior", "score_states", "search_pose", "turned_round",
+           "two_way_score"]
 
 #: Arm poses of the prior, per side: (shoulder flexion, shoulder abduction, elbow flexion) in radians.
 ARM_POSES = ((0.0, 0.1, 0.15), (0.3, 0.15, 1.5), (1.5, 0.1, 0.1), (0.0, 0.75, 0.1), (0.0, 1.5, 0.1),
@@ -279,6 +280,29 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
     pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
     return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
+
+
+#: The DOFs that the body's left-right mirror negates (sideways bends, twists and the root's roll); the limbs'
+#: DOFs are named per side with mirror-symmetric signs, so the mirror swaps them as they are.
+MIRROR_NEGATED = ("root_rx", "spine_abd", "spine_twist", "neck_abd", "neck_twist")
+
+
+def turned_round(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
+    """``angles (..., D)`` reflected through the body's frontal plane (the vertical plane through the root across
+    its heading) and re-expressed as a body facing the other way: heading + pi, left and right limbs swapped, the
+    sideways bends, twists and roll negated. For a pose without flexion it fills the same space facing the other
+    way (the front/back ambiguity of a silhouette, e.g. a starfish); a flexed joint then bends the other way in the
+    world."""
+    names = list(skel.dof_names)
+    out = angles.clone()
+    for i, n in enumerate(names):
+        if n.startswith("l_"):
+            j = names.index("r_" + n[2:])
+            out[..., i], out[..., j] = angles[..., j], angles[..., i]
+    for n in MIRROR_NEGATED:
+        out[..., names.index(n)] = -angles[..., names.index(n)]
+    out[..., names.index("root_rz")] = angles[..., names.index("root_rz")] + math.pi
+    return out
 
 
 def _top(score: torch.Tensor, n: int) -> torch.Tensor:
