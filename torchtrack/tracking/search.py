@@ -294,14 +294,12 @@ def turned_round(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
     way (the front/back ambiguity of a silhouette, e.g. a starfish); a flexed joint then bends the other way in the
     world."""
     names = list(skel.dof_names)
-    out = angles.clone()
-    for i, n in enumerate(names):
-        if n.startswith("l_"):
-            j = names.index("r_" + n[2:])
-            out[..., i], out[..., j] = angles[..., j], angles[..., i]
-    for n in MIRROR_NEGATED:
-        out[..., names.index(n)] = -angles[..., names.index(n)]
-    out[..., names.index("root_rz")] = angles[..., names.index("root_rz")] + math.pi
+    other = {"l_": "r_", "r_": "l_"}
+    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    sign = torch.tensor([-1.0 if n in MIRROR_NEGATED else 1.0 for n in names], dtype=angles.dtype,
+                        device=angles.device)
+    out = angles[..., swap] * sign  # one gather: each side takes the other's values
+    out[..., names.index("root_rz")] += math.pi
     return out
 
 
