@@ -226,7 +226,7 @@ def main() -> None:
     unknown = [n for n in args.cases if n not in by_name]
     if unknown:
         raise SystemExit(f"unknown cases {unknown}; cases: {list(by_name)}")
-    work = script_work_folder(args.work, "eval_robustness.py")
+    work = script_work_folder(args.work, "eval_robustness.py", empty=False)  # each case re-rendered when stale
     if args.save is not None and not args.save.is_dir():
         raise SystemExit(f"--save {args.save}: not a folder")
     print(f"{'case':<14} {'cams':>4} {'start':<8} {'path':<6} {'MPJPE':>7} {'worst':>7} {'invalid':>9} "

@@ -69,7 +69,7 @@ def main() -> None:
     logging.basicConfig(level=logging.ERROR)
     torch.set_grad_enabled(False)
     torch.set_num_threads(1)
-    work = script_work_folder(args.work, "eval_start.py")
+    work = script_work_folder(args.work, "eval_start.py", empty=False)  # each sequence re-rendered when stale
     config = load_config("markerless.yaml")
     tcfg = TrackerConfig.from_dict(config["tracker"], config["source"])
     template = Skeleton.from_urdf()

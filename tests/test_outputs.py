@@ -213,5 +213,10 @@ def test_a_scripts_work_folder_is_deleted_only_when_the_script_wrote_it(tmp_path
     assert snapshot(mine) == before
     work = script_work_folder(tmp_path / "work", "bench_busy")
     (work / "seq").mkdir()
+    (work / "seq" / "a").write_bytes(b"x")
+    assert script_work_folder(work, "bench_busy", empty=False) == work  # a cache the script checks: kept
+    assert (work / "seq" / "a").read_bytes() == b"x"
+    with pytest.raises(InputError, match="not the work folder of bench_busy"):
+        script_work_folder(mine, "bench_busy", empty=False)
     assert script_work_folder(work, "bench_busy") == work and snapshot(work) == {
         ".bench_busy": b"work folder of scripts/bench_busy.py\n"}

@@ -274,14 +274,17 @@ def replacing(folder: str | Path, kind: OutputKind) -> Iterator[Path]:
         shutil.rmtree(aside, ignore_errors=True)
 
 
-def script_work_folder(path: str | Path, script: str) -> Path:
-    """A measurement script's work folder, made empty: a new or empty folder, or one this ``script`` wrote before
-    (marked by a ``.<script>`` file), which is deleted first; anything else is refused (a typo in ``--out``
-    must not delete a user's folder)."""
+def script_work_folder(path: str | Path, script: str, empty: bool = True) -> Path:
+    """A measurement script's work folder: a new or empty folder, or one this ``script`` wrote before (marked by a
+    ``.<script>`` file), whose contents are deleted first unless ``empty`` is False (a cache of rendered sequences
+    that the script checks itself); anything else is refused (a typo in ``--out`` must not delete a user's
+    folder)."""
     path, mark = Path(path), f".{script}"
     if path.exists() and any(path.iterdir()):
         if not (path / mark).is_file():
             raise InputError(f"--out {path}: not empty and not the work folder of {script}; give another")
+        if not empty:
+            return path
         shutil.rmtree(path)
     path.mkdir(parents=True, exist_ok=True)
     (path / mark).write_text(f"work folder of scripts/{script}.py\n")

@@ -93,6 +93,11 @@ BONE_FITS = ("blobs", "shape")
 STARTS = ("search", "starfish")
 #: While lost, the re-acquisition searches for the whole state (a few seconds on a CPU) every this many frames.
 REACQUIRE_SEARCH_EVERY = 5
+#: Re-acquisition: of its fits that pass the checks, those within this of the best two-way score
+#: (:func:`~torchtrack.tracking.search.score_states`, 0-1) compete by EM/IK's fit cost. The score tells a wrong
+#: heading or pose from the right one, but it also prefers a limb no view shows (a stance leg learnt into the
+#: background) moved onto voxels; the fit cost leaves such a limb where the pose puts it.
+REACQUIRE_SCORE_MARGIN = 0.05
 #: The search's start is refused where more of the body than this lies out of the observed volume.
 START_MAX_OUTSIDE = 0.2
 
@@ -193,12 +198,12 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
             starfish start (Caillette §4.2), which refuses any other pose.
-        start_race_s: after a searched start, the start turned round (the same silhouette facing the other way,
-            which one frame's voxels cannot tell from it: :func:`~torchtrack.tracking.search.turned_round`) is
-            tracked beside it for this long, and the one whose poses fit the voxels better over it (the mean
-            two-way score, by more than ``START_RACE_MARGIN``, and EM/IK's fit cost) is kept, its frames replacing
-            the other's (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees
-            and elbows bend one way only (0: off).
+        start_race_s: after a searched start (and a re-acquisition), the start turned round (the same silhouette
+            facing the other way, which one frame's voxels cannot tell from it:
+            :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long, and the one whose
+            poses fit the voxels better over it (the mean two-way score, by more than ``START_RACE_MARGIN``, and
+            EM/IK's fit cost) is kept, its frames replacing the other's (:meth:`MarkerlessTracker.take_revised`): a
+            body's motion shows which way it faces, as knees and elbows bend one way only (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -518,6 +523,7 @@ class MarkerlessTracker:
         self.frame_rate: float | None = None  # the sequence's (set_frame_rate); None: velocity as configured
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
         self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
+        self._twin = False  # this tracker races another's start (it starts no race of its own)
 
     def set_frame_rate(self, fps: float) -> None:
         """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
@@ -630,17 +636,16 @@ class MarkerlessTracker:
         from torchtrack.tracking.search import turned_round
 
         twin = self._fork()
+        twin._twin = True
         twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
         twin.colour = None
         for _ in range(self.config.init_passes):
             r = twin._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
             twin.angles = twin.previous = r.angles
-        r = twin._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
-        twin.angles = twin.previous = r.angles
-        twin.colour = r.blobs
+        r = twin._learn_colour(obs)
         twin._remember_feet()
         self._race = _Race(twin, self._race_frames())
-        self._race_step(obs, res, replace(r, reinitialised=True), twin.body_version)
+        self._race_step(obs, res, r, twin.body_version)
 
     def _race_step(self, obs: VoxelObservation | None, res: FrameResult, twin_res: FrameResult, version: int
                    ) -> None:
@@ -666,7 +671,7 @@ class MarkerlessTracker:
         if other > own + START_RACE_MARGIN and other_cost < own_cost:
             revised = race.results
             self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
-            self._race, self._revised = None, revised
+            self._race, self._revised, self._twin = None, revised, False
 
     def take_revised(self) -> list[tuple[FrameResult, int]]:
         """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
@@ -862,7 +867,12 @@ class MarkerlessTracker:
                 f"initialisation: the first frame does not fit a person{pose} (goal residual "
                 f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
                 + START_ADVICE)
-        # learn the colours on the initial frame
+        return self._learn_colour(obs)
+
+    def _learn_colour(self, obs: VoxelObservation) -> FrameResult:
+        """The colour model learnt afresh on ``obs`` from the current pose (a start's or a re-acquisition's): the
+        frame tracked with the colours free, returned as a re-initialised frame."""
+        self.colour = None
         res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
         self.angles = self.previous = res.angles
         self.colour = res.blobs
@@ -1380,15 +1390,21 @@ class MarkerlessTracker:
         return res
 
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
-        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings), and where
-        that fails, every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the start's search; the fit with
-        the least residual wins; the colour model is kept."""
+        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings) and, at once
+        and then every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the start's search. Of the fits that
+        do not diverge, those within REACQUIRE_SCORE_MARGIN of the best two-way score (EM/IK's residual alone
+        cannot tell a body turned a quarter or half round from the right one) compete by the fit cost; the winner
+        races its twin turned round as a start does (``start_race_s``). The colour model goes: the fits go without
+        it and the re-acquired frame learns it afresh."""
+        from torchtrack.tracking.search import score_states
+
         pts, w = obs.points, obs.weights
         c = (w[:, None] * pts).sum(0) / w.sum()
         skel = self.subject.skeleton
         base = self.angles.clone()
+        self.colour = None  # learnt before the loss (elsewhere in the room, or from frames losing the body)
         ix, iy, irz = (skel.dof_names.index(n) for n in ("root_tx", "root_ty", "root_rz"))
-        best = None
+        fits = []
         for turn in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
             a = base.clone()
             a[ix], a[iy] = c[0], c[1]
@@ -1398,21 +1414,29 @@ class MarkerlessTracker:
             for _ in range(max(2, self.config.init_passes // 2)):
                 res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
                 self.angles = self.previous = res.angles
-            if best is None or self._fit_cost(res) < self._fit_cost(best):
-                best = res
-        # where that fails, the whole state is searched for (at once, then every REACQUIRE_SEARCH_EVERY frames)
-        if self._diverging(best) and (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
+            fits.append(res)
+        if (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
             found = self._searched(obs)
-            if found is not None and self._fit_cost(found) < self._fit_cost(best):
-                best = found
-        if self._diverging(best):  # keep searching from the last good pose on the next frame
+            if found is not None:
+                fits.append(found)
+        held = [r for r in fits if not self._diverging(r)]
+        if not held:  # keep searching from the last good pose on the next frame
             self.angles = self.previous = base
             self.lost += 1
-            return replace(best, valid=False, reinitialised=True)
+            return replace(min(fits, key=self._fit_cost), valid=False, reinitialised=True)
+        score = score_states(obs, skel, self.subject.blobs, torch.stack([r.angles for r in held]))[0]
+        log.debug("re-acquisition: %d of %d fits hold, scores %s; fit costs %s mm", len(held), len(fits),
+                  " ".join(f"{float(x):.3f}" for x in score), " ".join(f"{1e3 * self._fit_cost(r):.1f}" for r in held))
+        close = [r for r, x in zip(held, score.tolist()) if x >= float(score.max()) - REACQUIRE_SCORE_MARGIN]
+        best = min(close, key=self._fit_cost)
         self.angles = self.previous = best.angles
         self.lost = 0
         self.hands_off = [0, 0]
         if self.feet_seen is not None and best.feet is not None:  # a held foot the new pose left is let go
             far = (best.feet[0] - self.feet_seen).norm(dim=-1) > REACQUIRED_FOOT_M
             self.feet_still = self.feet_still & ~far
-        return replace(best, reinitialised=True)
+        best = self._learn_colour(obs)
+        if (self.config.start == "search" and self.config.start_race_s > 0 and self._race is None
+                and not self._twin):
+            self._start_race(obs, best)
+        return best
