@@ -470,7 +470,7 @@ def test_the_lost_hands_count_starts_again_after_a_frame_with_nobody(skel, monke
     """Two frames with the hand off, a frame with nobody (the count starts again), the re-acquisition (not
     counted), then the third accepted frame with the hand off is the first searched (``lost_hand_frames`` 3)."""
     subj, true, obs, k = _raised_arm_without_hand(skel)
-    # no race after the re-acquisition: its twin, a copy of this tracker, would run (and count) searches of its own
+    # no race after the re-acquisition: its twin, a copy of this tracker, would call the patched search too
     tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=3, start_race_s=0.0))
     tracker.initialize_from_pose(true, 1.80)
     calls = _counting_searches(tracker, monkeypatch)

@@ -14,9 +14,10 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
    bones;
 4. check the fit: a frame whose goals the solved skeleton misses by more than ``lost_residual_m`` on average,
    or whose blobs find little of the voxels, counts as diverging; after ``lost_frames`` of them the tracker
-   re-initialises from the voxels (several heading hypotheses around the last good pose, the best EM fit wins)
-   instead of drifting. A frame without enough voxels (nobody there, unreadable cameras) is not tracked and is
-   returned ``valid = False``.
+   re-initialises from the voxels (the last good pose at four headings and the start's search, compared by the
+   search's two-way score and EM/IK's fit cost: :meth:`MarkerlessTracker._reacquire`) instead of drifting. A
+   frame without enough voxels (nobody there, unreadable cameras) is not tracked and is returned
+   ``valid = False``.
 5. (off by default) in an accepted frame, an arm whose hand's blob has been de-activated for ``lost_hand_frames``
    accepted frames is searched for again from hanging (the frame tracked once more with it at rest), which is kept
    where it fits better than the frame tracked once more as it is and does not diverge.
@@ -198,8 +199,8 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
             starfish start (Caillette §4.2), which refuses any other pose.
-        start_race_s: after a searched start (and a re-acquisition), the start turned round (the same silhouette
-            facing the other way, which one frame's voxels cannot tell from it:
+        start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
+            same silhouette facing the other way, which one frame's voxels cannot tell from it:
             :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long, and the one whose
             poses fit the voxels better over it (the mean two-way score, by more than ``START_RACE_MARGIN``, and
             EM/IK's fit cost) is kept, its frames replacing the other's (:meth:`MarkerlessTracker.take_revised`): a
