@@ -183,7 +183,7 @@ def score(seq: Path, poses) -> dict:
     return {"frames": T, "in_view": int(seen.sum()), "invalid": int((seen & ~valid).sum()),
             "mpjpe": float(np.nanmean(err[ok])) if ok.any() else float("nan"),
             "worst": float(np.nanmax(err[ok])) if ok.any() else float("nan"),
-            "start_s": None if first is None else first / fps}
+            "start_s": None if first is None else first / fps, "per_frame": (err, seen, valid)}
 
 
 def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, save: Path | None = None) -> dict:
@@ -218,6 +218,9 @@ def main() -> None:
                     help="override config settings, e.g. background.shadow_min_gain=1 (YAML values)")
     ap.add_argument("--save", type=Path, metavar="DIR",
                     help="also write each case's track to DIR/<case>.npz (an existing folder), to look into")
+    ap.add_argument("--per-frame", action="store_true",
+                    help="also print each case's MPJPE frame by frame (mm; NaN: not tracked), whether the subject "
+                         "is in view and whether the frame is valid")
     ap.add_argument("--all-views", action="store_true",
                     help="voxels must be seen by every camera (observation.min_views = the rig's count)")
     args = ap.parse_args()
@@ -248,6 +251,10 @@ def main() -> None:
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
               f"{r['invalid']:>4}/{r['in_view']:<4} {start:>19} {r['seconds']:>5.0f}  {r['note']}", flush=True)
+        if args.per_frame:
+            for t, (e, seen, ok) in enumerate(zip(*r["per_frame"])):
+                print(f"  {case.name} frame {t:>4} {e:>8.1f} mm  {'in view' if seen else 'out':<7}  "
+                      f"{'valid' if ok else 'invalid'}")
     for label, sel in (("8 cameras and more", lambda c: c.cameras >= 8), ("fewer", lambda c: c.cameras < 8)):
         vals = [r["mpjpe"] for c, r in rows if sel(c)]
         if vals:
