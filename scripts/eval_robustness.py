@@ -100,6 +100,15 @@ def _colour(rng: np.random.Generator, near: tuple[float, float, float] | None) -
     return tuple(float(np.clip(v + rng.uniform(-0.05, 0.05), 0, 1)) for v in near)
 
 
+def prior_leave_out(motion: str) -> list[str]:
+    """The real captures' poses the start search leaves out on ``motion`` (``TrackerConfig.start_prior_exclude``):
+    its subject's, whose captures are named ``SUBJECT_...`` (CMU ``131_01``, ``131_02``; ``PiG_...``)."""
+    if ":" not in motion:
+        return []  # a procedural motion: in no capture
+    stem = Path(motion.split(":", 1)[1]).stem
+    return [stem.split("_", 1)[0] + "_"]
+
+
 def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
     """The case's sequence: its fixed settings and the seed's draws."""
     rng = np.random.default_rng(case.seed)
@@ -246,6 +255,7 @@ def main() -> None:
         case = by_name[name]
         if args.all_views:
             config["observation"]["min_views"] = case.cameras + int(case.overhead)
+        config["tracker"]["start_prior_exclude"] = prior_leave_out(case.motion)
         r = run_case(case, work, args.duration, args.fps, config, args.save)
         rows.append((case, r))
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"

@@ -6,7 +6,8 @@ is rendered once under --work (a drawn body, colours and shadow as scripts/eval_
 --frames random frames of it (fixed seed) the tracker is started cold, as on the first frame of a recording
 (:meth:`MarkerlessTracker.step` on it: the search, then EM/CCD and the bone fit), tracked on over the start race
 (``TrackerConfig.start_race_s``: the start turned round tracked beside it, the better kept), and the start frame's
-pose as it stands after the race is scored against the ground truth: MPJPE over the 16 landmarks. Prints per motion
+pose as it stands after the race is scored against the ground truth (the search's prior of real poses without the
+captured subject's own: ``TrackerConfig.start_prior_exclude``): MPJPE over the 16 landmarks. Prints per motion
 and rig the share within 50 mm, the median error and the seconds per start (the race included); the search's own
 error before EM/CCD; and the share within 50 mm before the race (``--search-only`` skips the tracker).
 
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -34,7 +36,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.sequence import is_current, write_sequence
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.pipeline import load_config, observer_from_config
-from torchtrack.tracking.search import search_pose
+from torchtrack.tracking.search import SearchConfig, search_pose
 
 import eval_robustness as rob
 
@@ -87,6 +89,7 @@ def main() -> None:
             bg = BackgroundModel.from_folder(folder, BackgroundConfig(**config["background"]), size_wh=(W, H))
             observer = observer_from_config(rig, bg, config["observation"], "bayes", 0.03)
             truth = load_poses(seq / "gt.npz")
+            leave_out = tuple(rob.prior_leave_out(motion))
             idx = [truth.joint_names.index(n) for n in LANDMARKS]
             race = max(1, round(tcfg.start_race_s * folder.fps))  # the start frame and the race's others
             rng = np.random.default_rng(i)
@@ -98,7 +101,7 @@ def main() -> None:
                 obs = observer(fb.images, fb.valid)[0]
                 gen = torch.Generator().manual_seed(t)
                 t0 = time.perf_counter()
-                found = search_pose(obs, template, blobs, generator=gen)
+                found = search_pose(obs, template, blobs, SearchConfig(prior_exclude=leave_out), generator=gen)
                 body = template.scaled_to_height(template.height() * float(found.scale[0]))
                 lm = body.forward(found.angles[:1].double()).output_points[0].numpy()
                 names = list(body.output_names)
@@ -108,7 +111,7 @@ def main() -> None:
                     seconds.append(time.perf_counter() - t0)
                     errors.append(search_errors[-1])
                     continue
-                tracker = MarkerlessTracker(Skeleton.from_urdf(), tcfg)
+                tracker = MarkerlessTracker(Skeleton.from_urdf(), replace(tcfg, start_prior_exclude=leave_out))
                 tracker.set_frame_rate(folder.fps)
                 t0 = time.perf_counter()
                 first = tracker.step(obs)  # the start (a refusal: an invalid frame)

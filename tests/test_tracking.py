@@ -954,6 +954,73 @@ def test_turned_round_is_the_reflection_through_the_frontal_plane(skel):
     assert torch.allclose(turned_round(subj, turned_round(subj, a))[:, 4:], a[:, 4:])  # twice: back (heading +2 pi)
 
 
+def test_mirrored_is_the_reflection_through_the_xz_plane(skel):
+    """The left-right mirror against the closed form: for any state, its output points, left and right swapped,
+    are the original's with y negated."""
+    from torchtrack.tracking.search import mirrored
+
+    subj = skel.scaled_to_height(1.7)
+    gen = torch.Generator().manual_seed(4)
+    a = subj.lower + (subj.upper - subj.lower) * torch.rand(16, subj.num_dofs, generator=gen, dtype=subj.lower.dtype)
+    a[:, :3] = torch.randn(16, 3, generator=gen, dtype=a.dtype)
+    a[:, 3:6] = torch.randn(16, 3, generator=gen, dtype=a.dtype) * torch.tensor([2.0, 0.3, 0.3], dtype=a.dtype)
+    names = list(subj.output_names)
+    other = {"l_": "r_", "r_": "l_"}
+    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    p = subj.forward(a).output_points.double()
+    q = subj.forward(mirrored(subj, a)).output_points.double()[:, swap]
+    assert torch.allclose(q, p * torch.tensor([1.0, -1.0, 1.0], dtype=p.dtype), atol=1e-5)
+
+
+def test_the_real_pose_prior_leaves_a_subject_out(skel):
+    """The built-in prior of real poses: every pose within the joint limits, root translation and heading zero;
+    leaving a subject out drops exactly the poses of the captures named after it (the file's own sources)."""
+    from torchtrack.resources import builtin_config
+    from torchtrack.tracking.search import POSE_PRIOR, real_pose_prior
+
+    sources = np.load(builtin_config(POSE_PRIOR))["source"]
+    every = real_pose_prior(skel)
+    assert every.shape == (len(sources), skel.num_dofs) and len(set(sources.tolist())) >= 3
+    assert torch.equal(every, skel.clamp(every)) and not every[:, [0, 1, 2, 3]].any()
+    for subject in ("131_", "85_"):
+        left = real_pose_prior(skel, exclude=(subject,))
+        assert left.shape[0] == sum(subject not in s for s in sources.tolist()) < every.shape[0]
+
+
+def test_the_search_finds_a_real_pose_no_product_of_limb_poses_gives(skel):
+    """A pose of a real capture far from every pose of the structured prior (a crouch with the trunk twisted),
+    perturbed and at another heading and size: the search alone (no EM/IK) ends within 60 mm of it (ground truth:
+    the pose's forward kinematics)."""
+    from torchtrack.tracking.search import SearchConfig, pose_prior, real_pose_prior, search_pose
+
+    real, structured = real_pose_prior(skel), pose_prior(skel)
+    idx = [list(skel.output_names).index(n) for n in LANDMARKS]
+
+    def shape(a):
+        p = skel.forward(a).output_points[:, idx]
+        return p - p[:, :1]
+
+    gap = torch.cdist(shape(real).flatten(1), shape(structured).flatten(1)).amin(1)  # to the nearest structured
+    gen = torch.Generator().manual_seed(5)
+    truth = real[int(gap.argmax())].clone()
+    truth[6:] = skel.clamp(truth + 0.08 * torch.randn(truth.shape, generator=gen, dtype=truth.dtype))[6:]
+    names = list(skel.dof_names)
+    subj = skel.scaled_to_height(1.62)
+    truth[names.index("root_rz")] = 2.2
+    truth[names.index("root_tx")] = 0.3
+    fk = subj.forward(truth[None].double())
+    truth[names.index("root_tz")] -= float(fk.output_points[0, :, 2].min())  # the soles on the floor
+    blobs = BlobModel.from_config(subj)
+    obs = _observation(subj, blobs, truth)
+    template_blobs = BlobModel.from_config(skel)
+    found = search_pose(obs, skel, template_blobs, SearchConfig(), torch.Generator().manual_seed(0), n=1)
+    body = skel.scaled_to_height(skel.height() * float(found.scale[0]))
+    got = body.forward(found.angles[:1].double()).output_points[0]
+    want = subj.forward(truth[None].double()).output_points[0]
+    err = float((got - want).norm(dim=-1).mean())
+    assert err < 0.06, err
+
+
 @pytest.mark.parametrize("race_s", [0.5, 0.0])
 def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
     """The search's answer forced to face backwards (its states turned round) on a walk from its first frame: the

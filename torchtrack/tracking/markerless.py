@@ -199,6 +199,9 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
             starfish start (Caillette §4.2), which refuses any other pose.
+        start_prior_exclude: the search leaves out the real captures' poses whose capture's name contains one of
+            these (:func:`~torchtrack.tracking.search.real_pose_prior`): for evaluations on the captures the prior
+            was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
         start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
             same silhouette facing the other way, which one frame's voxels cannot tell from it:
             :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long, and the one whose
@@ -287,6 +290,7 @@ class TrackerConfig:
     start: str = "search"
     start_hypotheses: int = 3
     search_seed: int = 0
+    start_prior_exclude: tuple[str, ...] = ()
     start_race_s: float = 0.5
     fit_bone_lengths: bool = True
     bone_fit: str = "blobs"
@@ -360,6 +364,8 @@ class TrackerConfig:
                 kw["em"] = EMConfig(**kw["em"])
             if "ccd" in kw:
                 kw["ccd"] = CCDConfig(**kw["ccd"])
+            if "start_prior_exclude" in kw:
+                kw["start_prior_exclude"] = tuple(kw["start_prior_exclude"])
             return cls(**kw)
         except (TypeError, InputError) as exc:
             raise InputError(f"{source}: {exc}") from None
@@ -710,7 +716,8 @@ class MarkerlessTracker:
                              "volume of the largest body searched for: not one person (phantom volume, or a "
                              "background that keeps parts of the room). " + START_ADVICE)
         gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
-        found = search_pose(obs, self.generic, blobs, SearchConfig(), gen, n=self.config.start_hypotheses)
+        found = search_pose(obs, self.generic, blobs, SearchConfig(prior_exclude=self.config.start_prior_exclude),
+                            gen, n=self.config.start_hypotheses)
         if float(found.outside[0]) > START_MAX_OUTSIDE:
             raise InputError(f"initialisation: {100 * float(found.outside[0]):.0f}% of the body found lies out of "
                              "the capture volume: not started on a body partly out of it")
@@ -1379,8 +1386,8 @@ class MarkerlessTracker:
         from torchtrack.tracking.search import SearchConfig, search_pose
 
         gen = torch.Generator(device=obs.points.device).manual_seed(self.config.search_seed)
-        found = search_pose(obs, self.subject.skeleton, self.subject.blobs, SearchConfig(scale_range=(1.0, 1.0)),
-                            gen, n=1)
+        found = search_pose(obs, self.subject.skeleton, self.subject.blobs, SearchConfig(
+            scale_range=(1.0, 1.0), prior_exclude=self.config.start_prior_exclude), gen, n=1)
         if float(found.outside[0]) > START_MAX_OUTSIDE:
             return None
         self.angles = self.previous = found.angles[0].to(obs.points.dtype)

@@ -8,17 +8,20 @@ EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every 
 computation over the hypotheses, on the device of the voxels.
 
 The hypotheses: the skeleton's poses from a structured prior (:func:`pose_prior`: arms hanging, bent, forward,
-sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking), at
-every heading; placed with their lowest point on the floor (the voxels' lowest) and the centroid of their blobs
-over the voxels' centroid, scaled so that their top meets the voxels' top (within ``scale_range``: the template
-is the prior of the subject's size, whose proportions the tracker's bone fit then measures).
+sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking) and
+from real captures (:func:`real_pose_prior`: crouches, twists and reaches that no product of per-limb poses
+gives), at every heading; placed with their lowest point on the floor (the voxels' lowest) and the centroid of
+their blobs over the voxels' centroid, scaled so that their top meets the voxels' top (within ``scale_range``: the
+template is the prior of the subject's size, whose proportions the tracker's bone fit then measures).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -28,8 +31,8 @@ from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
 from torchtrack.tracking.observation import VoxelObservation
 
-__all__ = ["SearchConfig", "SearchResult", "pose_prior", "score_states", "search_pose", "turned_round",
-           "two_way_score"]
+__all__ = ["SearchConfig", "SearchResult", "mirrored", "pose_prior", "real_pose_prior", "score_states", "search_pose",
+           "turned_round", "two_way_score"]
 
 #: Arm poses of the prior, per side: (shoulder flexion, shoulder abduction, elbow flexion) in radians.
 ARM_POSES = ((0.0, 0.1, 0.15), (0.3, 0.15, 1.5), (1.5, 0.1, 0.1), (0.0, 0.75, 0.1), (0.0, 1.5, 0.1),
@@ -69,6 +72,10 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
+        real_poses: add the real captures' poses (:func:`real_pose_prior`) to the structured prior; False: the
+            structured prior alone.
+        prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
+            capture the prior was built from leaves its subject out).
     """
 
     headings: int = 24
@@ -79,6 +86,8 @@ class SearchConfig:
     max_voxels: int = 1500
     samples: int = 24
     scale_range: tuple[float, float] = (0.8, 1.2)
+    real_poses: bool = True
+    prior_exclude: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if min(self.headings, self.keep, self.particles, self.max_voxels, self.samples) < 1 or self.layers < 0:
@@ -127,6 +136,34 @@ def pose_prior(skel: Skeleton, symmetric_arms: bool = False) -> torch.Tensor:
                 a[names.index(dof)] = v
             out.append(a)
     return skel.clamp(torch.stack(out))
+
+
+#: The real captures' poses (``scripts/build_pose_prior.py``): angles (P, D), dof_names (D,), source (P,).
+POSE_PRIOR = "pose_prior.npz"
+
+
+@functools.lru_cache(maxsize=2)
+def _prior_file(path: str) -> dict[str, np.ndarray]:
+    with np.load(path) as f:
+        return {k: f[k] for k in ("angles", "dof_names", "source")}
+
+
+def real_pose_prior(skel: Skeleton, exclude: tuple[str, ...] = ()) -> torch.Tensor:
+    """(P, D) the real captures' poses (built-in ``configs/pose_prior.npz``: poses of the captures in
+    ``../shared/data/mocap``, each with its left-right mirror, thinned by farthest-point sampling) on ``skel``'s
+    DOFs (a DOF the file lacks at 0), root translation and heading zero, within the joint limits; the poses of the
+    captures whose name contains a string of ``exclude`` left out."""
+    from torchtrack.resources import builtin_config
+
+    data = _prior_file(str(builtin_config(POSE_PRIOR)))
+    keep = np.asarray([not any(e in str(src) for e in exclude) for src in data["source"]], dtype=bool)
+    names = [str(n) for n in data["dof_names"]]
+    src = torch.from_numpy(data["angles"][keep])
+    out = torch.zeros(src.shape[0], skel.num_dofs, dtype=skel.lower.dtype, device=skel.lower.device)
+    for d, name in enumerate(skel.dof_names):
+        if name in names:
+            out[:, d] = src[:, names.index(name)].to(out)
+    return skel.clamp(out)
 
 
 class _Voxels:
@@ -287,19 +324,33 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
 MIRROR_NEGATED = ("root_rx", "spine_abd", "spine_twist", "neck_abd", "neck_twist")
 
 
+def _sides_swapped(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
+    """``angles (..., D)`` with the left and right limbs' DOFs swapped and :data:`MIRROR_NEGATED` negated."""
+    names = list(skel.dof_names)
+    other = {"l_": "r_", "r_": "l_"}
+    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    sign = torch.tensor([-1.0 if n in MIRROR_NEGATED else 1.0 for n in names], dtype=angles.dtype,
+                        device=angles.device)
+    return angles[..., swap] * sign  # one gather: each side takes the other's values
+
+
+def mirrored(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
+    """``angles (..., D)`` mirrored left to right through the world's XZ plane (y -> -y): the same pose done by
+    the other side (for a body facing +X at the origin, its own sagittal plane)."""
+    out = _sides_swapped(skel, angles)
+    for name in ("root_ty", "root_rz"):
+        out[..., skel.dof_names.index(name)] *= -1.0
+    return out
+
+
 def turned_round(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
     """``angles (..., D)`` reflected through the body's frontal plane (the vertical plane through the root across
     its heading) and re-expressed as a body facing the other way: heading + pi, left and right limbs swapped, the
     sideways bends, twists and roll negated. For a pose without flexion it fills the same space facing the other
     way (the front/back ambiguity of a silhouette, e.g. a starfish); a flexed joint then bends the other way in the
     world."""
-    names = list(skel.dof_names)
-    other = {"l_": "r_", "r_": "l_"}
-    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
-    sign = torch.tensor([-1.0 if n in MIRROR_NEGATED else 1.0 for n in names], dtype=angles.dtype,
-                        device=angles.device)
-    out = angles[..., swap] * sign  # one gather: each side takes the other's values
-    out[..., names.index("root_rz")] += math.pi
+    out = _sides_swapped(skel, angles)
+    out[..., skel.dof_names.index("root_rz")] += math.pi
     return out
 
 
@@ -335,26 +386,31 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         total += poses.shape[0]
         return two_way_score(c, R, a, vox, samples), state
 
-    # stage 1: legs x arms alike x every heading
+    # stage 1: the structured prior's legs x arms alike, and the real captures' poses, each at every heading
     base = pose_prior(skel, symmetric_arms=True).float()
+    if config.real_poses:
+        base = torch.cat([base, real_pose_prior(skel, config.prior_exclude).float()])
     P, Hh = base.shape[0], headings.shape[0]
     poses, heading = base.repeat_interleave(Hh, 0), headings.repeat(P)
     scale = hyp.initial_scale(poses, config.scale_range)
     shift = poses.new_zeros(poses.shape[0], 2)
     (score, *_), _ = scored(poses, heading, scale, shift)
     best = _top(score, config.keep)
-    # stage 2: each kept (legs, heading) with every pair of arm poses
+    # stage 2: each kept hypothesis as it is and with every pair of the structured prior's arm poses
     arms = pose_prior(skel).float()  # (legs x arm pairs, D), grouped by legs
     per_legs = len(ARM_POSES) ** 2
     names = list(skel.dof_names)
     arm_dofs = [names.index(f"{s}_{d}") for s in ("l", "r") for d in ("shoulder_flex", "shoulder_abd", "elbow_flex")]
     pairs = arms[:per_legs, arm_dofs]  # (A, 6) the arm poses (the first legs' block)
-    poses = poses[best].repeat_interleave(per_legs, 0)
+    kept = poses[best], heading[best], scale[best], score[best]
+    poses = kept[0].repeat_interleave(per_legs, 0)
     poses[:, arm_dofs] = pairs.repeat(best.shape[0], 1)
-    heading = heading[best].repeat_interleave(per_legs)
+    heading = kept[1].repeat_interleave(per_legs)
     scale = hyp.initial_scale(poses, config.scale_range)
+    (score, *_), _ = scored(poses, heading, scale, poses.new_zeros(poses.shape[0], 2))
+    poses, heading = torch.cat([kept[0], poses]), torch.cat([kept[1], heading])
+    scale, score = torch.cat([kept[2], scale]), torch.cat([kept[3], score])
     shift = poses.new_zeros(poses.shape[0], 2)
-    (score, *_), _ = scored(poses, heading, scale, shift)
     best = _top(score, config.keep)
     poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
     # stage 3: annealed search around them; each new hypothesis changes one part of the body (the place, the
