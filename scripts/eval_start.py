@@ -13,6 +13,7 @@ error before EM/CCD; and the share within 50 mm before the race (``--search-only
 
     .venv/bin/python scripts/eval_start.py                       # 50 frames per motion and rig
     .venv/bin/python scripts/eval_start.py --motions walk squat --cameras 8 --frames 10
+    .venv/bin/python scripts/eval_start.py --motions cmu:131_01 --cameras 8 --frames 5 --search-only --truth-score
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.sequence import is_current, write_sequence
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.pipeline import load_config, observer_from_config
-from torchtrack.tracking.search import SearchConfig, search_pose
+from torchtrack.tracking.search import SearchConfig, score_states, search_pose
 
 import eval_robustness as rob
 
@@ -66,6 +67,9 @@ def main() -> None:
     ap.add_argument("--cameras", nargs="+", type=int, default=[8, 4])
     ap.add_argument("--frames", type=int, default=50, help="random start frames per motion and rig (default: 50)")
     ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
+    ap.add_argument("--truth-score", action="store_true",
+                    help="with --search-only, print each start's two-way score and the true pose's (on the "
+                         "template's body at the subject's height): a search that scores below the truth missed it")
     ap.add_argument("--work", type=Path, default=Path("out/eval_start"))
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -110,6 +114,15 @@ def main() -> None:
                 if args.search_only:
                     seconds.append(time.perf_counter() - t0)
                     errors.append(search_errors[-1])
+                    if args.truth_score:  # the true pose on the template's body at the subject's height
+                        sized = template.scaled_to_height(Skeleton.from_urdf(seq / "body.urdf").height())
+                        mine = score_states(obs, body, BlobModel(body, *load_blob_specs(tcfg.blobs)),
+                                            found.angles[:1].double())[0]
+                        true = score_states(obs, sized, BlobModel(sized, *load_blob_specs(tcfg.blobs)),
+                                            torch.as_tensor(truth.angles[t:t + 1]).double())[0]
+                        print(f"  {motion} {cams} frame {t:>4}: search {search_errors[-1]:6.1f} mm, score "
+                              f"{float(mine[0]):.3f} (scale {float(found.scale[0]):.2f}); true pose "
+                              f"{float(true[0]):.3f}", flush=True)
                     continue
                 tracker = MarkerlessTracker(Skeleton.from_urdf(), replace(tcfg, start_prior_exclude=leave_out))
                 tracker.set_frame_rate(folder.fps)

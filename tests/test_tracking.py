@@ -1054,6 +1054,55 @@ def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
         assert revised == 0 and err.mean() > 0.1, err
 
 
+@pytest.mark.parametrize("race_s", [0.5, 0.0])
+def test_a_reacquisition_turned_round_loses_its_race(skel, monkeypatch, race_s):
+    """A walker lost for three frames comes back, and the re-acquired pose is forced to face backwards (turned
+    round just before the re-acquired frame learns its colours): the race that the re-acquisition starts tracks
+    the right way round beside it and wins after start_race_s, its frames replacing the backwards ones from the
+    re-acquired frame on, all within 50 mm of the truth (ground truth: the walk's forward kinematics). With the
+    race off the track stays backwards."""
+    from torchtrack.tracking.search import turned_round
+
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 2.0, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s))
+    tracker.set_frame_rate(30.0)
+    for t in range(30):  # the start and its own race, over before the loss
+        tracker.step(_observation(subj, blobs, walk[t]))
+        tracker.take_revised()
+    empty = _observation(subj, blobs, walk[30])
+    empty = VoxelObservation(empty.points[:0], empty.sizes[:0], empty.weights[:0], empty.colours[:0],
+                             empty.cameras_valid)
+    for _ in range(3):
+        assert not tracker.step(empty).valid
+    armed = [True]
+    learn = MarkerlessTracker._learn_colour
+
+    def backwards(self, obs):
+        if armed[0]:  # the re-acquired pose only (the race's twin learns its colours after it)
+            armed[0] = False
+            self.angles = self.previous = turned_round(self.subject.skeleton, self.angles)
+        return learn(self, obs)
+
+    monkeypatch.setattr(MarkerlessTracker, "_learn_colour", backwards)
+    out, revised = [], 0
+    for t in range(33, 55):
+        out.append(tracker.step(_observation(subj, blobs, walk[t])))
+        late = tracker.take_revised()
+        for j, (res, _version) in enumerate(late):
+            out[len(out) - len(late) + j] = res
+        revised += len(late)
+    assert not armed[0] and out[0].reinitialised
+    err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[33 + i]).double()).norm(dim=-1)
+                          .mean()) for i, r in enumerate(out)])
+    if race_s:
+        assert revised == 15  # the race's 0.5 s at 30 fps, from the re-acquired frame
+        assert err.max() < 0.05, err
+    else:
+        assert revised == 0 and err.mean() > 0.1, err
+
+
 def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
     """Arms hanging, a person-high phantom column 0.6 m to the side (as a static ghost in an estimated background):
     the voxels span as wide as a starfish, but the arms are not where the starfish puts them."""
