@@ -13,6 +13,7 @@ error before EM/CCD; and the share within 50 mm before the race (``--search-only
 
     .venv/bin/python scripts/eval_start.py                       # 50 frames per motion and rig
     .venv/bin/python scripts/eval_start.py --motions walk squat --cameras 8 --frames 10
+    .venv/bin/python scripts/eval_start.py --frames 3 --real-poses          # with the real captured poses
     .venv/bin/python scripts/eval_start.py --motions cmu:131_01 --cameras 8 --frames 5 --search-only --truth-score
 """
 
@@ -67,6 +68,8 @@ def main() -> None:
     ap.add_argument("--cameras", nargs="+", type=int, default=[8, 4])
     ap.add_argument("--frames", type=int, default=50, help="random start frames per motion and rig (default: 50)")
     ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
+    ap.add_argument("--real-poses", action="store_true",
+                    help="the search also starts from real captured poses (TrackerConfig.start_real_poses)")
     ap.add_argument("--truth-score", action="store_true",
                     help="with --search-only, print each start's two-way score and the true pose's (on the "
                          "template's body at the subject's height): a search that scores below the truth missed it")
@@ -105,7 +108,8 @@ def main() -> None:
                 obs = observer(fb.images, fb.valid)[0]
                 gen = torch.Generator().manual_seed(t)
                 t0 = time.perf_counter()
-                found = search_pose(obs, template, blobs, SearchConfig(prior_exclude=leave_out), generator=gen)
+                search = SearchConfig(real_poses=args.real_poses, prior_exclude=leave_out)
+                found = search_pose(obs, template, blobs, search, generator=gen)
                 body = template.scaled_to_height(template.height() * float(found.scale[0]))
                 lm = body.forward(found.angles[:1].double()).output_points[0].numpy()
                 names = list(body.output_names)
@@ -124,7 +128,8 @@ def main() -> None:
                               f"{float(mine[0]):.3f} (scale {float(found.scale[0]):.2f}); true pose "
                               f"{float(true[0]):.3f}", flush=True)
                     continue
-                tracker = MarkerlessTracker(Skeleton.from_urdf(), replace(tcfg, start_prior_exclude=leave_out))
+                tracker = MarkerlessTracker(Skeleton.from_urdf(), replace(tcfg, start_real_poses=args.real_poses,
+                                                                      start_prior_exclude=leave_out))
                 tracker.set_frame_rate(folder.fps)
                 t0 = time.perf_counter()
                 first = tracker.step(obs)  # the start (a refusal: an invalid frame)

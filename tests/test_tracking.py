@@ -1013,7 +1013,8 @@ def test_the_search_finds_a_real_pose_no_product_of_limb_poses_gives(skel):
     blobs = BlobModel.from_config(subj)
     obs = _observation(subj, blobs, truth)
     template_blobs = BlobModel.from_config(skel)
-    found = search_pose(obs, skel, template_blobs, SearchConfig(), torch.Generator().manual_seed(0), n=1)
+    found = search_pose(obs, skel, template_blobs, SearchConfig(real_poses=True), torch.Generator().manual_seed(0),
+                        n=1)
     body = skel.scaled_to_height(skel.height() * float(found.scale[0]))
     got = body.forward(found.angles[:1].double()).output_points[0]
     want = subj.forward(truth[None].double()).output_points[0]

@@ -199,6 +199,11 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
             starfish start (Caillette §4.2), which refuses any other pose.
+        start_real_poses: the search also starts from real captured poses
+            (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
+            reaching poses seen by 8 or more cameras: starts within 50 mm 62 -> 81 % (docs/results.md, "Real poses
+            in the prior"). Off by default: beside phantom volume it can take a taller body with its arms raised
+            into the phantom, and it cost one stress sequence 13 mm.
         start_prior_exclude: the search leaves out the real captures' poses whose capture's name contains one of
             these (:func:`~torchtrack.tracking.search.real_pose_prior`): for evaluations on the captures the prior
             was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
@@ -290,6 +295,7 @@ class TrackerConfig:
     start: str = "search"
     start_hypotheses: int = 3
     search_seed: int = 0
+    start_real_poses: bool = False
     start_prior_exclude: tuple[str, ...] = ()
     start_race_s: float = 0.5
     fit_bone_lengths: bool = True
@@ -716,7 +722,8 @@ class MarkerlessTracker:
                              "volume of the largest body searched for: not one person (phantom volume, or a "
                              "background that keeps parts of the room). " + START_ADVICE)
         gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
-        found = search_pose(obs, self.generic, blobs, SearchConfig(prior_exclude=self.config.start_prior_exclude),
+        found = search_pose(obs, self.generic, blobs, SearchConfig(real_poses=self.config.start_real_poses,
+                                                                prior_exclude=self.config.start_prior_exclude),
                             gen, n=self.config.start_hypotheses)
         if float(found.outside[0]) > START_MAX_OUTSIDE:
             raise InputError(f"initialisation: {100 * float(found.outside[0]):.0f}% of the body found lies out of "
@@ -1387,7 +1394,8 @@ class MarkerlessTracker:
 
         gen = torch.Generator(device=obs.points.device).manual_seed(self.config.search_seed)
         found = search_pose(obs, self.subject.skeleton, self.subject.blobs, SearchConfig(
-            scale_range=(1.0, 1.0), prior_exclude=self.config.start_prior_exclude), gen, n=1)
+            scale_range=(1.0, 1.0), real_poses=self.config.start_real_poses,
+            prior_exclude=self.config.start_prior_exclude), gen, n=1)
         if float(found.outside[0]) > START_MAX_OUTSIDE:
             return None
         self.angles = self.previous = found.angles[0].to(obs.points.dtype)

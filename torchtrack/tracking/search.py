@@ -8,11 +8,12 @@ EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every 
 computation over the hypotheses, on the device of the voxels.
 
 The hypotheses: the skeleton's poses from a structured prior (:func:`pose_prior`: arms hanging, bent, forward,
-sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking) and
-from real captures (:func:`real_pose_prior`: crouches, twists and reaches that no product of per-limb poses
-gives), at every heading; placed with their lowest point on the floor (the voxels' lowest) and the centroid of
-their blobs over the voxels' centroid, scaled so that their top meets the voxels' top (within ``scale_range``: the
-template is the prior of the subject's size, whose proportions the tracker's bone fit then measures).
+sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking) and,
+with ``real_poses``, from real captures (:func:`real_pose_prior`: crouches, twists and reaches that no product of
+per-limb poses gives), at every heading; placed with their lowest point on the floor (the voxels' lowest) and the
+centroid of their blobs over the voxels' centroid, scaled so that their top meets the voxels' top (within
+``scale_range``: the template is the prior of the subject's size, whose proportions the tracker's bone fit then
+measures).
 """
 
 from __future__ import annotations
@@ -72,8 +73,8 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
-        real_poses: add the real captures' poses (:func:`real_pose_prior`) to the structured prior; False: the
-            structured prior alone.
+        real_poses: add the real captures' poses (:func:`real_pose_prior`) to the structured prior
+            (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
             capture the prior was built from leaves its subject out).
     """
@@ -86,7 +87,7 @@ class SearchConfig:
     max_voxels: int = 1500
     samples: int = 24
     scale_range: tuple[float, float] = (0.8, 1.2)
-    real_poses: bool = True
+    real_poses: bool = False
     prior_exclude: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -388,6 +389,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
 
     # stage 1: the structured prior's legs x arms alike, and the real captures' poses, each at every heading
     base = pose_prior(skel, symmetric_arms=True).float()
+    structured = base.shape[0] * headings.shape[0]  # the first hypotheses; the real poses' after them
     if config.real_poses:
         base = torch.cat([base, real_pose_prior(skel, config.prior_exclude).float()])
     P, Hh = base.shape[0], headings.shape[0]
@@ -396,16 +398,18 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
     shift = poses.new_zeros(poses.shape[0], 2)
     (score, *_), _ = scored(poses, heading, scale, shift)
     best = _top(score, config.keep)
-    # stage 2: each kept hypothesis as it is and with every pair of the structured prior's arm poses
+    # stage 2: each kept hypothesis with every pair of the structured prior's arm poses (a structured pose's own
+    # arms are one of them), and a kept real pose also as it is
     arms = pose_prior(skel).float()  # (legs x arm pairs, D), grouped by legs
     per_legs = len(ARM_POSES) ** 2
     names = list(skel.dof_names)
     arm_dofs = [names.index(f"{s}_{d}") for s in ("l", "r") for d in ("shoulder_flex", "shoulder_abd", "elbow_flex")]
     pairs = arms[:per_legs, arm_dofs]  # (A, 6) the arm poses (the first legs' block)
-    kept = poses[best], heading[best], scale[best], score[best]
-    poses = kept[0].repeat_interleave(per_legs, 0)
+    real = best[best >= structured]
+    kept = poses[real], heading[real], scale[real], score[real]
+    poses = poses[best].repeat_interleave(per_legs, 0)
     poses[:, arm_dofs] = pairs.repeat(best.shape[0], 1)
-    heading = kept[1].repeat_interleave(per_legs)
+    heading = heading[best].repeat_interleave(per_legs)
     scale = hyp.initial_scale(poses, config.scale_range)
     (score, *_), _ = scored(poses, heading, scale, poses.new_zeros(poses.shape[0], 2))
     poses, heading = torch.cat([kept[0], poses]), torch.cat([kept[1], heading])
