@@ -932,20 +932,27 @@ def test_the_search_starts_from_any_pose(skel, frame, turn):
     assert abs(tracker.height_m - 1.68) < 0.1
 
 
+def _random_states(skel, height_m, seed, n=16):
+    """The skeleton scaled to ``height_m``; ``n`` random states of it (limbs within the limits, the root anywhere
+    near the origin, any heading, small tilts); and the output points' order with left and right swapped."""
+    subj = skel.scaled_to_height(height_m)
+    gen = torch.Generator().manual_seed(seed)
+    a = subj.lower + (subj.upper - subj.lower) * torch.rand(n, subj.num_dofs, generator=gen, dtype=subj.lower.dtype)
+    a[:, :3] = torch.randn(n, 3, generator=gen, dtype=a.dtype)
+    a[:, 3:6] = torch.randn(n, 3, generator=gen, dtype=a.dtype) * torch.tensor([2.0, 0.3, 0.3], dtype=a.dtype)
+    names = list(subj.output_names)
+    other = {"l_": "r_", "r_": "l_"}
+    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    return subj, a, swap
+
+
 def test_turned_round_is_the_reflection_through_the_frontal_plane(skel):
     """The start turned round, against the closed form: for any state (random tilts and limbs within the limits),
     its output points, left and right swapped, are the original's reflected through the vertical plane through the
     root across its heading."""
     from torchtrack.tracking.search import turned_round
 
-    subj = skel.scaled_to_height(1.8)
-    gen = torch.Generator().manual_seed(3)
-    a = subj.lower + (subj.upper - subj.lower) * torch.rand(16, subj.num_dofs, generator=gen, dtype=subj.lower.dtype)
-    a[:, :3] = torch.randn(16, 3, generator=gen, dtype=a.dtype)
-    a[:, 3:6] = torch.randn(16, 3, generator=gen, dtype=a.dtype) * torch.tensor([2.0, 0.3, 0.3], dtype=a.dtype)
-    names = list(subj.output_names)
-    other = {"l_": "r_", "r_": "l_"}
-    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    subj, a, swap = _random_states(skel, 1.8, seed=3)
     p = subj.forward(a).output_points.double()
     q = subj.forward(turned_round(subj, a)).output_points.double()[:, swap]
     normal = torch.stack([torch.cos(a[:, 3]), torch.sin(a[:, 3]), torch.zeros_like(a[:, 3])], -1).double()
@@ -959,14 +966,7 @@ def test_mirrored_is_the_reflection_through_the_xz_plane(skel):
     are the original's with y negated."""
     from torchtrack.tracking.search import mirrored
 
-    subj = skel.scaled_to_height(1.7)
-    gen = torch.Generator().manual_seed(4)
-    a = subj.lower + (subj.upper - subj.lower) * torch.rand(16, subj.num_dofs, generator=gen, dtype=subj.lower.dtype)
-    a[:, :3] = torch.randn(16, 3, generator=gen, dtype=a.dtype)
-    a[:, 3:6] = torch.randn(16, 3, generator=gen, dtype=a.dtype) * torch.tensor([2.0, 0.3, 0.3], dtype=a.dtype)
-    names = list(subj.output_names)
-    other = {"l_": "r_", "r_": "l_"}
-    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
+    subj, a, swap = _random_states(skel, 1.7, seed=4)
     p = subj.forward(a).output_points.double()
     q = subj.forward(mirrored(subj, a)).output_points.double()[:, swap]
     assert torch.allclose(q, p * torch.tensor([1.0, -1.0, 1.0], dtype=p.dtype), atol=1e-5)

@@ -201,9 +201,9 @@ class TrackerConfig:
             starfish start (Caillette §4.2), which refuses any other pose.
         start_real_poses: the search also starts from real captured poses
             (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
-            reaching poses seen by 8 or more cameras: starts within 50 mm 62 -> 76 % (docs/results.md, "Real poses
-            in the prior"). Off by default: beside phantom volume it can take a taller body with its arms raised
-            into the phantom, and it cost one stress sequence 13 mm.
+            reaching poses seen by 8 or more cameras, where more starts land right. Off by default: beside phantom
+            volume it can take a taller body with its arms raised into the phantom, and one stress sequence
+            tracked worse (docs/results.md, "Real poses in the prior").
         start_prior_exclude: the search leaves out the real captures' poses whose capture's name contains one of
             these (:func:`~torchtrack.tracking.search.real_pose_prior`): for evaluations on the captures the prior
             was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
