@@ -932,6 +932,45 @@ def test_the_search_starts_from_any_pose(skel, frame, turn):
     assert abs(tracker.height_m - 1.68) < 0.1
 
 
+def test_a_start_frame_with_two_people_is_refused_and_the_next_with_one_starts(skel):
+    """Two people 1.5 m apart in the first frame (one squatting, one standing with the arms hanging): the start
+    says so and the frame is invalid; the next frame, the squatting one alone, starts within 50 mm of the truth."""
+    subj = skel.scaled_to_height(1.7)
+    blobs = BlobModel.from_config(subj)
+    crouch = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[12].clone()
+    alone = _observation(subj, blobs, crouch)
+    other = _observation(skel.scaled_to_height(1.6), BlobModel.from_config(skel.scaled_to_height(1.6)),
+                         skel.rest_angles(), shift=(0.0, 1.5, 0.0))
+    both = VoxelObservation(*(torch.cat([a, b]) for a, b in zip(
+        (alone.points, alone.sizes, alone.weights, alone.colours), (other.points, other.sizes, other.weights,
+                                                                    other.colours))), alone.cameras_valid)
+    tracker = MarkerlessTracker(skel)
+    first = tracker.step(both)
+    assert not first.valid and not tracker.initialized
+    assert len(tracker.start_refusals) == 1
+    assert re.search(r"2 separate people .*--init-pose", tracker.start_refusals[0]), tracker.start_refusals[0]
+    res = tracker.step(alone)
+    assert res.valid and res.reinitialised
+    want = subj.forward(crouch[None].double()).output_points[0]
+    assert float((res.output_points.double() - want).norm(dim=-1).mean()) < 0.05
+
+
+def test_a_start_frame_with_the_body_half_out_of_the_volume_is_refused(skel):
+    """A standing body whose left half lies out of the observed box (only its voxels inside kept): the search's
+    start refuses it, naming the capture volume, rather than starting on the half it sees."""
+    subj = skel.scaled_to_height(1.7)
+    blobs = BlobModel.from_config(subj)
+    obs = _observation(subj, blobs, subj.rest_angles())
+    inside = obs.points[:, 1] < 0.0  # the body faces +x: its left side is +y
+    box = ((-2.0, -2.0, 0.0), (2.0, 0.0, 2.5))
+    half = VoxelObservation(obs.points[inside], obs.sizes[inside], obs.weights[inside], obs.colours[inside],
+                            obs.cameras_valid, volume_m=box)
+    tracker = MarkerlessTracker(skel)
+    with pytest.raises(InputError, match=r"lies out of the capture volume"):
+        tracker.initialize(half)
+    assert not tracker.initialized
+
+
 def _random_states(skel, height_m, seed, n=16):
     """The skeleton scaled to ``height_m``; ``n`` random states of it (limbs within the limits, the root anywhere
     near the origin, any heading, small tilts); and the output points' order with left and right swapped."""
@@ -1460,6 +1499,58 @@ def test_pooled_observation_matches_a_plain_loop():
                 assert torch.allclose(pooled.colours[m, c], ref_c, atol=1e-12)
             else:
                 assert bool(torch.isnan(pooled.colours[m, c]).all())
+
+
+def test_parts_are_the_connected_cells_a_plain_search_finds():
+    """Random occupied cells, each a voxel filling its cell: the parts are the groups a breadth-first search over
+    cells touching by a face, an edge or a corner finds, numbered largest first, with their volumes and heights."""
+    gen = torch.Generator().manual_seed(5)
+    cell = 0.06
+    keys = torch.randint(0, 8, (120, 3), generator=gen).unique(dim=0)
+    N = keys.shape[0]
+    pts = (keys.double() + 0.5) * cell
+    sizes = torch.full((N,), cell, dtype=torch.float64)
+    obs = VoxelObservation(pts, sizes, sizes ** 3, torch.zeros(N, 1, 3, dtype=torch.float64),
+                           torch.ones(1, dtype=torch.bool))
+    part, volume, span = obs.parts(cell)
+    ref = [-1] * N
+    cells = [tuple(k) for k in keys.tolist()]
+    for seed in range(N):
+        if ref[seed] >= 0:
+            continue
+        ref[seed], queue = seed, [seed]
+        while queue:
+            a = queue.pop()
+            for b in range(N):
+                if ref[b] < 0 and max(abs(u - v) for u, v in zip(cells[a], cells[b])) <= 1:
+                    ref[b] = seed
+                    queue.append(b)
+    groups: dict[int, list[int]] = {}
+    for n, r in enumerate(ref):
+        groups.setdefault(r, []).append(n)
+    assert len(groups) > 3  # the draw has several parts
+    assert volume.shape[0] == len(groups)
+    for members in groups.values():
+        assert len({int(part[n]) for n in members}) == 1  # one part per group, one group per part
+        k = int(part[members[0]])
+        assert abs(float(volume[k]) - len(members) * cell ** 3) < 1e-12
+        z = pts[members, 2]
+        assert float(span[k, 0]) == pytest.approx(float(z.min()) - cell / 2)
+        assert float(span[k, 1]) == pytest.approx(float(z.max()) + cell / 2)
+    assert bool((volume[1:] <= volume[:-1]).all())
+
+
+def test_a_large_voxel_joins_the_parts_it_overlaps():
+    """Two 3 cm voxels 15 cm apart are two parts; a 12 cm voxel between them (a hull's coarse interior cube)
+    overlaps the cells next to both and makes them one."""
+    pts = torch.tensor([[0.015, 0.015, 0.015], [0.165, 0.015, 0.015], [0.09, 0.015, 0.015]])
+    sizes = torch.tensor([0.03, 0.03, 0.12])
+    colours = torch.zeros(3, 1, 3)
+    apart = VoxelObservation(pts[:2], sizes[:2], sizes[:2] ** 3, colours[:2], torch.ones(1, dtype=torch.bool))
+    joined = VoxelObservation(pts, sizes, sizes ** 3, colours, torch.ones(1, dtype=torch.bool))
+    assert apart.parts(0.06)[1].shape[0] == 2
+    part, volume, _ = joined.parts(0.06)
+    assert volume.shape[0] == 1 and part.tolist() == [0, 0, 0]
 
 
 def test_split_observation_matches_a_plain_loop():

@@ -102,6 +102,13 @@ REACQUIRE_SCORE_MARGIN = 0.05
 #: The search's start is refused where more of the body than this lies out of the observed volume.
 START_MAX_OUTSIDE = 0.2
 
+#: A start frame whose voxels hold two separate people is refused (torchtrack tracks one person). A connected part
+#: of the voxels (:meth:`VoxelObservation.parts`) is a person when it is at least PERSON_MIN_HEIGHT_M tall (a deep
+#: squat still is) and holds at least PERSON_MIN_VOLUME of the smallest body the search looks for: floor shadows,
+#: a foot's stray voxels and a phantom column of an estimated background are lower or smaller.
+PERSON_MIN_HEIGHT_M = 1.0
+PERSON_MIN_VOLUME = 0.5
+
 #: The shape fit's ridge (bone_fit "shape"; the same form as BONE_FIT_RIDGE's, on an energy in m^2, a mean of
 #: squared distances between the voxels and the body: 2e-6 weighs a group's 10 % change like 0.14 mm of mean
 #: distance). Weak on purpose: ten times stronger held the CMU walks' torsos long, and without it the fit came
@@ -696,12 +703,33 @@ class MarkerlessTracker:
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
+        self._check_one_person(obs)
         if self.config.start == "starfish":
             res, height, body_m3, toe, tried = self._starfish_fit(obs)
         else:
             res, height, body_m3, tried = self._search_fit(obs)
             toe = math.nan
         return self._finish_start(obs, res, height, body_m3, toe, tried)
+
+    def _body_volume_range(self, device: torch.device) -> tuple[float, float]:
+        """The volume (m^3) of the template's blobs at the smallest and the largest size the search looks for."""
+        from torchtrack.tracking.search import SearchConfig
+
+        self.generic.to(device)
+        body = float(blob_volumes(BlobModel(self.generic, *self.blob_specs)).sum())
+        lo, hi = SearchConfig().scale_range
+        return lo ** 3 * body, hi ** 3 * body
+
+    def _check_one_person(self, obs: VoxelObservation) -> None:
+        """Refuse a start frame with two or more separate people in it (:data:`PERSON_MIN_HEIGHT_M`)."""
+        _, volume, span = obs.parts()
+        person = (span[:, 1] - span[:, 0] >= PERSON_MIN_HEIGHT_M) & (
+            volume >= PERSON_MIN_VOLUME * self._body_volume_range(obs.points.device)[0])
+        if int(person.sum()) > 1:
+            vols = ", ".join(f"{float(v):.3f}" for v in volume[person])
+            raise InputError(f"initialisation: the frame shows {int(person.sum())} separate people (parts of the "
+                             f"voxels of {vols} m^3, each at least {PERSON_MIN_HEIGHT_M:g} m tall): the tracker "
+                             "follows one person, and starts at the first frame with one. " + START_ADVICE)
 
     def _sole(self, obs: VoxelObservation) -> float:
         """The soles' height: the lowest voxels' bottom (:meth:`VoxelObservation.height_span`)."""
@@ -714,9 +742,8 @@ class MarkerlessTracker:
         from torchtrack.tracking.search import SearchConfig, score_states, search_pose
 
         dev = obs.points.device
-        self.generic.to(dev)
+        largest = self._body_volume_range(dev)[1]
         blobs = BlobModel(self.generic, *self.blob_specs)
-        largest = SearchConfig().scale_range[1] ** 3 * float(blob_volumes(blobs).sum())  # the largest body searched
         if obs.volume_m3() > STARFISH_MAX_VOLUME_RATIO * largest:  # checked before the search: a refusal is cheap
             raise InputError(f"initialisation: the frame's voxels hold {obs.volume_m3() / largest:.1f} times the "
                              "volume of the largest body searched for: not one person (phantom volume, or a "

@@ -82,6 +82,45 @@ class VoxelObservation:
         d = torch.cat([((mean - lower) / half)[:, :2], (upper - mean) / half], -1).clamp(-1.0, 1.0)  # (K, 5)
         return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
 
+    def parts(self, cell_m: float = 0.06) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The occupied volume's connected parts: voxels that touch through the cells of a ``cell_m`` lattice
+        (26-neighbours) are one part, so parts at least a cell apart are separate (two people, or a person and
+        phantom volume). Returns ``(N,)`` each voxel's part, numbered largest first, and per part its volume
+        ``(K,)`` (m^3) and its ``(K, 2)`` height span (bottom, top of its voxels, m).
+
+        The lattice and its labelling are scipy's (:func:`scipy.ndimage.label`), on the CPU: once per start."""
+        import numpy as np
+        from scipy import ndimage
+
+        if self.num_voxels == 0:
+            return (torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.float64),
+                    torch.zeros(0, 2, dtype=torch.float64))
+        pts = self.points.detach().double().cpu().numpy()
+        half = 0.5 * self.sizes.detach().double().cpu().numpy()[:, None]
+        lo = np.floor((pts - half) / cell_m + 1e-6).astype(np.int64)  # the cells each voxel's box overlaps
+        hi = np.floor((pts + half) / cell_m - 1e-6).astype(np.int64)
+        centre = np.floor(pts / cell_m).astype(np.int64)  # pooled voxels' boxes may not reach their cell's sides
+        lo, hi = np.minimum(lo, centre), np.maximum(hi, centre)
+        origin = lo.min(0)
+        lo, hi, centre = lo - origin, hi - origin, centre - origin
+        grid = np.zeros(hi.max(0) + 1, dtype=bool)
+        for dx, dy, dz in np.ndindex(*(hi - lo).max(0) + 1):  # a few offsets: voxels span at most a few cells
+            cell = lo + (dx, dy, dz)
+            ok = (cell <= hi).all(1)
+            grid[tuple(cell[ok].T)] = True
+        labels, n = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+        part = labels[tuple(centre.T)] - 1  # (N,) 0-based
+        vol = np.bincount(part, weights=(2 * half[:, 0]) ** 3, minlength=n)
+        bottom = np.full(n, np.inf)
+        top = np.full(n, -np.inf)
+        np.minimum.at(bottom, part, pts[:, 2] - half[:, 0])
+        np.maximum.at(top, part, pts[:, 2] + half[:, 0])
+        order = np.argsort(-vol, kind="stable")
+        rank = np.empty(n, dtype=np.int64)
+        rank[order] = np.arange(n)
+        return (torch.from_numpy(rank[part]), torch.from_numpy(vol[order]),
+                torch.from_numpy(np.stack([bottom[order], top[order]], 1)))
+
     def split(self, max_m: float) -> VoxelObservation:
         """Voxels larger than ``max_m`` cut into ``n^3`` equal children (``n = ceil(size / max_m)``), each with
         ``1 / n^3`` of the weight and the parent's colours; smaller ones come back as they are. For the bone fit
