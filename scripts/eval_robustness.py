@@ -35,6 +35,7 @@ from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.io.outputs import script_work_folder
 from torchtrack.io.poses import load_poses, save_poses
+from torchtrack.io.sequence import SequenceFolder
 from torchtrack.synth.scene import _WALL_PALETTE, SceneConfig
 from torchtrack.synth.sequence import BodyConfig, RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.pipeline import NothingTracked, load_config, track
@@ -211,7 +212,10 @@ def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, 
     if save is not None and poses is not None:
         save_poses(poses, save / f"{case.name}.npz")
     out = score(seq, poses)
-    out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead))
+    fitted = None if poses is None else poses.extra.get("subject_height_m")
+    out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead),
+               height=float("nan") if fitted is None else float(fitted),
+               true_height=SequenceFolder(seq).meta.subject_height_m)
     return out
 
 
@@ -242,7 +246,7 @@ def main() -> None:
     if args.save is not None and not args.save.is_dir():
         raise SystemExit(f"--save {args.save}: not a folder")
     print(f"{'case':<14} {'cams':>4} {'start':<8} {'path':<6} {'MPJPE':>7} {'worst':>7} {'invalid':>9} "
-          f"{'start within 50 mm':>19} {'s':>5}  note")
+          f"{'start within 50 mm':>19} {'height m':>13} {'s':>5}  note")
     config = load_config(args.config)
     for item in args.set:
         key, sep, value = item.partition("=")
@@ -260,7 +264,8 @@ def main() -> None:
         rows.append((case, r))
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
-              f"{r['invalid']:>4}/{r['in_view']:<4} {start:>19} {r['seconds']:>5.0f}  {r['note']}", flush=True)
+              f"{r['invalid']:>4}/{r['in_view']:<4} {start:>19} {r['height']:>5.2f} ({r['true_height']:.2f}) "
+              f"{r['seconds']:>5.0f}  {r['note']}", flush=True)
         if args.per_frame:
             for t, (e, seen, ok) in enumerate(zip(*r["per_frame"])):
                 print(f"  {case.name} frame {t:>4} {e:>8.1f} mm  {'in view' if seen else 'out':<7}  "

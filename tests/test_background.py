@@ -29,7 +29,8 @@ FAR_M = 0.3
 M_YUV = np.array([[0.299, 0.587, 0.114],
                   [-0.147, -0.289, 0.436],
                   [0.615, -0.515, -0.100]])
-EXACT = BackgroundConfig(min_std=1e-9, luminance_relax=1.0, shadow_min_gain=1.0, compensate_gain=False)
+EXACT = BackgroundConfig(min_std=1e-9, luminance_relax=1.0, shadow_min_gain=1.0, shadow_min_ncc=0.0,
+                         compensate_gain=False)
 
 
 def _yuv_np(rgb: np.ndarray) -> np.ndarray:
@@ -278,6 +279,55 @@ def test_shadow_test_against_a_closed_form():
     assert (d2[~plain] > FOREGROUND_MAHALANOBIS2).all()
     with pytest.raises(InputError, match="shadow_min_gain"):
         BackgroundConfig(shadow_min_gain=0.0)
+
+
+def test_shadow_texture_test_against_a_plain_loop():
+    """The texture test (shadow_min_ncc): per pixel, the normalised cross-correlation of the frame's Y and the
+    background's over a SHADOW_WINDOW window cut to the image, or a background window too flat to tell, against a
+    plain loop in numpy. A darkened copy of a textured floor keeps its texture (a shadow); a flat dark patch over
+    it (a grey shoe) does not, and is foreground though its colour is a darker copy of the floor's; over a flat
+    floor the colour decides alone."""
+    from torchtrack.background.model import SHADOW_TEXTURE_SNR, SHADOW_WINDOW
+
+    rng = np.random.default_rng(11)
+    C, H, W, relax = 2, 24, 30, 3.0
+    v, u = np.mgrid[0:H, 0:W]
+    texture = 0.45 + 0.15 * (((u // 3) + (v // 3)) % 2) + 0.015 * rng.standard_normal((C, H, W))
+    y_bg = np.where(u < W // 2, texture, 0.5)  # textured left half, flat right half
+    mean = np.stack([y_bg, np.full((C, H, W), 0.02), np.full((C, H, W), -0.03)], 1)  # (C, 3, H, W)
+    std = np.full((C, 3, H, W), 0.01) * np.array([relax, 1.0, 1.0])[:, None, None]  # Y relaxed
+    config = dataclasses.replace(EXACT, luminance_relax=relax, shadow_min_ratio=0.7, shadow_min_gain=0.4,
+                                 shadow_min_ncc=0.5)
+    model = BackgroundModel(torch.from_numpy(mean), torch.from_numpy(std), config)
+    shade = (v >= 4) & (v < 12)  # rows of shadow, and below them rows of a flat grey patch
+    patch = (v >= 14) & (v < 22)
+    y = y_bg + 0.003 * rng.standard_normal((C, H, W))
+    y = np.where(shade, 0.6 * y, y)
+    y = np.where(patch, 0.52 * y_bg.mean(), y)
+    got = model.keeps_texture(torch.from_numpy(y)[None])[0].numpy()
+    k = SHADOW_WINDOW // 2
+    ref = np.zeros((C, H, W), bool)
+    for c in range(C):
+        for i in range(H):
+            for j in range(W):
+                a = y[c, max(i - k, 0):i + k + 1, max(j - k, 0):j + k + 1].ravel()
+                b = y_bg[c, max(i - k, 0):i + k + 1, max(j - k, 0):j + k + 1].ravel()
+                if b.std() < SHADOW_TEXTURE_SNR * 0.01:
+                    ref[c, i, j] = True
+                else:
+                    ref[c, i, j] = ((a - a.mean()) * (b - b.mean())).mean() / (a.std() * b.std() + 1e-300) >= 0.5
+    np.testing.assert_array_equal(got, ref)
+    left, right = u < W // 2 - k, u >= W // 2 + k  # windows wholly in one half
+    inner = (v >= 4 + k) & (v < 12 - k), (v >= 14 + k) & (v < 22 - k)
+    assert got[:, inner[0] & left].all() and got[:, right].all()
+    assert not got[:, inner[1] & left].any()
+    # the whole test: the flat patch over the texture is foreground, the shadow and the patch over the flat floor not
+    images = torch.from_numpy(_rgb_from_yuv(np.stack([y, *mean[:, 1:].transpose(1, 0, 2, 3)], 1)[None]))
+    fg = (model.mahalanobis2(images, shadows=True) > FOREGROUND_MAHALANOBIS2)[0].numpy()
+    assert not fg[:, inner[0] & left].any() and not fg[:, inner[1] & right].any()
+    assert fg[:, inner[1] & left].all()
+    colour_only = BackgroundModel(model.mean_yuv, model.std_yuv, dataclasses.replace(config, shadow_min_ncc=0.0))
+    assert not (colour_only.mahalanobis2(images, shadows=True) > FOREGROUND_MAHALANOBIS2)[0, :, inner[1] & left].any()
 
 
 def test_gain_compensation_darker_frame():

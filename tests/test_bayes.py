@@ -88,7 +88,8 @@ def scene():
     rig = make_ring_rig(RigConfig(num_cameras=3, width=40, height=30, radius_m=3.0, k1=-0.05))
     empty = 0.2 + 0.6 * torch.rand(1, 3, 3, 30, 40, generator=g, dtype=torch.float64)
     empty = empty + 0.01 * torch.randn(8, 3, 3, 30, 40, generator=g, dtype=torch.float64)
-    bg = BackgroundModel.from_frames(empty.clamp(0, 1), BackgroundConfig(compensate_gain=False, shadow_min_gain=0.4))
+    bg = BackgroundModel.from_frames(empty.clamp(0, 1), BackgroundConfig(compensate_gain=False, shadow_min_gain=0.4,
+                                                                          shadow_min_ncc=0.0))  # the colour test
     images = empty[:2].clone()
     images[:, :, :, 10:22, 15:26] = torch.rand(2, 3, 3, 12, 11, generator=g, dtype=torch.float64)  # "body"
     images[:, :, :, 20:30, 5:20] *= 0.6  # a "shadow": the background darkened

@@ -13,8 +13,10 @@ Conventions of this module:
   ``alpha`` (Horprasert et al. 1999's brightness distortion). Each pixel is then also scored against ``alpha B``
   with the ``alpha`` in ``[shadow_min_gain, 1]`` that fits it best (closed form, unrelaxed std), and the better of
   the two background densities is kept. Grey or dark clothing over a lighter floor or wall is such a darker copy
-  too, so a pixel cannot tell: the Bayesian grid uses the shadow-tolerant evidence only for the voxels near the
-  floor, where a shadow's ghost volume lies (:class:`torchtrack.occupancy.BayesConfig`'s ``shadow_layer_m``).
+  of its colour too, but not of its texture: the shadow must also keep the background's texture over a small
+  window (``shadow_min_ncc``), where the background has any. Where it has none a pixel cannot tell, so the
+  Bayesian grid uses the shadow-tolerant evidence only for the voxels near the floor, where a shadow's ghost
+  volume lies (:class:`torchtrack.occupancy.BayesConfig`'s ``shadow_layer_m``).
 * Global gain (``compensate_gain``): for each frame and camera, ``g = median_p(Y_frame / Y_mean)`` over the
   pixels with ``Y_mean >= DARK_Y``, clamped to ``GAIN_RANGE`` (warning, naming the camera, when it had to be).
   A global gain multiplies RGB, hence Y, U and V: the whole YUV image is divided by ``g``. The likelihood is
@@ -36,6 +38,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from torchtrack.background import estimate as est
@@ -55,6 +58,13 @@ FOREGROUND_MAHALANOBIS2 = 16.0
 MIN_FRAMES = 2
 MIN_SEQUENCE_FRAMES = 5
 
+#: The shadow test's texture window (pixels, odd): a cast shadow darkens its background's texture without
+#: changing it (``BackgroundConfig.shadow_min_ncc``).
+SHADOW_WINDOW = 7
+#: A background window is textured, so that the texture test can judge it, where its Y varies by at least this
+#: many times the pixels' noise std: a darker copy of a flat window correlates with it only through the noise.
+SHADOW_TEXTURE_SNR = 2.0
+
 
 @dataclass(frozen=True)
 class BackgroundConfig:
@@ -71,9 +81,15 @@ class BackgroundConfig:
         shadow_min_gain: the darkest shadow: with ``shadows=True``, a pixel whose colour is the background's
             scaled by a factor in ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise)
             is background. Cast shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors
-            of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 (the default) turns the test off: it removes
-            a floor shadow's ghost voxels, but also dark or grey feet and clothing over a grey floor, which are
-            such darker copies of it too (docs/results.md, "Occupancy").
+            of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 turns the test off. By colour alone it also
+            takes dark or grey feet and clothing over a grey floor, which are darker copies of it too: the
+            texture test below tells most of them apart (docs/results.md, "Occupancy").
+        shadow_min_ncc: the shadow test also asks that a shadowed pixel keep its background's texture: over a
+            ``SHADOW_WINDOW`` window, the frame's Y and the background's correlate by at least this (normalised
+            cross-correlation, as the texture-based shadow detectors of Sanin et al. 2012's survey). Dark shoes or
+            trousers over a tiled or patterned floor are darker copies of its colour, not of its texture. Where
+            the background is too flat to tell (``SHADOW_TEXTURE_SNR``) the colour alone decides. Only with
+            ``shadow_min_gain < 1``; 0 turns the texture test off.
         compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
             (also applied to the estimation frames, so the model is in gain-normalised units).
         max_frames: frames used for estimation, evenly sampled over the given ones.
@@ -94,7 +110,8 @@ class BackgroundConfig:
     min_std: float = 0.012
     luminance_relax: float = 3.0
     shadow_min_ratio: float = 0.7
-    shadow_min_gain: float = 1.0
+    shadow_min_gain: float = 0.4
+    shadow_min_ncc: float = 0.7
     compensate_gain: bool = True
     max_frames: int = 60
     fill_static_subject: bool = False
@@ -109,6 +126,8 @@ class BackgroundConfig:
             raise InputError(f"BackgroundConfig.shadow_min_ratio must be in [0, 1), got {self.shadow_min_ratio}")
         if not 0 < self.shadow_min_gain <= 1:
             raise InputError(f"BackgroundConfig.shadow_min_gain must be in (0, 1], got {self.shadow_min_gain}")
+        if not 0 <= self.shadow_min_ncc <= 1:
+            raise InputError(f"BackgroundConfig.shadow_min_ncc must be in [0, 1], got {self.shadow_min_ncc}")
         if not math.isfinite(self.fill_prior_log_odds):
             raise InputError(f"BackgroundConfig.fill_prior_log_odds must be finite, got {self.fill_prior_log_odds}")
         if self.max_frames < MIN_FRAMES:
@@ -375,10 +394,35 @@ class BackgroundModel(nn.Module):
         # log density up to the common -log_norm: -d2 / 2 + correction; the shadow's std is the unrelaxed one
         base = d2 if corr is None else d2 - 2.0 * corr
         shadow = d2_sh - 2.0 * log_relax < base  # NaN: False
+        if self.config.shadow_min_ncc > 0:
+            shadow = shadow & self.keeps_texture(yuv[..., 0, :, :])
         d2 = torch.where(shadow, d2_sh, d2)
         corr_sh = torch.full_like(d2, log_relax)
         corr = torch.where(shadow, corr_sh, corr_sh.new_zeros(()) if corr is None else corr)
         return d2, corr
+
+    def keeps_texture(self, y: torch.Tensor) -> torch.Tensor:
+        """(..., C, H, W) gain-normalised Y -> bool, where the frame keeps its background's texture as a shadow
+        does: the normalised cross-correlation of the two over a ``SHADOW_WINDOW`` window is at least
+        ``shadow_min_ncc``, or the background's window is too flat to tell (``SHADOW_TEXTURE_SNR``). NaN: False
+        unless flat."""
+        k = SHADOW_WINDOW
+        lead, (C, H, W) = y.shape[:-3], y.shape[-3:]
+
+        def box(x: torch.Tensor) -> torch.Tensor:  # window means, the image's edge windows over their inside
+            return F.avg_pool2d(x.reshape(-1, 1, H, W), k, stride=1, padding=k // 2,
+                                count_include_pad=False).reshape(x.shape)
+
+        b = self.mean_yuv[:, 0].to(y)  # (C, H, W)
+        mb = box(b)
+        vb = (box(b * b) - mb * mb).clamp(min=0)
+        noise = 1.0 / (self.inv_std_yuv[:, 0].to(y) * self.config.luminance_relax)  # the unrelaxed Y std
+        flat = vb < (SHADOW_TEXTURE_SNR * noise) ** 2
+        my = box(y)
+        vy = (box(y * y) - my * my).clamp(min=0)
+        cov = box(y * b.expand(*lead, C, H, W)) - my * mb
+        ncc = cov / (vy * vb).sqrt().clamp(min=1e-12)
+        return flat | (ncc >= self.config.shadow_min_ncc)
 
     def log_likelihood(self, images: torch.Tensor, shadows: bool = False) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.
