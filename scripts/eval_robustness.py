@@ -10,11 +10,12 @@ Sequences are rendered once under --work (re-rendered when their settings change
 
     .venv/bin/python scripts/eval_robustness.py                     # every case (about 70 minutes on 2 cores)
     .venv/bin/python scripts/eval_robustness.py --cases walk_8 cross_8    # a subset
-    .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before
+    .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before (2026-11-27)
 
 Columns: MPJPE over the 16 landmarks (mm) on the frames where the subject is in view (every landmark inside at
 least 3 images), the worst such frame, invalid frames among them, and the start: the first frame within 50 mm
-(its time from the first frame), as docs/results.md's stress table reports them.
+(its time from the first frame), as docs/results.md's stress table reports them; the subject's height as the
+track fitted it (and the truth).
 """
 
 from __future__ import annotations
@@ -215,7 +216,7 @@ def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, 
     fitted = None if poses is None else poses.extra.get("subject_height_m")
     out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead),
                height=float("nan") if fitted is None else float(fitted),
-               true_height=SequenceFolder(seq).meta.subject_height_m)
+               true_height=SequenceFolder(seq).meta.subject_height_m or float("nan"))
     return out
 
 
@@ -246,7 +247,7 @@ def main() -> None:
     if args.save is not None and not args.save.is_dir():
         raise SystemExit(f"--save {args.save}: not a folder")
     print(f"{'case':<14} {'cams':>4} {'start':<8} {'path':<6} {'MPJPE':>7} {'worst':>7} {'invalid':>9} "
-          f"{'start within 50 mm':>19} {'height m':>13} {'s':>5}  note")
+          f"{'start within 50 mm':>19} {'height m':>12} {'s':>5}  note")
     config = load_config(args.config)
     for item in args.set:
         key, sep, value = item.partition("=")

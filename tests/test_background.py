@@ -287,7 +287,7 @@ def test_shadow_texture_test_against_a_plain_loop():
     plain loop in numpy. A darkened copy of a textured floor keeps its texture (a shadow); a flat dark patch over
     it (a grey shoe) does not, and is foreground though its colour is a darker copy of the floor's; over a flat
     floor the colour decides alone."""
-    from torchtrack.background.model import SHADOW_TEXTURE_SNR, SHADOW_WINDOW
+    from torchtrack.background.model import SHADOW_TEXTURE_MARGIN, SHADOW_WINDOW
 
     rng = np.random.default_rng(11)
     C, H, W, relax = 2, 24, 30, 3.0
@@ -306,21 +306,30 @@ def test_shadow_texture_test_against_a_plain_loop():
     y = np.where(patch, 0.52 * y_bg.mean(), y)
     got = model.keeps_texture(torch.from_numpy(y)[None])[0].numpy()
     k = SHADOW_WINDOW // 2
+    # textured: the darkest shadow (gain 0.4) of the window plus the noise (0.01) correlates with it by 0.5
+    s_min = SHADOW_TEXTURE_MARGIN * 0.01 * 0.5 / (0.4 * np.sqrt(1 - 0.5 ** 2))
     ref = np.zeros((C, H, W), bool)
     for c in range(C):
         for i in range(H):
             for j in range(W):
                 a = y[c, max(i - k, 0):i + k + 1, max(j - k, 0):j + k + 1].ravel()
                 b = y_bg[c, max(i - k, 0):i + k + 1, max(j - k, 0):j + k + 1].ravel()
-                if b.std() < SHADOW_TEXTURE_SNR * 0.01:
+                if b.std() < s_min:
                     ref[c, i, j] = True
                 else:
-                    ref[c, i, j] = ((a - a.mean()) * (b - b.mean())).mean() / (a.std() * b.std() + 1e-300) >= 0.5
+                    ncc = ((a - a.mean()) * (b - b.mean())).mean() / (a.std() * b.std() + 1e-300)
+                    ref[c, i, j] = ncc >= 0.5 and a.std() >= 0.5 * 0.4 * b.std()
     np.testing.assert_array_equal(got, ref)
     left, right = u < W // 2 - k, u >= W // 2 + k  # windows wholly in one half
     inner = (v >= 4 + k) & (v < 12 - k), (v >= 14 + k) & (v < 22 - k)
     assert got[:, inner[0] & left].all() and got[:, right].all()
     assert not got[:, inner[1] & left].any()
+    # in float32 too, and a frame window flatter than any shadow (a quantised dark shoe) keeps no texture
+    model32 = BackgroundModel(model.mean_yuv.float(), model.std_yuv.float(), config)
+    got32 = model32.keeps_texture(torch.from_numpy(y).float()[None])[0].numpy()
+    assert (got32 != ref).mean() < 0.01
+    flat = model32.keeps_texture(torch.full((1, C, H, W), 0.3141592))[0].numpy()
+    assert not flat[:, left].any() and flat[:, right].all()
     # the whole test: the flat patch over the texture is foreground, the shadow and the patch over the flat floor not
     images = torch.from_numpy(_rgb_from_yuv(np.stack([y, *mean[:, 1:].transpose(1, 0, 2, 3)], 1)[None]))
     fg = (model.mahalanobis2(images, shadows=True) > FOREGROUND_MAHALANOBIS2)[0].numpy()
@@ -523,22 +532,36 @@ def synth(tmp_path_factory):
 
 
 def test_synthetic_foreground_matches_silhouettes(synth, caplog):
+    from torchtrack.background.model import SHADOW_WINDOW
+
     folder, frames, silhouettes, shadow = synth
     with caplog.at_level(logging.INFO, logger="torchtrack.background.model"):
-        model = BackgroundModel.from_folder(folder, BackgroundConfig(shadow_min_gain=0.4))
+        model = BackgroundModel.from_folder(folder, BackgroundConfig(shadow_min_ncc=0.0))  # the colour test alone
     assert "empty-scene frames" in caplog.text and str(folder.root) in caplog.text
     fg = model.mahalanobis2(frames) > FOREGROUND_MAHALANOBIS2  # (T, C, H, W)
     iou = (fg & silhouettes).sum((0, 2, 3)) / (fg | silhouettes).sum((0, 2, 3))
     relaxed_bg = float((~fg & shadow).sum() / shadow.sum())  # the luminance relaxation alone
     shadow_bg = float((~(model.mahalanobis2(frames, shadows=True) > FOREGROUND_MAHALANOBIS2) & shadow).sum()
                       / shadow.sum())
+    # with the texture test (the default): shadow pixels whose window holds no silhouette pixel (a window across
+    # the feet's outline does not keep the floor's texture, however dark the floor next to them is)
+    textured = BackgroundModel(model.mean_yuv, model.std_yuv, BackgroundConfig())
+    near = torch.nn.functional.max_pool2d(silhouettes.flatten(0, 1)[:, None].float(), SHADOW_WINDOW, stride=1,
+                                          padding=SHADOW_WINDOW // 2)[:, 0].reshape(silhouettes.shape) > 0
+    away = shadow & ~near
+    textured_fg = textured.mahalanobis2(frames, shadows=True) > FOREGROUND_MAHALANOBIS2
+    texture_bg = float((~textured_fg & away).sum() / away.sum())
+    texture_all = float((~textured_fg & shadow).sum() / shadow.sum())
     strict = BackgroundModel.from_folder(folder, BackgroundConfig(luminance_relax=1.0))
     strict_bg = float((~(strict.mahalanobis2(frames) > FOREGROUND_MAHALANOBIS2) & shadow).sum() / shadow.sum())
-    print(f"silhouette IoU per camera {iou.tolist()}; shadow pixels classified background: with the shadow test "
-          f"{shadow_bg:.3f}, the luminance relaxation alone {relaxed_bg:.3f}, neither {strict_bg:.3f}")
+    print(f"silhouette IoU per camera {iou.tolist()}; shadow pixels classified background: with the colour test "
+          f"{shadow_bg:.3f}, the luminance relaxation alone {relaxed_bg:.3f}, neither {strict_bg:.3f}; with the "
+          f"texture test too, away from the silhouettes: {texture_bg:.3f} of {int(away.sum())}, all: {texture_all:.3f}")
     assert (iou > 0.8).all(), iou  # measured 0.95, 0.91
     assert shadow_bg > 0.97 and shadow_bg > relaxed_bg
     assert relaxed_bg > 0.8 and strict_bg < 0.6
+    assert texture_bg > 0.97  # measured 0.996
+    assert texture_all > relaxed_bg  # the windows across the feet's outline lose theirs: measured 0.917 > 0.876
 
 
 def test_from_sequence_close_to_from_frames(synth):

@@ -948,7 +948,8 @@ def test_a_start_frame_with_two_people_is_refused_and_the_next_with_one_starts(s
     first = tracker.step(both)
     assert not first.valid and not tracker.initialized
     assert len(tracker.start_refusals) == 1
-    assert re.search(r"2 separate people .*--init-pose", tracker.start_refusals[0]), tracker.start_refusals[0]
+    assert re.search(r"2 separate person-sized parts .*--init-pose", tracker.start_refusals[0]), \
+        tracker.start_refusals[0]
     res = tracker.step(alone)
     assert res.valid and res.reinitialised
     want = subj.forward(crouch[None].double()).output_points[0]
@@ -1542,7 +1543,7 @@ def test_parts_are_the_connected_cells_a_plain_search_finds():
 
 def test_a_large_voxel_joins_the_parts_it_overlaps():
     """Two 3 cm voxels 15 cm apart are two parts; a 12 cm voxel between them (a hull's coarse interior cube)
-    overlaps the cells next to both and makes them one."""
+    overlaps both voxels' cells and makes them one."""
     pts = torch.tensor([[0.015, 0.015, 0.015], [0.165, 0.015, 0.015], [0.09, 0.015, 0.015]])
     sizes = torch.tensor([0.03, 0.03, 0.12])
     colours = torch.zeros(3, 1, 3)

@@ -61,9 +61,10 @@ MIN_SEQUENCE_FRAMES = 5
 #: The shadow test's texture window (pixels, odd): a cast shadow darkens its background's texture without
 #: changing it (``BackgroundConfig.shadow_min_ncc``).
 SHADOW_WINDOW = 7
-#: A background window is textured, so that the texture test can judge it, where its Y varies by at least this
-#: many times the pixels' noise std: a darker copy of a flat window correlates with it only through the noise.
-SHADOW_TEXTURE_SNR = 2.0
+#: The texture test judges a background window whose Y varies enough that the darkest shadow (``shadow_min_gain``
+#: times it, plus the pixels' noise) still correlates with it by ``shadow_min_ncc``, times this margin for the
+#: window's few samples; over a flatter window a shadow's texture is lost in the noise and the colour decides.
+SHADOW_TEXTURE_MARGIN = 1.25
 
 
 @dataclass(frozen=True)
@@ -82,13 +83,13 @@ class BackgroundConfig:
             scaled by a factor in ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise)
             is background. Cast shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors
             of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 turns the test off. By colour alone it also
-            takes dark or grey feet and clothing over a grey floor, which are darker copies of it too: the
-            texture test below tells most of them apart (docs/results.md, "Occupancy").
+            takes dark or grey feet and clothing over a grey floor, which are darker copies of it too; the
+            texture test below tells them apart over a patterned floor (docs/results.md, "Robustness").
         shadow_min_ncc: the shadow test also asks that a shadowed pixel keep its background's texture: over a
             ``SHADOW_WINDOW`` window, the frame's Y and the background's correlate by at least this (normalised
             cross-correlation, as the texture-based shadow detectors of Sanin et al. 2012's survey). Dark shoes or
             trousers over a tiled or patterned floor are darker copies of its colour, not of its texture. Where
-            the background is too flat to tell (``SHADOW_TEXTURE_SNR``) the colour alone decides. Only with
+            the background is too flat to tell (``SHADOW_TEXTURE_MARGIN``) the colour alone decides. Only with
             ``shadow_min_gain < 1``; 0 turns the texture test off.
         compensate_gain: per frame and camera, divide the YUV image by its robust global gain vs the background
             (also applied to the estimation frames, so the model is in gain-normalised units).
@@ -403,26 +404,32 @@ class BackgroundModel(nn.Module):
 
     def keeps_texture(self, y: torch.Tensor) -> torch.Tensor:
         """(..., C, H, W) gain-normalised Y -> bool, where the frame keeps its background's texture as a shadow
-        does: the normalised cross-correlation of the two over a ``SHADOW_WINDOW`` window is at least
-        ``shadow_min_ncc``, or the background's window is too flat to tell (``SHADOW_TEXTURE_SNR``). NaN: False
-        unless flat."""
+        does: over a ``SHADOW_WINDOW`` window (cut to the image at its edges), the normalised cross-correlation
+        of the two is at least ``shadow_min_ncc`` and the frame's window is not flatter than half the darkest
+        shadow's; or the background's window is too flat to tell (``SHADOW_TEXTURE_MARGIN``). A NaN in the
+        window: False unless the background's window is flat."""
+        cfg = self.config
         k = SHADOW_WINDOW
-        lead, (C, H, W) = y.shape[:-3], y.shape[-3:]
+        H, W = y.shape[-2:]
 
-        def box(x: torch.Tensor) -> torch.Tensor:  # window means, the image's edge windows over their inside
+        def box(x: torch.Tensor) -> torch.Tensor:  # window means
             return F.avg_pool2d(x.reshape(-1, 1, H, W), k, stride=1, padding=k // 2,
                                 count_include_pad=False).reshape(x.shape)
 
         b = self.mean_yuv[:, 0].to(y)  # (C, H, W)
         mb = box(b)
         vb = (box(b * b) - mb * mb).clamp(min=0)
-        noise = 1.0 / (self.inv_std_yuv[:, 0].to(y) * self.config.luminance_relax)  # the unrelaxed Y std
-        flat = vb < (SHADOW_TEXTURE_SNR * noise) ** 2
+        noise = 1.0 / (self.inv_std_yuv[:, 0].to(y) * cfg.luminance_relax)  # the unrelaxed Y std
+        rho, gain = cfg.shadow_min_ncc, cfg.shadow_min_gain
+        # a shadow's window a * b + noise correlates with b by a s / sqrt(a^2 s^2 + noise^2) (s: b's std)
+        snr = math.inf if rho >= 1 else SHADOW_TEXTURE_MARGIN * rho / (gain * math.sqrt(1 - rho * rho))
+        flat = vb < (snr * noise) ** 2
         my = box(y)
         vy = (box(y * y) - my * my).clamp(min=0)
-        cov = box(y * b.expand(*lead, C, H, W)) - my * mb
-        ncc = cov / (vy * vb).sqrt().clamp(min=1e-12)
-        return flat | (ncc >= self.config.shadow_min_ncc)
+        cov = box(y * b) - my * mb  # (..., C, H, W), b broadcast over the leading dims
+        # no division: a flat frame window (vy ~ 0) over texture is no shadow, whatever its rounding gives cov
+        kept = (vy >= 0.25 * gain * gain * vb) & (cov >= rho * (vy * vb).sqrt())
+        return flat | kept
 
     def log_likelihood(self, images: torch.Tensor, shadows: bool = False) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) ``log p(I | background)``, a density over YUV space.

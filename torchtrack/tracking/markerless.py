@@ -712,7 +712,8 @@ class MarkerlessTracker:
         return self._finish_start(obs, res, height, body_m3, toe, tried)
 
     def _body_volume_range(self, device: torch.device) -> tuple[float, float]:
-        """The volume (m^3) of the template's blobs at the smallest and the largest size the search looks for."""
+        """The volume (m^3) of the template's blobs at the smallest and the largest size the start's search looks
+        for (the default :class:`~torchtrack.tracking.search.SearchConfig`'s, which the start uses)."""
         from torchtrack.tracking.search import SearchConfig
 
         self.generic.to(device)
@@ -727,9 +728,10 @@ class MarkerlessTracker:
             volume >= PERSON_MIN_VOLUME * self._body_volume_range(obs.points.device)[0])
         if int(person.sum()) > 1:
             vols = ", ".join(f"{float(v):.3f}" for v in volume[person])
-            raise InputError(f"initialisation: the frame shows {int(person.sum())} separate people (parts of the "
-                             f"voxels of {vols} m^3, each at least {PERSON_MIN_HEIGHT_M:g} m tall): the tracker "
-                             "follows one person, and starts at the first frame with one. " + START_ADVICE)
+            raise InputError(f"initialisation: the frame's voxels form {int(person.sum())} separate person-sized "
+                             f"parts ({vols} m^3, each at least {PERSON_MIN_HEIGHT_M:g} m tall): two people, or a "
+                             "person and an object the background does not hold; the tracker follows one person. "
+                             + START_ADVICE)
 
     def _sole(self, obs: VoxelObservation) -> float:
         """The soles' height: the lowest voxels' bottom (:meth:`VoxelObservation.height_span`)."""

@@ -83,12 +83,15 @@ class VoxelObservation:
         return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
 
     def parts(self, cell_m: float = 0.06) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The occupied volume's connected parts: voxels that touch through the cells of a ``cell_m`` lattice
-        (26-neighbours) are one part, so parts at least a cell apart are separate (two people, or a person and
-        phantom volume). Returns ``(N,)`` each voxel's part, numbered largest first, and per part its volume
-        ``(K,)`` (m^3) and its ``(K, 2)`` height span (bottom, top of its voxels, m).
+        """The occupied volume's connected parts: each voxel marks the cells of a ``cell_m`` lattice its box
+        overlaps, and marked cells that touch (26-neighbours) are one part. Voxels less than a cell apart are
+        always one part, two cells or more apart always two (between, it depends on where the lattice falls):
+        two people, or a person and phantom volume. Returns, on the CPU, ``(N,)`` each voxel's part, numbered
+        largest first, and per part its volume ``(K,)`` (m^3) and its ``(K, 2)`` height span (bottom and top of
+        its voxels, m).
 
-        The lattice and its labelling are scipy's (:func:`scipy.ndimage.label`), on the CPU: once per start."""
+        The labelling is scipy's (:func:`scipy.ndimage.label`), on the CPU: the tracker asks on each frame until
+        it has started."""
         import numpy as np
         from scipy import ndimage
 
@@ -97,14 +100,16 @@ class VoxelObservation:
                     torch.zeros(0, 2, dtype=torch.float64))
         pts = self.points.detach().double().cpu().numpy()
         half = 0.5 * self.sizes.detach().double().cpu().numpy()[:, None]
-        lo = np.floor((pts - half) / cell_m + 1e-6).astype(np.int64)  # the cells each voxel's box overlaps
-        hi = np.floor((pts + half) / cell_m - 1e-6).astype(np.int64)
-        centre = np.floor(pts / cell_m).astype(np.int64)  # pooled voxels' boxes may not reach their cell's sides
+        # the cells each voxel's box overlaps; a box that ends on a cell's side (within float32's rounding of a
+        # lattice-aligned grid) does not reach into the next
+        lo = np.floor((pts - half) / cell_m + 1e-3).astype(np.int64)
+        hi = np.floor((pts + half) / cell_m - 1e-3).astype(np.int64)
+        centre = np.floor(pts / cell_m).astype(np.int64)  # the voxel's own cell, even for a box of no size
         lo, hi = np.minimum(lo, centre), np.maximum(hi, centre)
         origin = lo.min(0)
         lo, hi, centre = lo - origin, hi - origin, centre - origin
         grid = np.zeros(hi.max(0) + 1, dtype=bool)
-        for dx, dy, dz in np.ndindex(*(hi - lo).max(0) + 1):  # a few offsets: voxels span at most a few cells
+        for dx, dy, dz in np.ndindex(*((hi - lo).max(0) + 1)):  # a few offsets: voxels span at most a few cells
             cell = lo + (dx, dy, dz)
             ok = (cell <= hi).all(1)
             grid[tuple(cell[ok].T)] = True
