@@ -536,16 +536,17 @@ def test_synthetic_foreground_matches_silhouettes(synth, caplog):
 
     folder, frames, silhouettes, shadow = synth
     with caplog.at_level(logging.INFO, logger="torchtrack.background.model"):
-        model = BackgroundModel.from_folder(folder, BackgroundConfig(shadow_min_ncc=0.0))  # the colour test alone
+        # the colour test alone
+        model = BackgroundModel.from_folder(folder, BackgroundConfig(shadow_min_gain=0.4, shadow_min_ncc=0.0))
     assert "empty-scene frames" in caplog.text and str(folder.root) in caplog.text
     fg = model.mahalanobis2(frames) > FOREGROUND_MAHALANOBIS2  # (T, C, H, W)
     iou = (fg & silhouettes).sum((0, 2, 3)) / (fg | silhouettes).sum((0, 2, 3))
     relaxed_bg = float((~fg & shadow).sum() / shadow.sum())  # the luminance relaxation alone
     shadow_bg = float((~(model.mahalanobis2(frames, shadows=True) > FOREGROUND_MAHALANOBIS2) & shadow).sum()
                       / shadow.sum())
-    # with the texture test (the default): shadow pixels whose window holds no silhouette pixel (a window across
-    # the feet's outline does not keep the floor's texture, however dark the floor next to them is)
-    textured = BackgroundModel(model.mean_yuv, model.std_yuv, BackgroundConfig())
+    # with the texture test too (shadow_min_ncc's default): shadow pixels whose window holds no silhouette pixel (a
+    # window across the feet's outline does not keep the floor's texture, however dark the floor next to them is)
+    textured = BackgroundModel(model.mean_yuv, model.std_yuv, BackgroundConfig(shadow_min_gain=0.4))
     near = torch.nn.functional.max_pool2d(silhouettes.flatten(0, 1)[:, None].float(), SHADOW_WINDOW, stride=1,
                                           padding=SHADOW_WINDOW // 2)[:, 0].reshape(silhouettes.shape) > 0
     away = shadow & ~near
