@@ -191,7 +191,10 @@ def score(seq: Path, poses) -> dict:
     fps = gt.fps
     within = np.nonzero(valid & (err <= START_MM))[0]
     first = int(within[0]) if within.size else None
+    dist = np.linalg.norm(pred - truth, axis=-1)[ok] * 1e3  # (T_ok, J) mm
+    dz = (pred - truth)[ok][..., 2] * 1e3
     return {"frames": T, "in_view": int(seen.sum()), "invalid": int((seen & ~valid).sum()),
+            "per_landmark": (dist.mean(0), dz.mean(0)) if ok.any() else None,
             "mpjpe": float(np.nanmean(err[ok])) if ok.any() else float("nan"),
             "worst": float(np.nanmax(err[ok])) if ok.any() else float("nan"),
             "start_s": None if first is None else first / fps, "per_frame": (err, seen, valid)}
@@ -235,6 +238,9 @@ def main() -> None:
     ap.add_argument("--per-frame", action="store_true",
                     help="also print each case's MPJPE frame by frame (mm; NaN: not tracked), whether the subject "
                          "is in view and whether the frame is valid")
+    ap.add_argument("--per-landmark", action="store_true",
+                    help="also print each case's mean error per landmark and its mean height error (mm, + too high) "
+                         "over the frames in view and valid")
     ap.add_argument("--all-views", action="store_true",
                     help="voxels must be seen by every camera (observation.min_views = the rig's count)")
     args = ap.parse_args()
@@ -267,6 +273,9 @@ def main() -> None:
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
               f"{r['invalid']:>4}/{r['in_view']:<4} {start:>19} {r['height']:>5.2f} ({r['true_height']:.2f}) "
               f"{r['seconds']:>5.0f}  {r['note']}", flush=True)
+        if args.per_landmark and r["per_landmark"] is not None:
+            mean, dz = r["per_landmark"]
+            print("  " + "  ".join(f"{n} {m:.0f} ({z:+.0f})" for n, m, z in zip(LANDMARKS, mean, dz)))
         if args.per_frame:
             for t, (e, seen, ok) in enumerate(zip(*r["per_frame"])):
                 print(f"  {case.name} frame {t:>4} {e:>8.1f} mm  {'in view' if seen else 'out':<7}  "
