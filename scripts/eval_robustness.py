@@ -36,7 +36,7 @@ from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.io.outputs import script_work_folder
 from torchtrack.io.poses import load_poses, save_poses
-from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.sequence import read_meta
 from torchtrack.synth.scene import _WALL_PALETTE, SceneConfig
 from torchtrack.synth.sequence import BodyConfig, RigConfig, SynthConfig, is_current, write_sequence
 from torchtrack.tracking.pipeline import NothingTracked, load_config, track
@@ -219,7 +219,7 @@ def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, 
     fitted = None if poses is None else poses.extra.get("subject_height_m")
     out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead),
                height=float("nan") if fitted is None else float(fitted),
-               true_height=SequenceFolder(seq).meta.subject_height_m or float("nan"))
+               true_height=read_meta(seq / "meta.toml").subject_height_m or float("nan"))
     return out
 
 
