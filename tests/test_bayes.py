@@ -31,7 +31,8 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
     unrelaxed Y std ``bg_std / luminance_relax`` (the background model's shadow band). For a voxel of the floor
     layer (``cfg.shadow_layer_m``) the background density is the larger of that and the shadow's: the
     background times the alpha in ``[shadow_min_gain, 1]`` that fits best by weighted least squares, with the
-    unrelaxed std.
+    unrelaxed std, where at least ``cfg.shadow_min_share`` of the cameras whose window evidence is positive
+    without it have a negative one with it.
     """
     C, _, H, W = images.shape
     s1, r1 = cfg.p_sample, cfg.p_other
@@ -44,8 +45,7 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
     half = cfg.window // 2
     for v, X in enumerate(centres):
         in_layer = shadow_min_gain < 1 and X[2] < spec.lower_m[2] + cfg.shadow_layer_m
-        log1 = log0 = math.log(cfg.prior), math.log(1 - cfg.prior)
-        log1, log0 = log1[0], log0[1]
+        lit_ev, shadow_ev = [], []  # per camera seeing the voxel: the window's log ratio without / with shadows
         for c in range(C):
             rvec, _ = cv2.Rodrigues(rig.R_cam_world[c].numpy())
             uv, _ = cv2.projectPoints(X[None], rvec, rig.t_cam_world[c].numpy(), rig.K[c].numpy(),
@@ -55,6 +55,7 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
             pu, pv = int(round(u)), int(round(w))
             if z <= 0 or not (0 <= pu < W and 0 <= pv < H):
                 continue
+            ev = [0.0, 0.0]
             for dv in range(-half, half + 1):
                 for du in range(-half, half + 1):
                     qu, qv = pu + du, pv + dv
@@ -68,16 +69,23 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
                         if ch == 0 and not in_band:
                             s = s / luminance_relax
                         normal *= math.exp(-0.5 * ((yuv[c, ch, qv, qu] - m) / s) ** 2) / (s * math.sqrt(2 * math.pi))
+                    shadowed = normal
                     if in_layer:
                         m = bg_mean[c, :, qv, qu]
                         s = bg_std[c, :, qv, qu] / np.array([luminance_relax, 1.0, 1.0])
                         alpha = float(np.clip((yuv[c, :, qv, qu] * m / s ** 2).sum() / (m * m / s ** 2).sum(),
                                               shadow_min_gain, 1.0))
-                        shadowed = np.prod(np.exp(-0.5 * ((yuv[c, :, qv, qu] - alpha * m) / s) ** 2)
-                                           / (s * math.sqrt(2 * math.pi)))
-                        normal = max(normal, float(shadowed))
-                    log1 += math.log(pf1 * uniform + (1 - pf1) * normal)
-                    log0 += math.log(pf0 * uniform + (1 - pf0) * normal)
+                        shadowed = max(normal, float(np.prod(np.exp(-0.5 * ((yuv[c, :, qv, qu] - alpha * m) / s) ** 2)
+                                                             / (s * math.sqrt(2 * math.pi)))))
+                    for i, n in enumerate((normal, shadowed)):
+                        ev[i] += (math.log(pf1 * uniform + (1 - pf1) * n) - math.log(pf0 * uniform + (1 - pf0) * n))
+            lit_ev.append(ev[0])
+            shadow_ev.append(ev[1])
+        foreground = [e > 0 for e in lit_ev]
+        votes = sum(f and e < 0 for f, e in zip(foreground, shadow_ev))
+        use_shadow = in_layer and votes >= cfg.shadow_min_share * sum(foreground)
+        log_odds = math.log(cfg.prior / (1 - cfg.prior)) + sum(shadow_ev if use_shadow else lit_ev)
+        log1, log0 = log_odds, 0.0
         out[v] = 1.0 / (1.0 + math.exp(log0 - log1))
     return out
 
@@ -99,6 +107,8 @@ def scene():
 
 @pytest.mark.parametrize("cfg", [BayesConfig(), BayesConfig(pd=0.8, pfa=0.2, window=1, prior=0.3),
                                  BayesConfig(window=5, p_sample=0.7, p_other=0.3, shadow_layer_m=0.5),
+                                 BayesConfig(shadow_layer_m=0.5, shadow_min_share=0.0),
+                                 BayesConfig(shadow_layer_m=0.5, shadow_min_share=1.0),
                                  BayesConfig(shadow_layer_m=0.0)])
 def test_fast_grid_equals_algorithm1(scene, cfg):
     rig, bg, images, spec = scene
@@ -110,9 +120,12 @@ def test_fast_grid_equals_algorithm1(scene, cfg):
         # tolerance: float64 throughout; differences only from summation order
         np.testing.assert_allclose(fast[b].numpy(), ref, atol=1e-9, rtol=0)
     assert 0.0 < float(fast.mean()) < 1.0  # not a degenerate case: some voxels are occupied, some are not
-    if cfg.shadow_layer_m > 0:  # the shadow test is exercised: it changes the floor layer's voxels
+    if cfg.shadow_layer_m > 0 and cfg.shadow_min_share < 1:  # the shadow test changes the floor layer's voxels
         plain = BayesianGrid(rig, spec, bg, dataclasses.replace(cfg, shadow_layer_m=0.0))(images).probability()
         assert float((plain - fast).abs().max()) > 0.01
+    if cfg.shadow_layer_m > 0 and cfg.shadow_min_share == 0:  # the cameras' vote is exercised: a half share differs
+        half = BayesianGrid(rig, spec, bg, dataclasses.replace(cfg, shadow_min_share=0.5))(images).probability()
+        assert float((half - fast).abs().max()) > 0.01
 
 
 def test_window_sum_by_hand():
@@ -160,6 +173,8 @@ def test_bad_input(scene):
         BayesConfig(window=4)
     with pytest.raises(InputError, match="pd"):
         BayesConfig(pd=1.0)
+    with pytest.raises(InputError, match="shadow_min_share"):
+        BayesConfig(shadow_min_share=1.5)
     empty = grid(bg_frame(bg)).occupied()
     assert int(empty.sum()) == 0  # nobody there: an empty grid
 

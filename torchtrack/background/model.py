@@ -82,11 +82,10 @@ class BackgroundConfig:
         shadow_min_gain: the darkest shadow: with ``shadows=True``, a pixel whose colour is the background's
             scaled by a factor in ``[shadow_min_gain, 1]`` (darker, same chromaticity, up to the per-pixel noise)
             is background. Cast shadows indoors keep about 0.4-0.9 of the light (the range of the shadow detectors
-            of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 (the default) turns the test off. By colour
-            alone it also takes dark or grey feet and clothing over a grey floor, which are darker copies of it
-            too; the texture test below tells large ones apart over a patterned floor, but a foot's pixels take
-            their window from the shadow around them, and a start without its feet can go wrong, hence off
-            (docs/results.md, "Robustness", Shadows).
+            of Horprasert et al. 1999 and Cucchiara et al. 2003). 1 (the default) turns the test off. It helps
+            where the clothes contrast with the floor, but shoes and trousers in the floor's own tones are darker
+            copies of it, taken for its shadow whatever the texture or the cameras' vote (the Bayesian grid's
+            ``shadow_min_share``), hence off (docs/results.md, "Robustness", Shadows).
         shadow_min_ncc: the shadow test also asks that a shadowed pixel keep its background's texture: over a
             ``SHADOW_WINDOW`` window, the frame's Y and the background's correlate by at least this (normalised
             cross-correlation, as the texture-based shadow detectors of Sanin et al. 2012's survey). Dark shoes or

@@ -53,6 +53,11 @@ class BayesConfig:
             it. A floor shadow seen by every camera carves a ghost slab in this layer around the feet, while grey
             or dark clothing, which the shadow test cannot tell from a shadow on a lighter floor or wall, is kept
             everywhere above it (0: no shadow test; docs/results.md, "Occupancy").
+        shadow_min_share: a floor-layer voxel takes the shadow test's evidence only where at least this share of
+            the cameras that see foreground there see a shadow: a cast shadow's ghost voxel shows shadow to each
+            camera whose view of it the body does not block, while a foot low in contrast with the floor is taken
+            for shadow by some cameras only, and a single camera's background vote outweighs all the others'
+            foreground (docs/results.md, "Robustness", Shadows). 0: every camera's shadow counts.
     """
 
     pd: float = 0.99
@@ -63,6 +68,7 @@ class BayesConfig:
     prior: float = 0.5
     min_views: int | None = None
     shadow_layer_m: float = 0.2
+    shadow_min_share: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("pd", "pfa", "p_sample", "p_other", "prior"):
@@ -73,6 +79,8 @@ class BayesConfig:
             raise InputError(f"BayesConfig.window must be a positive odd number, got {self.window}")
         if not self.shadow_layer_m >= 0:
             raise InputError(f"BayesConfig.shadow_layer_m must be >= 0, got {self.shadow_layer_m}")
+        if not 0 <= self.shadow_min_share <= 1:
+            raise InputError(f"BayesConfig.shadow_min_share must be in [0, 1], got {self.shadow_min_share}")
 
     def detection_probabilities(self) -> tuple[float, float]:
         """(p(F=1 | G=1), p(F=1 | G=0))."""
@@ -186,8 +194,18 @@ class BayesianGrid(nn.Module):
         prior = math.log(self.config.prior / (1 - self.config.prior))
         log_odds = self.lookup.gather_sum(self._evidence(log_bg)) + prior  # (B, V)
         if log_bg_shadows is not None and self.floor_index.numel():
-            ev = self._evidence(log_bg_shadows).flatten(2)  # (B, C, H * W)
             pix = self.lookup.pixel_index[:, self.floor_index]  # (C, L)
-            low = ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * (pix >= 0)
-            log_odds = log_odds.index_copy(1, self.floor_index, low.sum(1) + prior)
+            seen = pix >= 0
+
+            def floor(log_bg: torch.Tensor) -> torch.Tensor:  # (B, C, L) evidence of the floor layer's pixels
+                ev = self._evidence(log_bg).flatten(2)  # (B, C, H * W)
+                return ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * seen
+
+            lit, shadowed = floor(log_bg), floor(log_bg_shadows)
+            # the shadow's evidence where enough of the cameras that see foreground there see a shadow
+            fg = lit > 0
+            votes = (fg & (shadowed < 0)).sum(1)  # (B, L)
+            use = votes >= self.config.shadow_min_share * fg.sum(1)
+            low = torch.where(use, shadowed.sum(1), lit.sum(1))
+            log_odds = log_odds.index_copy(1, self.floor_index, low + prior)
         return Occupancy(log_odds, self.observed, self.spec)
