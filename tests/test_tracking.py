@@ -1095,6 +1095,61 @@ def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
         assert revised == 0 and err.mean() > 0.1, err
 
 
+@pytest.mark.parametrize("arm", [0.95, 1.75, 2.2])
+def test_starfish_arms_measured_from_the_voxels(skel, arm):
+    """The starfish start reads the arms' abduction from the voxels' far ends (the hands, seen from the shoulders of
+    the body scaled to the voxels): within 0.05 rad of the truth for arms below, above and far above the
+    shoulders (a voxelised starfish turned 0.7 rad), and the start lands within 20 mm."""
+    subj = skel.scaled_to_height(1.7)
+    truth = subj.starfish_angles(arm_abduction=arm)
+    truth[skel.dof_names.index("root_rz")] = 0.7
+    obs = _observation(subj, BlobModel.from_config(subj), truth)
+    tracker = MarkerlessTracker(skel, TrackerConfig(start="starfish"))
+    tracker._setup(1.7, obs.points.device)
+    p, w = obs.points, obs.weights
+    centre = (w[:, None] * p).sum(0) / w.sum()
+    lateral = torch.tensor([-math.sin(0.7), math.cos(0.7)])  # the arms' line
+    measured = tracker._starfish_arm_abduction(p, w, (p[:, :2] - centre[:2]) @ lateral, float(p[:, 2].min()))
+    assert abs(measured - arm) < 0.05, measured
+    res = tracker.initialize(obs)
+    err = float((res.output_points[:16].double() - _landmarks(subj, truth).double()).norm(dim=-1).mean())
+    assert err < 0.02, err
+
+
+@pytest.mark.parametrize("starfish", [True, False])
+def test_a_starfish_start_takes_the_fast_path_where_the_search_misses(skel, monkeypatch, starfish):
+    """The search's answer forced wrong (its arms hanging): on a starfish frame the starfish's fast path starts
+    within 30 mm of the truth instead (ground truth: the pose's forward kinematics); on a frame of someone standing
+    with the arms down the fast path refuses it, and the search's answer is kept."""
+    import torchtrack.tracking.search as search
+
+    names = list(skel.dof_names)
+    arms = [i for i, n in enumerate(names) if "shoulder" in n or "elbow" in n]
+    found = search.search_pose
+
+    def hanging(obs, sk, *a, **k):
+        r = found(obs, sk, *a, **k)
+        angles = r.angles.clone()
+        angles[:, arms] = sk.rest_angles().to(angles)[arms]
+        return dataclasses.replace(r, angles=angles)
+
+    monkeypatch.setattr(search, "search_pose", hanging)
+    subj = skel.scaled_to_height(1.7)
+    truth = subj.starfish_angles() if starfish else subj.rest_angles()
+    truth[names.index("root_rz")] = 0.7
+    truth[names.index("root_tx")] += 0.3
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.0))
+    res = tracker.step(_observation(subj, BlobModel.from_config(subj), truth))
+    assert res.valid and res.reinitialised
+    err = float((res.output_points[:16].double() - _landmarks(subj, truth).double()).norm(dim=-1).mean())
+    if starfish:
+        assert err < 0.03, err
+    else:  # the search's (forced) answer: the arms hang as the truth's do
+        assert err < 0.05, err
+    # the starfish's start measures how far its toes point ahead; the search's leaves it NaN
+    assert math.isnan(tracker.start_check.toe_ahead_m) != starfish
+
+
 @pytest.mark.parametrize("race_s", [0.5, 0.0])
 def test_a_reacquisition_turned_round_loses_its_race(skel, monkeypatch, race_s):
     """A walker lost for three frames comes back, and the re-acquired pose is forced to face backwards (turned
@@ -1158,7 +1213,7 @@ def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):
                            torch.cat([obs.weights, obs.weights[:n]]),
                            torch.cat([obs.colours, obs.colours[:1].expand(n, -1, -1)]), obs.cameras_valid)
     tracker = MarkerlessTracker(skel, TrackerConfig(start="starfish"))
-    with pytest.raises(InputError, match=r"the right arm is not raised.*--init-pose"):
+    with pytest.raises(InputError, match=r"the (left|right|left and right) arms? (is|are) not raised.*--init-pose"):
         tracker.initialize(obs)
     assert not tracker.initialized
 

@@ -22,11 +22,13 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
    accepted frames is searched for again from hanging (the frame tracked once more with it at rest), which is kept
    where it fits better than the frame tracked once more as it is and does not diverge.
 
-Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic from the starfish pose (Caillette §4.2):
-position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms lie
-along the main one) and the feet (the toes point forwards), subject height from the highest voxel; the
-skeleton is scaled to it and the blobs learn their colours over the first frames. Or the caller gives an
-initial state vector and height (de Bem's reusable initialisation, e.g. a previous run's ``poses.npz``).
+Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic: by default from any pose, by the batched
+search of :mod:`torchtrack.tracking.search`, with the starfish start as a fast path where the frame looks like
+one (the better-scoring of the two is kept); with ``start: starfish`` from the starfish pose alone (Caillette
+§4.2): position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms
+lie along the main one) and the feet (the toes point forwards), subject height from the highest voxel. The
+skeleton is fitted to the voxels and the blobs learn their colours over the first frames. Or the caller gives
+an initial state vector and height (de Bem's reusable initialisation, e.g. a previous run's ``poses.npz``).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
 from torchtrack.checks import InputError, check_shape, config_section
+from torchtrack.conventions import LANDMARKS
 from torchtrack.skeleton.ik import CCDConfig, CCDSolver
 from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
 from torchtrack.tracking.functional import AxisPivot
@@ -143,6 +146,13 @@ HEADING_MARGIN_M = 0.002
 #: docs/results.md, "Tracker settings").
 STARFISH_MIN_ARM_RAISE_DEG = 45.0
 
+#: The starfish start tries the template's arms (``Skeleton.starfish_angles``' abduction, rad from hanging) and,
+#: where it differs from them by more than ``STARFISH_ARM_MARGIN``, the abduction the voxels' far ends show (their
+#: outermost ``STARFISH_HAND_SHARE`` along the arms' line: the hands): starfish are held with the arms anywhere
+#: from below to above the shoulders, and a fit from the template's may not reach an arm held far from it.
+STARFISH_ARM_ABDUCTION = 1.25
+STARFISH_ARM_MARGIN = 0.2
+STARFISH_HAND_SHARE = 0.02
 #: The starfish frame's voxels may hold at most this many times the volume of the body (its blobs' ellipsoids)
 #: scaled to their height: more is not one person (phantom volume; a background estimated from a video whose
 #: subject stands still, painted out with the room around them). The synthetic starts stay well under it and the
@@ -204,8 +214,9 @@ class TrackerConfig:
         init_passes: EM/IK passes on the first frame during initialisation.
         start: how the first pose is found. ``"search"``: from any pose, by the batched search of
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
-            ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``); ``"starfish"``: the
-            starfish start (Caillette §4.2), which refuses any other pose.
+            ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``), and the starfish
+            start too where the frame passes its checks, the better-scoring kept; ``"starfish"``: the starfish
+            start (Caillette §4.2) alone, which refuses any other pose.
         start_real_poses: the search also starts from real captured poses
             (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
             reaching poses seen by 8 or more cameras, where more starts land right. Off by default: beside phantom
@@ -706,10 +717,38 @@ class MarkerlessTracker:
         self._check_one_person(obs)
         if self.config.start == "starfish":
             res, height, body_m3, toe, tried = self._starfish_fit(obs)
-        else:
-            res, height, body_m3, tried = self._search_fit(obs)
-            toe = math.nan
-        return self._finish_start(obs, res, height, body_m3, toe, tried)
+            return self._finish_start(obs, res, height, body_m3, toe, tried)
+        before = self._fork()  # the state before the start, for the starfish's fast path
+        res, height, body_m3, tried = self._search_fit(obs)
+        res = self._finish_start(obs, res, height, body_m3, math.nan, tried)
+        return self._starfish_fast_path(obs, res, before)
+
+    def _starfish_fast_path(self, obs: VoxelObservation, res: FrameResult, before: MarkerlessTracker
+                            ) -> FrameResult:
+        """A searched start (``res``, this tracker's state) against the starfish start from the same state
+        (``before``), where its checks take the frame for a starfish: the one whose finished pose scores higher on
+        ``obs`` (the search's two-way score, each with its own fitted body) is kept. The starfish's placement
+        (arms' line, toes, the voxels' height) lands where the search's sampled poses may not, e.g. arms raised
+        above the shoulders on a body of unusual proportions (docs/results.md, "The start search")."""
+        from torchtrack.tracking.search import score_states
+
+        starfish = before
+        starfish.config = replace(self.config, start="starfish")
+        try:
+            fit, height, body_m3, toe, tried = starfish._starfish_fit(obs)
+            alt = starfish._finish_start(obs, fit, height, body_m3, toe, tried)
+        except InputError as exc:  # not a starfish: the search's start stays
+            log.debug("start: the starfish's fast path does not take the frame (%s)", str(exc).split(". ")[0])
+            return res
+        own, other = (float(score_states(obs, t.subject.skeleton, t.subject.blobs, r.angles[None])[0][0])
+                      for t, r in ((self, res), (starfish, alt)))
+        log.debug("start: the search's start scores %.3f, the starfish's %.3f", own, other)
+        if other <= own:
+            return res
+        config = self.config
+        self.__dict__.update(starfish.__dict__)  # this tracker goes on from the starfish's start
+        self.config = config
+        return alt
 
     def _body_volume_range(self, device: torch.device) -> tuple[float, float]:
         """The volume (m^3) of the template's blobs at the smallest and the largest size the start's search looks
@@ -818,9 +857,14 @@ class MarkerlessTracker:
         candidates = [yaw] if toe > 0.03 else [yaw, yaw + math.pi]
         if float(evals[1]) < 1.3 * float(evals[0]):  # no clear arms' line: try the quarter turns as well
             candidates += [h + 0.5 * math.pi for h in candidates]
+        # the arms as raised as the voxels' far ends show, where that differs from the template's starfish
+        arms = [STARFISH_ARM_ABDUCTION]
+        measured = self._starfish_arm_abduction(pts, w, along, sole)
+        if abs(measured - STARFISH_ARM_ABDUCTION) > STARFISH_ARM_MARGIN:
+            arms.append(measured)
         tried = []  # (heading, cost) of each candidate
-        for candidate in candidates:
-            a = skel.starfish_angles().to(pts)
+        for candidate, arm in ((c, arm) for c in candidates for arm in arms):
+            a = skel.starfish_angles(arm_abduction=arm).to(pts)
             a[skel.dof_names.index("root_tz")] += max(sole, 0.0)
             a[skel.dof_names.index("root_tx")] = c[0]
             a[skel.dof_names.index("root_ty")] = c[1]
@@ -836,11 +880,29 @@ class MarkerlessTracker:
             log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
                       1e3 * res.residual_m, res.explained)
             # the toes' heading (the first) is kept unless another fits clearly better
-            if best is None or cost < best[0] - (HEADING_MARGIN_M if best[2] else 0.0):
-                best = (cost, res, best is None and toe > 0.0)
+            margin = HEADING_MARGIN_M if best is not None and best[2] and candidate != candidates[0] else 0.0
+            if best is None or cost < best[0] - margin:
+                best = (cost, res, candidate == candidates[0] and toe > 0.0)
         res = best[1]
         self.angles = self.previous = res.angles
         return res, height, body_m3, toe, tuple(tried)
+
+    def _starfish_arm_abduction(self, pts: torch.Tensor, w: torch.Tensor, along: torch.Tensor, sole: float) -> float:
+        """The arms' abduction (rad from hanging, both sides' mean) that puts the hands where the voxels' far ends
+        along the arms' line lie (their outermost ``STARFISH_HAND_SHARE``), seen from the shoulders of the body
+        scaled to the voxels (:attr:`subject`)."""
+        skel = self.subject.skeleton
+        lm = skel.forward(skel.starfish_angles()[None].to(skel.lower)).landmarks[0]  # facing +X, soles at z = 0
+        shoulder = lm[LANDMARKS.index("l_shoulder")]
+        reach, drop = [], []
+        for side in (1.0, -1.0):
+            x = side * along
+            far = x >= torch.quantile(x, 1.0 - STARFISH_HAND_SHARE)
+            wf = w[far] / w[far].sum()
+            reach.append(float((wf * x[far]).sum()) - abs(float(shoulder[1])))
+            drop.append(float(shoulder[2]) - (float((wf * pts[far, 2]).sum()) - sole))
+        angle = sum(math.atan2(r, d) for r, d in zip(reach, drop)) / 2
+        return min(max(angle, 0.0), math.pi)
 
     def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
                       tried: tuple) -> FrameResult:
