@@ -10,6 +10,7 @@ Sequences are rendered once under --work (re-rendered when their settings change
 
     .venv/bin/python scripts/eval_robustness.py                     # every case (about 70 minutes on 2 cores)
     .venv/bin/python scripts/eval_robustness.py --cases walk_8 cross_8    # a subset
+    .venv/bin/python scripts/eval_robustness.py --cases cmu131_01_8 --stop 24   # the start: its first 24 frames
     .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before (2026-11-27)
 
 Columns: MPJPE over the 16 landmarks (mm) on the frames where the subject is in view (every landmark inside at
@@ -173,10 +174,10 @@ def in_view(seq: Path, truth: np.ndarray) -> np.ndarray:
     return (valid.reshape(-1, T, J).sum(0) >= IN_VIEW).all(-1).numpy()
 
 
-def score(seq: Path, poses) -> dict:
+def score(seq: Path, poses, stop: int | None = None) -> dict:
     gt = load_poses(seq / "gt.npz")
     idx = [gt.joint_names.index(n) for n in LANDMARKS]
-    truth = gt.joints3d[:, idx]  # (T, J, 3)
+    truth = gt.joints3d[:stop, idx]  # (T, J, 3)
     seen = in_view(seq, truth)
     T = truth.shape[0]
     pred = np.full_like(truth, np.nan)
@@ -200,7 +201,8 @@ def score(seq: Path, poses) -> dict:
             "start_s": None if first is None else first / fps, "per_frame": (err, seen, valid)}
 
 
-def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, save: Path | None = None) -> dict:
+def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, save: Path | None = None,
+             stop: int | None = None) -> dict:
     seq = work / case.name
     cfg = synth_config(case, duration, fps)
     if not is_current(seq, cfg):
@@ -208,14 +210,15 @@ def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, 
     t0 = time.perf_counter()
     note = ""
     try:
-        poses = track(seq, config=config, workers=None, progress=False).poses  # workers: the config's, as the CLI
+        passes = {} if stop is None else {"stop": stop, "refine_passes": 0, "refit_passes": 0}
+        poses = track(seq, config=config, workers=None, progress=False, **passes).poses  # workers: the config's
     except NothingTracked as e:
         poses, note = e.poses, f"nothing tracked: {e}"
     except InputError as e:
         poses, note = None, f"refused: {str(e).splitlines()[0][:90]}"
     if save is not None and poses is not None:
         save_poses(poses, save / f"{case.name}.npz")
-    out = score(seq, poses)
+    out = score(seq, poses, stop)
     fitted = None if poses is None else poses.extra.get("subject_height_m")
     out.update(seconds=time.perf_counter() - t0, note=note, cameras=case.cameras + int(case.overhead),
                height=float("nan") if fitted is None else float(fitted),
@@ -241,6 +244,8 @@ def main() -> None:
     ap.add_argument("--per-landmark", action="store_true",
                     help="also print each case's mean error per landmark and its mean height error (mm, + too high) "
                          "over the frames in view and valid")
+    ap.add_argument("--stop", type=int, default=None, metavar="N",
+                    help="track and score only the first N frames, without refinement or body refit (the start)")
     ap.add_argument("--all-views", action="store_true",
                     help="voxels must be seen by every camera (observation.min_views = the rig's count)")
     args = ap.parse_args()
@@ -267,7 +272,7 @@ def main() -> None:
         if args.all_views:
             config["observation"]["min_views"] = case.cameras + int(case.overhead)
         config["tracker"]["start_prior_exclude"] = prior_leave_out(case.motion)
-        r = run_case(case, work, args.duration, args.fps, config, args.save)
+        r = run_case(case, work, args.duration, args.fps, config, args.save, args.stop)
         rows.append((case, r))
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "

@@ -20,7 +20,7 @@ import torch
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
-from torchtrack.occupancy.bayes import pixel_log_ratio
+from torchtrack.occupancy.bayes import shadow_votes
 from torchtrack.tracking.pipeline import load_config, observer_from_config
 
 SHARES = (0.0, 0.5, 0.67)
@@ -35,16 +35,9 @@ def votes(seq: Path, frame: int) -> None:
     bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), progress=False)
     grid = observer_from_config(folder.rig.float(), bg, cfg["observation"], "bayes", 0.03).grid
     lit, shadowed, _ = bg.log_likelihood_and_yuv(folder.read_frame(frame)[None], shadows=True)
-    pix = grid.lookup.pixel_index[:, grid.floor_index]  # (C, L)
-    seen = pix >= 0
-
-    def floor(log_bg: torch.Tensor) -> torch.Tensor:  # (C, L) each camera's evidence on the floor layer
-        ev = pixel_log_ratio(log_bg, bg.log_uniform, grid.config)[0].nan_to_num(0.0).flatten(1)
-        return ev.gather(1, pix.clamp(min=0)) * seen
-
-    ev_lit, ev_sh = floor(lit), floor(shadowed)
-    fg = ev_lit > 0
-    share = (fg & (ev_sh < 0)).sum(0) / fg.sum(0).clamp(min=1)  # (L,)
+    ev_lit, ev_sh = grid.floor_evidence(lit)[0], grid.floor_evidence(shadowed)[0]  # (C, L) each
+    votes, seeing = shadow_votes(ev_lit[None], ev_sh[None])
+    share = votes[0] / seeing[0].clamp(min=1)  # (L,)
     occupied = ev_lit.sum(0) > 0  # the prior is even: log odds > 0
     gt = load_poses(seq / "gt.npz")
     feet = [i for i, n in enumerate(gt.joint_names) if "ankle" in n or "toe" in n]

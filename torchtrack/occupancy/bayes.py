@@ -105,6 +105,14 @@ def pixel_log_ratio(log_bg: torch.Tensor, log_uniform: float, config: BayesConfi
             - F.softplus(x + math.log((1 - f0) / f0)))
 
 
+def shadow_votes(lit: torch.Tensor, shadowed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-camera evidence of voxels without and with the shadow test, (B, C, L) each -> (B, L) how many cameras
+    see a shadow there (foreground without the test, background with it) and how many see foreground without it
+    (``BayesConfig.shadow_min_share``)."""
+    foreground = lit > 0
+    return (foreground & (shadowed < 0)).sum(1), foreground.sum(1)
+
+
 def window_sum(x: torch.Tensor, k: int) -> torch.Tensor:
     """(B, C, H, W) -> (B, C, H, W) sum over the k x k window around each pixel (zeros beyond the border)."""
     if k == 1:
@@ -172,6 +180,13 @@ class BayesianGrid(nn.Module):
         r = pixel_log_ratio(log_bg, self.background.log_uniform, self.config)
         return window_sum(torch.nan_to_num(r, nan=0.0), self.config.window)
 
+    def floor_evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) background log-likelihood -> (B, C, L) each camera's evidence (:meth:`evidence`'s log
+        ratio) for the floor layer's voxels (``floor_index``); 0 where the camera does not see the voxel."""
+        ev = self._evidence(log_bg).flatten(2)  # (B, C, H * W)
+        pix = self.lookup.pixel_index[:, self.floor_index]  # (C, L)
+        return ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * (pix >= 0)
+
     def forward(self, images: torch.Tensor) -> Occupancy:
         """Occupancy of a batch of frames.
 
@@ -194,18 +209,9 @@ class BayesianGrid(nn.Module):
         prior = math.log(self.config.prior / (1 - self.config.prior))
         log_odds = self.lookup.gather_sum(self._evidence(log_bg)) + prior  # (B, V)
         if log_bg_shadows is not None and self.floor_index.numel():
-            pix = self.lookup.pixel_index[:, self.floor_index]  # (C, L)
-            seen = pix >= 0
-
-            def floor(log_bg: torch.Tensor) -> torch.Tensor:  # (B, C, L) evidence of the floor layer's pixels
-                ev = self._evidence(log_bg).flatten(2)  # (B, C, H * W)
-                return ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * seen
-
-            lit, shadowed = floor(log_bg), floor(log_bg_shadows)
-            # the shadow's evidence where enough of the cameras that see foreground there see a shadow
-            fg = lit > 0
-            votes = (fg & (shadowed < 0)).sum(1)  # (B, L)
-            use = votes >= self.config.shadow_min_share * fg.sum(1)
+            lit, shadowed = self.floor_evidence(log_bg), self.floor_evidence(log_bg_shadows)
+            votes, seeing = shadow_votes(lit, shadowed)
+            use = votes >= self.config.shadow_min_share * seeing  # the shadow's evidence where enough cameras agree
             low = torch.where(use, shadowed.sum(1), lit.sum(1))
             log_odds = log_odds.index_copy(1, self.floor_index, low + prior)
         return Occupancy(log_odds, self.observed, self.spec)
