@@ -52,14 +52,15 @@ def ensure_sequence(work: Path, name: str, cams: int, scene: dict, motion: str, 
 
 
 def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: Sequence[str] = (),
-             background: BackgroundConfig = BackgroundConfig()) -> dict[str, tuple[list[float], list]]:
+             background: BackgroundConfig = BackgroundConfig(), bayes: BayesConfig = BayesConfig()
+             ) -> dict[str, tuple[list[float], list]]:
     rig = load_calibration(seq / "calibration.toml")
     folder = SequenceFolder(seq, rig)
     bg = BackgroundModel.from_folder(folder, background)
     spec = GridSpec(VOLUME[0], VOLUME[1], voxel)
     gt = np.load(seq / "gt.npz")
     centres_v = spec.centres()
-    models = {"bayes": BayesianGrid(rig, spec, bg, BayesConfig()), "silhouette": SilhouetteCarving(rig, spec, bg)}
+    models = {"bayes": BayesianGrid(rig, spec, bg, bayes), "silhouette": SilhouetteCarving(rig, spec, bg)}
     hull_cfg = with_overrides(HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel),
                               hull_overrides, "--hull")
     res: dict[str, tuple[list[float], list]] = {k: ([], []) for k in (*models, "hull")}
@@ -89,17 +90,20 @@ def main() -> None:
                     help="HullConfig overrides, e.g. t_low=3 t_high=8 t_finest_edge=8 (the tracking settings)")
     ap.add_argument("--background", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="BackgroundConfig overrides, e.g. shadow_min_ratio=0 (the paper's plain relaxation)")
+    ap.add_argument("--bayes", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="BayesConfig overrides of the grid's sensor model, e.g. pd=0.99")
     args = ap.parse_args()
     try:
         with_overrides(HullConfig(), args.hull, "--hull")
         background = with_overrides(BackgroundConfig(), args.background, "--background")
+        bayes = with_overrides(BayesConfig(), args.bayes, "--bayes")
     except InputError as exc:
         raise SystemExit(str(exc)) from None
     torch.set_grad_enabled(False)
     for name, case in CASES.items():
         seq = ensure_sequence(args.work, name, case["cams"], case["scene"], args.motion, args.format)
         t0 = time.perf_counter()
-        results = evaluate(seq, args.voxel, args.frames, args.hull, background)
+        results = evaluate(seq, args.voxel, args.frames, args.hull, background, bayes)
         for model, (ious, comps) in results.items():
             worst = max(comps, key=lambda c: c.largest_voxels)
             print(f"{name:32s} {model:10s} IoU mean {np.mean(ious):.3f} min {np.min(ious):.3f}   "

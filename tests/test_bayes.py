@@ -13,7 +13,7 @@ import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.checks import InputError, ShapeError
-from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, window_sum
+from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, default_pd, pixel_log_ratio, window_sum
 from torchtrack.occupancy.grid import GridSpec, VoxelLookup
 from torchtrack.synth.sequence import RigConfig, make_ring_rig
 
@@ -109,11 +109,14 @@ def scene():
                                  BayesConfig(window=5, p_sample=0.7, p_other=0.3, shadow_layer_m=0.5),
                                  BayesConfig(shadow_layer_m=0.5, shadow_min_share=0.0),
                                  BayesConfig(shadow_layer_m=0.5, shadow_min_share=1.0),
-                                 BayesConfig(shadow_layer_m=0.0)])
+                                 BayesConfig(shadow_layer_m=0.0), BayesConfig(pd=None)])
 def test_fast_grid_equals_algorithm1(scene, cfg):
     rig, bg, images, spec = scene
-    fast = BayesianGrid(rig, spec, bg, cfg)(images).probability()  # (B, V)
+    grid = BayesianGrid(rig, spec, bg, cfg)
+    fast = grid(images).probability()  # (B, V)
     assert bg.config.shadow_min_ratio > 0 and bg.config.luminance_relax > 1  # the shadow band is exercised
+    assert grid.config.pd == (cfg.pd or 0.99)  # not given: a 3-camera rig's
+    cfg = grid.config
     for b in range(images.shape[0]):
         ref = algorithm1(rig, bg.mean_yuv.numpy(), bg.std_yuv.numpy(), images[b].numpy(), spec, cfg,
                          bg.config.shadow_min_ratio, bg.config.luminance_relax, bg.config.shadow_min_gain)
@@ -126,6 +129,29 @@ def test_fast_grid_equals_algorithm1(scene, cfg):
     if cfg.shadow_layer_m > 0 and cfg.shadow_min_share == 0:  # the cameras' vote is exercised: a half share differs
         half = BayesianGrid(rig, spec, bg, dataclasses.replace(cfg, shadow_min_share=0.5))(images).probability()
         assert float((half - fast).abs().max()) > 0.01
+
+
+@pytest.mark.parametrize("cameras, misses, occupied", [(8, 0, True), (8, 1, True), (8, 2, False), (12, 1, True),
+                                                       (7, 1, True), (6, 1, False), (4, 1, False), (4, 0, True)])
+def test_many_cameras_outvote_one_view_that_misses(cameras, misses, occupied):
+    """The rig's sensor model (``pd`` None) from the closed form of p(F | G): a voxel that every camera sees, clearly
+    foreground in all but ``misses`` of them and clearly background there, is occupied where the rig has seven
+    cameras or more and one view misses, never where two do or where fewer cameras see it."""
+    cfg = dataclasses.replace(BayesConfig(), pd=default_pd(cameras))
+    s1, r1 = cfg.p_sample, cfg.p_other
+    pf1 = (1 - s1) / 2 + s1 * cfg.pd
+    pf0 = (1 - s1) / 2 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
+    fg, bg = math.log(pf1 / pf0), math.log((1 - pf1) / (1 - pf0))
+    # pixel_log_ratio at log N - log U = -60 (foreground) and +60 (background) tends to those limits
+    lr = pixel_log_ratio(torch.tensor([-60.0, 60.0], dtype=torch.float64), 0.0, cfg)
+    np.testing.assert_allclose(lr.numpy(), [fg, bg], atol=1e-12)
+    log_odds = math.log(cfg.prior / (1 - cfg.prior)) + (cameras - misses) * float(lr[0]) + misses * float(lr[1])
+    assert (log_odds > 0) == occupied
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=16, height=16, radius_m=3.0))
+    bg = BackgroundModel.from_frames(torch.rand(5, cameras, 3, 16, 16, generator=torch.Generator().manual_seed(1)))
+    spec = GridSpec((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0), 0.5)
+    assert BayesianGrid(rig, spec, bg, BayesConfig(pd=None)).config.pd == cfg.pd  # None: the rig's
+    assert BayesianGrid(rig, spec, bg).config.pd == 0.99  # the plain default: the intersection on any rig
 
 
 def test_window_sum_by_hand():

@@ -17,6 +17,7 @@ class _Example:
     count: int = 3
     flag: bool = False
     name: str = "x"
+    limit: float | None = None
 
 
 def test_overrides_parse_each_field_as_its_declared_type():
@@ -26,11 +27,14 @@ def test_overrides_parse_each_field_as_its_declared_type():
     assert with_overrides(_Example(), [], "--opt") == _Example()
     hull = with_overrides(HullConfig(), ["t_low=3", "footprint_early_out=false"], "--hull")
     assert (hull.t_low, hull.footprint_early_out) == (3.0, False)
+    assert with_overrides(_Example(), ["limit=0.9"], "--opt").limit == 0.9  # an optional field: its type or None
+    assert with_overrides(_Example(limit=0.9), ["limit=none"], "--opt").limit is None
 
 
 @pytest.mark.parametrize("items, match", [(["ratio"], "FIELD=VALUE"), (["nope=1"], "FIELD=VALUE"),
                                           (["count=2.5"], "count='2.5' is not a int"),
-                                          (["flag=yes"], "flag='yes' is not a bool")])
+                                          (["flag=yes"], "flag='yes' is not a bool"),
+                                          (["limit=lots"], "limit='lots' is not a float")])
 def test_bad_overrides_name_the_option_and_field(items, match):
     with pytest.raises(InputError, match=match) as info:
         with_overrides(_Example(), items, "--opt")

@@ -101,3 +101,28 @@ def test_a_given_background_is_the_one_tracked_on_and_each_pass_is_reported(seq)
     assert not np.array_equal(np.nan_to_num(moved.poses.angles), np.nan_to_num(own.poses.angles))
     with pytest.raises(InputError, match="not both"):
         torchtrack.track(seq, **FAST, background=brighter, background_from_track=own.poses)
+
+
+def test_the_observation_section_sets_the_grid_sensor_model(seq):
+    """``observation: {bayes: {...}}`` reaches the grid (its capture volume stays the observation's); left out,
+    the detection probability is the grid's default, and the tracking config's is the rig's (4 cameras: 0.99);
+    unknown keys and ``min_views`` inside it are refused naming the section."""
+    from torchtrack.background import BackgroundConfig, BackgroundModel
+    from torchtrack.checks import InputError
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.tracking.pipeline import load_config, observer_from_config
+
+    folder = SequenceFolder(seq)
+    bg = BackgroundModel.from_folder(folder, BackgroundConfig())
+    given = observer_from_config(folder.rig, bg, {"bayes": {"pd": 0.9, "window": 3}, "min_views": 4}, "bayes", 0.05)
+    assert (given.grid.config.pd, given.grid.config.window, given.grid.config.min_views) == (0.9, 3, 4)
+    default = observer_from_config(folder.rig, bg, {}, "bayes", 0.05)
+    assert folder.rig.num_cameras == 4 and default.grid.config.pd == 0.99
+    assert default.grid.config.min_views == default.min_views == 3  # all but two, at least three
+    tracking = load_config("markerless.yaml")["observation"]
+    assert tracking["bayes"]["pd"] is None  # the rig's: 0.99 for these 4 cameras (tests/test_bayes.py: 7 and more)
+    assert observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).grid.config.pd == 0.99
+    for doc, match in (({"bayes": {"pdd": 0.9}}, "bayes.*pdd"), ({"bayes": {"min_views": 2}}, "bayes.*min_views"),
+                       ({"bayes": {"pd": 1.5}}, "pd")):
+        with pytest.raises(InputError, match=match):
+            observer_from_config(folder.rig, bg, doc, "bayes", 0.05)

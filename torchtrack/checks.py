@@ -87,7 +87,13 @@ def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
         if not sep or name not in fields:
             raise InputError(f"{option}: expected FIELD=VALUE with FIELD one of {sorted(fields)}, got {item!r}")
         declared = fields[name].type  # a string under postponed annotations
-        kind = {"bool": bool, "int": int, "float": float, "str": str}.get(getattr(declared, "__name__", declared))
+        declared = getattr(declared, "__name__", declared)
+        optional = isinstance(declared, str) and declared.endswith(" | None")
+        if optional and text.lower() in ("none", "null"):
+            changes[name] = None
+            continue
+        kind = {"bool": bool, "int": int, "float": float, "str": str}.get(
+            declared[:-len(" | None")] if optional else declared)
         if kind is None:
             raise InputError(f"{option}: field {name!r} ({declared}) cannot be set from the command line")
         try:

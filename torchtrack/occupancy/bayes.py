@@ -18,7 +18,7 @@ cameras see are reported unobserved.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
@@ -26,6 +26,25 @@ from torch import nn
 
 from torchtrack.checks import InputError, check_shape
 from torchtrack.occupancy.grid import GridSpec, VoxelLookup
+
+#: ``BayesConfig.pd`` (None) of a rig with fewer than ``MANY_CAMERAS`` cameras, and the default for every rig. A
+#: pixel that clearly shows its background then outweighs eight that clearly show foreground (log ratios -1.96 and
+#: +0.25): the grid is the silhouettes' intersection, the tightest volume, which few cameras need against phantoms.
+PD_FEW_CAMERAS = 0.99
+#: ``BayesConfig.pd`` (None) of a rig with ``MANY_CAMERAS`` cameras or more. At 0.95 (log ratios -1.33 and +0.25)
+#: six cameras' foreground outweighs one camera's background, so a voxel is kept where one view alone sees clothing
+#: against a background of its colour, at the cost of a fatter volume; with fewer cameras there is no such
+#: majority, and the lower value only fattens the soft margins of a phantom-prone grid (docs/results.md,
+#: "Robustness", the sensor model).
+PD_MANY_CAMERAS = 0.95
+#: The fewest cameras for ``PD_MANY_CAMERAS``: at 0.95 a single miss is outvoted where six or more views see
+#: foreground, so a rig of seven is the first where a voxel seen by every camera can have one view miss it.
+MANY_CAMERAS = 7
+
+
+def default_pd(num_cameras: int) -> float:
+    """The detection probability ``BayesConfig.pd`` takes when not given, for a rig of ``num_cameras``."""
+    return PD_MANY_CAMERAS if num_cameras >= MANY_CAMERAS else PD_FEW_CAMERAS
 
 
 @dataclass(frozen=True)
@@ -41,7 +60,9 @@ class BayesConfig:
     in recall.
 
     Attributes:
-        pd: detection probability P(F=1 | the pixel samples an occupied voxel).
+        pd: detection probability P(F=1 | the pixel samples an occupied voxel); None: from the rig's number of
+            cameras (:func:`default_pd`: 0.99 below seven cameras, 0.95 from seven, where the other views outvote
+            one view's miss; the tracking config's choice: a limb matters more there than a tight volume).
         pfa: false-alarm probability P(F=1 | nothing there).
         p_sample: P(S=1), the pixel samples the voxel.
         p_other: P(R=1), another object on the viewing line.
@@ -60,7 +81,7 @@ class BayesConfig:
             foreground (docs/results.md, "Robustness", Shadows). 0: every camera's shadow counts.
     """
 
-    pd: float = 0.99
+    pd: float | None = 0.99
     pfa: float = 0.1
     p_sample: float = 0.95
     p_other: float = 0.75
@@ -73,6 +94,8 @@ class BayesConfig:
     def __post_init__(self) -> None:
         for name in ("pd", "pfa", "p_sample", "p_other", "prior"):
             v = getattr(self, name)
+            if v is None and name == "pd":
+                continue
             if not 0.0 < v < 1.0:
                 raise InputError(f"BayesConfig.{name} must be in (0, 1), got {v}")
         if self.window < 1 or self.window % 2 == 0:
@@ -84,6 +107,8 @@ class BayesConfig:
 
     def detection_probabilities(self) -> tuple[float, float]:
         """(p(F=1 | G=1), p(F=1 | G=0))."""
+        if self.pd is None:
+            raise InputError("BayesConfig.pd is None: resolve it for the rig first (default_pd)")
         s1, r1 = self.p_sample, self.p_other
         return (1 - s1) / 2 + s1 * self.pd, (1 - s1) / 2 + s1 * (r1 * self.pd + (1 - r1) * self.pfa)
 
@@ -152,12 +177,14 @@ class BayesianGrid(nn.Module):
         rig: the CameraRig (all cameras one image size, that of the frames given to :meth:`forward`).
         spec: the voxel grid.
         background: a ``BackgroundModel`` of the same cameras and image size.
-        config: sensor model.
+        config: sensor model (``pd`` None: :func:`default_pd` of the rig; ``self.config`` holds the value used).
     """
 
     def __init__(self, rig: nn.Module, spec: GridSpec, background: nn.Module, config: BayesConfig = BayesConfig()
                  ) -> None:
         super().__init__()
+        if config.pd is None:
+            config = replace(config, pd=default_pd(rig.num_cameras))
         self.config = config
         self.spec = spec
         self.camera_names = list(rig.names)

@@ -219,7 +219,7 @@ class Observer(nn.Module):
             spec = GridSpec(tuple(lower_m), tuple(upper_m), voxel_size_m)
         self.spec = spec
         if model == "bayes":
-            cfg = bayes or BayesConfig(min_views=min_views)
+            cfg = replace(bayes or BayesConfig(), min_views=min_views)
             self.grid = BayesianGrid(rig, spec, background, cfg)
             self.register_buffer("centres", spec.centres(dtype=rig.K.dtype, device=rig.K.device), persistent=False)
         else:

@@ -99,10 +99,10 @@ def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]
 
 def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
     """The :class:`~torchtrack.tracking.observation.Observer` of a config's ``observation`` section."""
-    from torchtrack.occupancy import HullConfig
+    from torchtrack.occupancy import BayesConfig, HullConfig
     from torchtrack.tracking.observation import Observer
 
-    known = {"model", "voxel_m", "scale", "threshold", "min_views", "hull", "fill_static_subject", "workers"}
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "bayes", "hull", "fill_static_subject", "workers"}
     unknown = set(ocfg) - known
     if unknown:
         raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
@@ -110,8 +110,15 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
         hull = HullConfig(**(ocfg.get("hull") or {}))
     except TypeError as exc:
         raise InputError(f"observation config, hull: {exc}") from None
+    bayes_doc = ocfg.get("bayes") or {}
+    if "min_views" in bayes_doc:
+        raise InputError("observation config, bayes: set min_views in the observation section")
+    try:
+        bayes = BayesConfig(**bayes_doc)
+    except (TypeError, InputError) as exc:
+        raise InputError(f"observation config, bayes: {exc}") from None
     return Observer(rig, background, model, voxel_m, threshold=float(ocfg.get("threshold", 0.5)),
-                    min_views=ocfg.get("min_views"), hull=hull)
+                    min_views=ocfg.get("min_views"), bayes=bayes, hull=hull)
 
 
 def read_start_pose(poses: Poses | str | Path) -> tuple[torch.Tensor, float | None, Any]:
