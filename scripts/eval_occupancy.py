@@ -91,7 +91,7 @@ def main() -> None:
     ap.add_argument("--background", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="BackgroundConfig overrides, e.g. shadow_min_ratio=0 (the paper's plain relaxation)")
     ap.add_argument("--bayes", nargs="*", default=[], metavar="FIELD=VALUE",
-                    help="BayesConfig overrides of the grid's sensor model, e.g. pd=0.99")
+                    help="BayesConfig overrides of the grid's sensor model, e.g. pd=0.95 (the tracking's on 7+ cameras)")
     args = ap.parse_args()
     try:
         with_overrides(HullConfig(), args.hull, "--hull")

@@ -13,7 +13,7 @@ import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
 from torchtrack.checks import InputError, ShapeError
-from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, default_pd, pixel_log_ratio, window_sum
+from torchtrack.occupancy.bayes import BayesConfig, BayesianGrid, window_sum
 from torchtrack.occupancy.grid import GridSpec, VoxelLookup
 from torchtrack.synth.sequence import RigConfig, make_ring_rig
 
@@ -109,7 +109,8 @@ def scene():
                                  BayesConfig(window=5, p_sample=0.7, p_other=0.3, shadow_layer_m=0.5),
                                  BayesConfig(shadow_layer_m=0.5, shadow_min_share=0.0),
                                  BayesConfig(shadow_layer_m=0.5, shadow_min_share=1.0),
-                                 BayesConfig(shadow_layer_m=0.0), BayesConfig(pd=None)])
+                                 BayesConfig(shadow_layer_m=0.0), BayesConfig(pd=None),
+                                 BayesConfig(pd=0.95)])
 def test_fast_grid_equals_algorithm1(scene, cfg):
     rig, bg, images, spec = scene
     grid = BayesianGrid(rig, spec, bg, cfg)
@@ -134,24 +135,27 @@ def test_fast_grid_equals_algorithm1(scene, cfg):
 @pytest.mark.parametrize("cameras, misses, occupied", [(8, 0, True), (8, 1, True), (8, 2, False), (12, 1, True),
                                                        (7, 1, True), (6, 1, False), (4, 1, False), (4, 0, True)])
 def test_many_cameras_outvote_one_view_that_misses(cameras, misses, occupied):
-    """The rig's sensor model (``pd`` None) from the closed form of p(F | G): a voxel that every camera sees, clearly
-    foreground in all but ``misses`` of them and clearly background there, is occupied where the rig has seven
-    cameras or more and one view misses, never where two do or where fewer cameras see it."""
-    cfg = dataclasses.replace(BayesConfig(), pd=default_pd(cameras))
+    """The rig's sensor model (``pd`` None): a voxel that every camera sees, clearly foreground in all but
+    ``misses`` of them and clearly background there, is occupied on a rig of seven cameras or more with one view
+    missing it, never with two (up to 12 cameras) or on a smaller rig. The grid's fusion against the closed form of
+    p(F | G) summed over the cameras."""
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=16, height=16, radius_m=3.0))
+    bg = BackgroundModel.from_frames(torch.rand(5, cameras, 3, 16, 16, generator=torch.Generator().manual_seed(1)))
+    spec = GridSpec((-0.1, -0.1, 0.85), (0.1, 0.1, 1.05), 0.2)  # one voxel at the cameras' target
+    grid = BayesianGrid(rig, spec, bg, BayesConfig(pd=None))
+    assert grid.config.pd == (0.95 if cameras >= 7 else 0.99)
+    assert BayesianGrid(rig, spec, bg).config.pd == 0.99  # the plain default: the intersection
+    cfg = grid.config
     s1, r1 = cfg.p_sample, cfg.p_other
     pf1 = (1 - s1) / 2 + s1 * cfg.pd
     pf0 = (1 - s1) / 2 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
-    fg, bg = math.log(pf1 / pf0), math.log((1 - pf1) / (1 - pf0))
-    # pixel_log_ratio at log N - log U = -60 (foreground) and +60 (background) tends to those limits
-    lr = pixel_log_ratio(torch.tensor([-60.0, 60.0], dtype=torch.float64), 0.0, cfg)
-    np.testing.assert_allclose(lr.numpy(), [fg, bg], atol=1e-12)
-    log_odds = math.log(cfg.prior / (1 - cfg.prior)) + (cameras - misses) * float(lr[0]) + misses * float(lr[1])
-    assert (log_odds > 0) == occupied
-    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=16, height=16, radius_m=3.0))
-    bg = BackgroundModel.from_frames(torch.rand(5, cameras, 3, 16, 16, generator=torch.Generator().manual_seed(1)))
-    spec = GridSpec((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0), 0.5)
-    assert BayesianGrid(rig, spec, bg, BayesConfig(pd=None)).config.pd == cfg.pd  # None: the rig's
-    assert BayesianGrid(rig, spec, bg).config.pd == 0.99  # the plain default: the intersection on any rig
+    closed = (cameras - misses) * math.log(pf1 / pf0) + misses * math.log((1 - pf1) / (1 - pf0))  # prior 0.5
+    log_bg = torch.full((1, cameras, 16, 16), bg.log_uniform - 60.0)  # N << U: clearly foreground
+    log_bg[:, :misses] = bg.log_uniform + 60.0  # N >> U: clearly background
+    occ = grid.from_log_likelihood(log_bg)
+    assert int(grid.lookup.num_views[0]) == cameras and bool(occ.observed[0])
+    np.testing.assert_allclose(float(occ.log_odds[0, 0]), closed, atol=1e-5)
+    assert bool(occ.occupied()[0, 0]) == occupied and (closed > 0) == occupied
 
 
 def test_window_sum_by_hand():

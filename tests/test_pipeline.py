@@ -110,6 +110,7 @@ def test_the_observation_section_sets_the_grid_sensor_model(seq):
     from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.checks import InputError
     from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
     from torchtrack.tracking.pipeline import load_config, observer_from_config
 
     folder = SequenceFolder(seq)
@@ -122,6 +123,10 @@ def test_the_observation_section_sets_the_grid_sensor_model(seq):
     tracking = load_config("markerless.yaml")["observation"]
     assert tracking["bayes"]["pd"] is None  # the rig's: 0.99 for these 4 cameras (tests/test_bayes.py: 7 and more)
     assert observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).grid.config.pd == 0.99
+    rig8 = make_ring_rig(RigConfig(num_cameras=8, width=32, height=24))
+    bg8 = BackgroundModel.from_frames(torch.rand(5, 8, 3, 24, 32, generator=torch.Generator().manual_seed(0)))
+    assert observer_from_config(rig8, bg8, tracking, "bayes", 0.1).grid.config.pd == 0.95  # 7 cameras and more
+    assert observer_from_config(rig8, bg8, {}, "bayes", 0.1).grid.config.pd == 0.99
     for doc, match in (({"bayes": {"pdd": 0.9}}, "bayes.*pdd"), ({"bayes": {"min_views": 2}}, "bayes.*min_views"),
                        ({"bayes": {"pd": 1.5}}, "pd")):
         with pytest.raises(InputError, match=match):

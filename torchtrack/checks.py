@@ -76,8 +76,9 @@ def config_section(cls: type, doc: Any, source: str, section: str, hint: str = "
 def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
     """A copy of the dataclass ``config`` with ``FIELD=VALUE`` items applied (command-line overrides).
 
-    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float; str as given); the
-    dataclass's own checks then run. An unknown field, a malformed item or a bad value raises ``InputError``
+    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float; str as given); a field
+    declared ``X | None`` (that spelling) takes ``none`` or ``null`` as None, else an X. The dataclass's own
+    checks then run. An unknown field, a malformed item or a bad value raises ``InputError``
     naming ``option``.
     """
     fields = {f.name: f for f in dataclasses.fields(config)}

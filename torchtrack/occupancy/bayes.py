@@ -28,8 +28,9 @@ from torchtrack.checks import InputError, check_shape
 from torchtrack.occupancy.grid import GridSpec, VoxelLookup
 
 #: ``BayesConfig.pd`` (None) of a rig with fewer than ``MANY_CAMERAS`` cameras, and the default for every rig. A
-#: pixel that clearly shows its background then outweighs eight that clearly show foreground (log ratios -1.96 and
-#: +0.25): the grid is the silhouettes' intersection, the tightest volume, which few cameras need against phantoms.
+#: pixel that clearly shows its background then outweighs seven that clearly show foreground (log ratios -1.96 and
+#: +0.25): up to eight cameras the grid is the silhouettes' intersection, the tightest volume, which few cameras
+#: need against phantoms.
 PD_FEW_CAMERAS = 0.99
 #: ``BayesConfig.pd`` (None) of a rig with ``MANY_CAMERAS`` cameras or more. At 0.95 (log ratios -1.33 and +0.25)
 #: six cameras' foreground outweighs one camera's background, so a voxel is kept where one view alone sees clothing
@@ -77,8 +78,8 @@ class BayesConfig:
         shadow_min_share: a floor-layer voxel takes the shadow test's evidence only where at least this share of
             the cameras that see foreground there see a shadow: a cast shadow's ghost voxel shows shadow to each
             camera whose view of it the body does not block, while a foot low in contrast with the floor is taken
-            for shadow by some cameras only, and a single camera's background vote outweighs all the others'
-            foreground (docs/results.md, "Robustness", Shadows). 0: every camera's shadow counts.
+            for shadow by some cameras only, and a single camera's background vote outweighs up to seven
+            others' foreground at ``pd`` 0.99 (five at 0.95) (docs/results.md, "Robustness", Shadows). 0: every camera's shadow counts.
     """
 
     pd: float | None = 0.99
