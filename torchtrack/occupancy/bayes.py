@@ -79,7 +79,8 @@ class BayesConfig:
             the cameras that see foreground there see a shadow: a cast shadow's ghost voxel shows shadow to each
             camera whose view of it the body does not block, while a foot low in contrast with the floor is taken
             for shadow by some cameras only, and a single camera's background vote outweighs up to seven
-            others' foreground at ``pd`` 0.99 (five at 0.95) (docs/results.md, "Robustness", Shadows). 0: every camera's shadow counts.
+            others' foreground at ``pd`` 0.99, five at 0.95 (docs/results.md, "Robustness", Shadows). 0: every
+            camera's shadow counts.
     """
 
     pd: float | None = 0.99
