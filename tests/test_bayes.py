@@ -21,6 +21,13 @@ from torchtrack.synth.sequence import RigConfig, make_ring_rig
 RGB2YUV = np.array([[0.299, 0.587, 0.114], [-0.147, -0.289, 0.436], [0.615, -0.515, -0.100]])
 
 
+def detection(cfg: BayesConfig) -> tuple[float, float]:
+    """p(F=1 | G=1) and p(F=1 | G=0) written out from ALGORITHMS.md §1 (S: the pixel samples the voxel, R:
+    another object on its viewing line)."""
+    s1, r1 = cfg.p_sample, cfg.p_other
+    return (1 - s1) * 0.5 + s1 * cfg.pd, (1 - s1) * 0.5 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
+
+
 def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, shadow_min_ratio: float = 0.0,
                luminance_relax: float = 1.0, shadow_min_gain: float = 1.0) -> np.ndarray:
     """Posterior P(G=1) per voxel, computed the slow way.
@@ -35,9 +42,7 @@ def algorithm1(rig, bg_mean, bg_std, images, spec: GridSpec, cfg: BayesConfig, s
     without it have a negative one with it.
     """
     C, _, H, W = images.shape
-    s1, r1 = cfg.p_sample, cfg.p_other
-    pf1 = (1 - s1) * 0.5 + s1 * cfg.pd
-    pf0 = (1 - s1) * 0.5 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
+    pf1, pf0 = detection(cfg)
     uniform = 1.0 / abs(np.linalg.det(RGB2YUV))
     centres = spec.centres(torch.float64).numpy()
     yuv = np.einsum("ij,cjhw->cihw", RGB2YUV, images)
@@ -145,10 +150,7 @@ def test_many_cameras_outvote_one_view_that_misses(cameras, misses, occupied):
     grid = BayesianGrid(rig, spec, bg, BayesConfig(pd=None))
     assert grid.config.pd == (0.95 if cameras >= 7 else 0.99)
     assert BayesianGrid(rig, spec, bg).config.pd == 0.99  # the plain default: the intersection
-    cfg = grid.config
-    s1, r1 = cfg.p_sample, cfg.p_other
-    pf1 = (1 - s1) / 2 + s1 * cfg.pd
-    pf0 = (1 - s1) / 2 + s1 * (r1 * cfg.pd + (1 - r1) * cfg.pfa)
+    pf1, pf0 = detection(grid.config)
     closed = (cameras - misses) * math.log(pf1 / pf0) + misses * math.log((1 - pf1) / (1 - pf0))  # prior 0.5
     log_bg = torch.full((1, cameras, 16, 16), bg.log_uniform - 60.0)  # N << U: clearly foreground
     log_bg[:, :misses] = bg.log_uniform + 60.0  # N >> U: clearly background

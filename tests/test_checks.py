@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import pytest
 
@@ -18,6 +19,8 @@ class _Example:
     flag: bool = False
     name: str = "x"
     limit: float | None = None
+    when: Optional[int] = None  # noqa: UP007 (the older spelling of the same type)
+    span: tuple[float, float] = (0.0, 1.0)
 
 
 def test_overrides_parse_each_field_as_its_declared_type():
@@ -29,12 +32,14 @@ def test_overrides_parse_each_field_as_its_declared_type():
     assert (hull.t_low, hull.footprint_early_out) == (3.0, False)
     assert with_overrides(_Example(), ["limit=0.9"], "--opt").limit == 0.9  # an optional field: its type or None
     assert with_overrides(_Example(limit=0.9), ["limit=none"], "--opt").limit is None
+    assert with_overrides(_Example(), ["when=2"], "--opt").when == 2  # Optional[int]: the same
 
 
 @pytest.mark.parametrize("items, match", [(["ratio"], "FIELD=VALUE"), (["nope=1"], "FIELD=VALUE"),
                                           (["count=2.5"], "count='2.5' is not a int"),
                                           (["flag=yes"], "flag='yes' is not a bool"),
-                                          (["limit=lots"], "limit='lots' is not a float")])
+                                          (["limit=lots"], "limit='lots' is not a float"),
+                                          (["span=1"], "'span' .* cannot be set")])
 def test_bad_overrides_name_the_option_and_field(items, match):
     with pytest.raises(InputError, match=match) as info:
         with_overrides(_Example(), items, "--opt")

@@ -48,10 +48,13 @@ def _compare_with_full_rig(poses_path: Path, full_path: Path, seq: Path, first_m
     d = np.linalg.norm(short.landmarks() - full.landmarks(), axis=-1).mean(1)  # (T,)
     # the smoothing's window reaches a few frames back from the first one without the camera
     assert not same_images or d[:first_missing - 3].max() < 1e-3, d
-    # the measurements behind the tolerances: docs/results.md, "Damaged input"
-    assert d[first_missing:].mean() < 15e-3 and d[first_missing:].max() < 25e-3, d
     err = [np.linalg.norm(p.landmarks()[first_missing:] - gt.landmarks()[first_missing:], axis=-1).mean()
            for p in (short, full)]
+    # the figures behind the tolerances (pytest -s prints them; docs/results.md, "Damaged input")
+    print(f"without the camera from frame {first_missing}: {1e3 * d[first_missing:].mean():.1f} mm from the full "
+          f"rig's track (worst frame {1e3 * d[first_missing:].max():.1f}); from the truth {1e3 * err[0]:.1f} mm "
+          f"against the full rig's {1e3 * err[1]:.1f}")
+    assert d[first_missing:].mean() < 15e-3 and d[first_missing:].max() < 25e-3, d
     assert err[0] < err[1] + 8e-3, err
 
 
@@ -101,7 +104,8 @@ def test_a_camera_whose_video_stops_decoding_is_left_out_and_ffmpeg_is_summarise
     seen = poses.extra["cameras_valid"]
     first = int(np.argmin(seen[:, 2]))
     assert 6 <= first <= 18 and not seen[first:, 2].any() and seen[:, [0, 1, 3, 4, 5, 6, 7]].all()
-    _compare_with_full_rig(tmp_path / "out" / "poses.npz", full, seq, first, same_images=False)  # JPEG frames
+    with capfd.disabled():  # its figures reach the terminal under pytest -s
+        _compare_with_full_rig(tmp_path / "out" / "poses.npz", full, seq, first, same_images=False)  # JPEG frames
 
 
 def test_a_frame_with_too_few_readable_cameras_is_not_tracked(rig8, tmp_path, caplog):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -76,26 +77,25 @@ def config_section(cls: type, doc: Any, source: str, section: str, hint: str = "
 def with_overrides(config: Any, items: Sequence[str], option: str) -> Any:
     """A copy of the dataclass ``config`` with ``FIELD=VALUE`` items applied (command-line overrides).
 
-    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float; str as given); a field
-    declared ``X | None`` (that spelling) takes ``none`` or ``null`` as None, else an X. The dataclass's own
-    checks then run. An unknown field, a malformed item or a bad value raises ``InputError``
-    naming ``option``.
+    Each value is parsed as its field's declared type (bool: true/false/1/0; int; float; str as given); an
+    optional field (``X | None``) takes ``none`` or ``null`` as None, else an X. The dataclass's own checks then
+    run. An unknown field, a malformed item or a bad value raises ``InputError`` naming ``option``.
     """
-    fields = {f.name: f for f in dataclasses.fields(config)}
+    fields = {f.name for f in dataclasses.fields(config)}
+    hints = typing.get_type_hints(type(config))  # the declared types, postponed annotations resolved
     changes: dict[str, Any] = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or name not in fields:
             raise InputError(f"{option}: expected FIELD=VALUE with FIELD one of {sorted(fields)}, got {item!r}")
-        declared = fields[name].type  # a string under postponed annotations
-        declared = getattr(declared, "__name__", declared)
-        optional = isinstance(declared, str) and declared.endswith(" | None")
+        declared = hints[name]
+        args = typing.get_args(declared)
+        optional = type(None) in args and len(args) == 2
         if optional and text.lower() in ("none", "null"):
             changes[name] = None
             continue
-        kind = {"bool": bool, "int": int, "float": float, "str": str}.get(
-            declared[:-len(" | None")] if optional else declared)
-        if kind is None:
+        kind = next(a for a in args if a is not type(None)) if optional else declared
+        if kind not in (bool, int, float, str):
             raise InputError(f"{option}: field {name!r} ({declared}) cannot be set from the command line")
         try:
             if kind is bool:
