@@ -42,6 +42,7 @@ Usage: .venv/bin/python scripts/eval_pose2sim_tracking.py [--scale 0.25] [--voxe
        [--cutoffs 3 4 5 6 8 10]
        [--picture docs/images/pose2sim_tracking.jpg] [--save-poses POSES.npz] [--continue-from POSES.npz] [--bias]
        [--velocities 0.5 0.47 0.53 0.45 0.55] [--save-passes DIR] [--background-from POSES.npz]
+       [--start-scores 0 20 50]
 """
 
 from __future__ import annotations
@@ -166,6 +167,42 @@ def score(path: Path, demo: Path) -> None:
         r = evaluate(poses, reference_poses(names, ref, poses.fps, poses.joint_names), landmarks=names)
         print(f"{path} against Pose2Sim's {'filtered' if filtered else 'raw'} keypoints: MPJPE {r.mpjpe_mm:.1f} mm, "
               f"{int((~poses.valid).sum())} of {poses.num_frames} frames invalid")
+
+
+def start_scores(folder: SequenceFolder, background: BackgroundModel, config: dict, args: argparse.Namespace,
+                 size_wh: tuple[int, int]) -> None:
+    """``--start-scores``: the automatic start on each given frame alone, against the pose fitted to that frame's
+    reference points: the start's error, and the two-way score (score, explained, filled;
+    :func:`~torchtrack.tracking.search.score_states`) of both on the frame's voxels. A start that scores above
+    the reference's pose is the score's failure on this data; one below it, the search's."""
+    from torchtrack.blobs.model import BlobModel
+    from torchtrack.tracking.search import score_states
+
+    names, ref = reference_landmarks(args.demo)
+    rig = folder.rig.resized(*size_wh).float()
+    observer = observer_from_config(rig, background, dict(config["observation"]), args.model, args.voxel)
+    tcfg = TrackerConfig.from_dict(config["tracker"], config.get("source", "config"))
+    print("frame  voxels  start: error mm, height m, score (explained, filled) | reference pose: height m, score "
+          "(explained, filled)")
+    for t in args.start_scores:
+        if not 0 <= t < len(ref):
+            raise SystemExit(f"--start-scores {t}: the demo has frames 0-{len(ref) - 1}")
+        obs = observer(folder.read_frame(t, size_wh=size_wh)[None])[0]
+        tracker = MarkerlessTracker(Skeleton.from_urdf(), tcfg)
+        res = tracker.step(obs)
+        if not res.valid:
+            why = tracker.start_refusals[-1] if tracker.start_refusals else "invalid"
+            print(f"{t:>5}  {obs.num_voxels:>6}  no start: {why.split('. ')[0]}")
+            continue
+        body = tracker.subject.skeleton
+        out = list(body.output_names)
+        err = 1e3 * np.linalg.norm(res.output_points.numpy()[[out.index(n) for n in names]] - ref[t], axis=-1).mean()
+        found = [float(x[0]) for x in score_states(obs, body, tracker.subject.blobs, res.angles[None])[:3]]
+        angles, ref_body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[t])
+        truth = [float(x[0]) for x in score_states(obs, ref_body, BlobModel.from_config(ref_body), angles[None])[:3]]
+        print(f"{t:>5}  {obs.num_voxels:>6}  {err:6.0f}, {body.height():.2f}, {found[0]:.3f} ({found[1]:.3f}, "
+              f"{found[2]:.3f}) | {ref_body.height():.2f}, {truth[0]:.3f} ({truth[1]:.3f}, {truth[2]:.3f})",
+              flush=True)
 
 
 def reference_fit(demo: Path, fit_bones: bool) -> None:
@@ -391,6 +428,10 @@ def main() -> None:
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the kept track's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
+    ap.add_argument("--start-scores", nargs="+", type=int, default=None, metavar="FRAME",
+                    help="only start on each of these frames alone (the automatic start, on the background the "
+                         "other options give) and print its error and two-way score against those of the pose "
+                         "fitted to the frame's reference points, then exit")
     ap.add_argument("--log-searches", action="store_true",
                     help="print the tracker's searches (lost arms, headings, bone fit rounds) with their costs")
     args = ap.parse_args()
@@ -454,6 +495,12 @@ def main() -> None:
             ever = masks.any(0)
             print(f"reference background: {used.shape[0]} frames; {100 * float((free & ever).sum() / ever.sum()):.0f} "
                   f"% of the pixels the masks ever cover are free in >= {MIN_CLEAN_FRAMES} of them")
+        if args.start_scores is not None:
+            if background is None:
+                background = BackgroundModel.from_folder(folder, BackgroundConfig(**config["background"]),
+                                                         size_wh=(W, H))
+            start_scores(folder, background, config, args, (W, H))
+            return
         start_pose = None  # the start given to the tracker: None, the automatic one
         if args.init_from_reference:
             angles, body = fit_to_landmarks(Skeleton.from_urdf(), names, ref[0], fit_bones=not args.scale_only)
