@@ -73,6 +73,9 @@ def main() -> None:
     ap.add_argument("--truth-score", action="store_true",
                     help="with --search-only, print each start's two-way score and the true pose's (on the "
                          "template's body at the subject's height): a search that scores below the truth missed it")
+    ap.add_argument("--silhouettes", action="store_true",
+                    help="the search scores bodies against each camera's foreground (observation.silhouettes: true) "
+                         "instead of the voxels")
     ap.add_argument("--work", type=Path, default=Path("out/eval_start"))
     args = ap.parse_args()
     logging.basicConfig(level=logging.ERROR)
@@ -80,6 +83,8 @@ def main() -> None:
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_start.py", empty=False)  # each sequence re-rendered when stale
     config = load_config("markerless.yaml")
+    if args.silhouettes:
+        config["observation"] = {**config["observation"], "silhouettes": True}
     tcfg = TrackerConfig.from_dict(config["tracker"], config["source"])
     template = Skeleton.from_urdf()
     blobs = BlobModel(template, *load_blob_specs(tcfg.blobs))

@@ -131,3 +131,34 @@ def test_the_observation_section_sets_the_grid_sensor_model(seq):
                        ({"bayes": {"pd": 1.5}}, "pd")):
         with pytest.raises(InputError, match=match):
             observer_from_config(folder.rig, bg, doc, "bayes", 0.05)
+
+
+def test_the_tracking_config_keeps_each_cameras_foreground_from_seven_cameras(seq):
+    """``observation.silhouettes: null`` (the tracking config's): each observation carries each camera's foreground
+    on a rig of 8 cameras, not of 4; true and false say so on any rig; another value is refused, naming the key.
+    The foreground kept is the pixels' evidence pooled per cell: a frame of the background's own mean has none."""
+    from torchtrack.background import BackgroundConfig, BackgroundModel
+    from torchtrack.checks import InputError
+    from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.pipeline import load_config, observer_from_config
+
+    tracking = load_config("markerless.yaml")["observation"]
+    assert tracking["silhouettes"] is None
+    folder = SequenceFolder(seq)
+    bg = BackgroundModel.from_folder(folder, BackgroundConfig())
+    assert not observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).silhouettes  # 4 cameras
+    assert observer_from_config(folder.rig, bg, {**tracking, "silhouettes": True}, "bayes", 0.05).silhouettes
+    rig8 = make_ring_rig(RigConfig(num_cameras=8, width=32, height=24))
+    frames = 0.5 + 0.01 * torch.randn(5, 8, 3, 24, 32, generator=torch.Generator().manual_seed(0))  # a grey room
+    bg8 = BackgroundModel.from_frames(frames)
+    observer = observer_from_config(rig8, bg8, tracking, "bayes", 0.1)
+    assert observer.silhouettes
+    assert not observer_from_config(rig8, bg8, {**tracking, "silhouettes": False}, "bayes", 0.1).silhouettes
+    lit = torch.where(torch.arange(32) < 16, 1.0, 0.0).expand(1, 8, 3, 24, 32)  # half white, half black
+    for images, any_fg in ((frames[:1], False), (lit, True)):
+        sil = observer(images)[0].silhouettes
+        assert sil is not None and tuple(sil.fg.shape) == (8, 6, 8)  # 4-pixel cells
+        assert bool(sil.fg.any()) == any_fg
+    with pytest.raises(InputError, match="silhouettes"):
+        observer_from_config(rig8, bg8, {**tracking, "silhouettes": "yes"}, "bayes", 0.1)

@@ -203,16 +203,18 @@ class BayesianGrid(nn.Module):
         """(B, C, 3, H, W) RGB -> (B, C, H, W) window-summed per-pixel log ratio; 0 for unreadable pixels."""
         W, H = self.image_size_wh
         check_shape(images, ("B", len(self.camera_names), 3, H, W), "images")
-        return self._evidence(self.background.log_likelihood(images))  # without the shadow test
+        return self.pixel_evidence(self.background.log_likelihood(images))  # without the shadow test
 
-    def _evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
+    def pixel_evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) background log-likelihood -> (B, C, H, W) window-summed per-pixel log ratio of occupancy
+        (> 0: the pixel says foreground); 0 for unreadable pixels."""
         r = pixel_log_ratio(log_bg, self.background.log_uniform, self.config)
         return window_sum(torch.nan_to_num(r, nan=0.0), self.config.window)
 
     def floor_evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
         """(B, C, H, W) background log-likelihood -> (B, C, L) each camera's evidence (:meth:`evidence`'s log
         ratio) for the floor layer's voxels (``floor_index``); 0 where the camera does not see the voxel."""
-        ev = self._evidence(log_bg).flatten(2)  # (B, C, H * W)
+        ev = self.pixel_evidence(log_bg).flatten(2)  # (B, C, H * W)
         pix = self.lookup.pixel_index[:, self.floor_index]  # (C, L)
         return ev.gather(2, pix.clamp(min=0)[None].expand(ev.shape[0], -1, -1)) * (pix >= 0)
 
@@ -236,7 +238,7 @@ class BayesianGrid(nn.Module):
         ``log_bg_shadows`` (the same with the shadow test) the voxels of the floor layer (``shadow_layer_m``)
         take theirs from it."""
         prior = math.log(self.config.prior / (1 - self.config.prior))
-        log_odds = self.lookup.gather_sum(self._evidence(log_bg)) + prior  # (B, V)
+        log_odds = self.lookup.gather_sum(self.pixel_evidence(log_bg)) + prior  # (B, V)
         if log_bg_shadows is not None and self.floor_index.numel():
             lit, shadowed = self.floor_evidence(log_bg), self.floor_evidence(log_bg_shadows)
             votes, seeing = shadow_votes(lit, shadowed)

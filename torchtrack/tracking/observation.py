@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from torchtrack.blobs.model import SURFACE_MAHALANOBIS2
@@ -18,6 +19,43 @@ from torchtrack.checks import InputError
 from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, capture_views, grid_from_rig, hull_from_images
 
 MODELS = ("bayes", "hull")
+
+
+#: ``Observer(silhouettes=True)``: each camera's foreground is kept at cells of this many pixels (of the processing
+#: size) a side, a few kilobytes a frame.
+SILHOUETTE_CELL_PX = 4
+#: The tracking config's ``observation.silhouettes: null`` keeps them (and the start search scores in the images)
+#: from rigs of this many cameras: with 8 the searched starts are right more often; with 4 no more often, and one
+#: 4-camera squat of the stress table started wrong (docs/results.md, "The start search").
+SILHOUETTES_MIN_CAMERAS = 7
+
+
+def default_silhouettes(num_cameras: int, model: str = "bayes") -> bool:
+    """Whether the tracking keeps each camera's foreground by default (``observation.silhouettes: null``)."""
+    return model == "bayes" and num_cameras >= SILHOUETTES_MIN_CAMERAS
+
+
+@dataclass(frozen=True)
+class ViewSilhouettes:
+    """Each camera's foreground of one frame at coarse cells, with the cameras that saw it: what the start search
+    compares a body's projection with, camera by camera (:func:`~torchtrack.tracking.search.two_way_score`).
+
+    Attributes:
+        fg: (C, h, w) bool, cells whose pixels are mostly foreground (the grid's per-pixel evidence > 0).
+        cell_px: the cells' side in pixels of ``rig``'s images.
+        rig: the CameraRig at the processing size.
+    """
+
+    fg: torch.Tensor
+    cell_px: int
+    rig: nn.Module
+
+    @classmethod
+    def from_evidence(cls, evidence: torch.Tensor, rig: nn.Module, cell_px: int = SILHOUETTE_CELL_PX
+                      ) -> ViewSilhouettes:
+        """From one frame's per-pixel log ratio ``(C, H, W)`` (> 0: foreground)."""
+        fg = (evidence > 0).float()[:, None]
+        return cls(F.avg_pool2d(fg, cell_px, ceil_mode=True)[:, 0] > 0.5, cell_px, rig)
 
 
 @dataclass(frozen=True)
@@ -35,6 +73,7 @@ class VoxelObservation:
         volume_m: the box the observation model looks in, (lower, upper) corners (m), or None (unbounded):
             nothing outside it is observed, so a body part that reaches out of it shows only its inside part
             (:meth:`outside`).
+        silhouettes: each camera's foreground (:class:`ViewSilhouettes`), or None.
     """
 
     points: torch.Tensor
@@ -46,6 +85,7 @@ class VoxelObservation:
     observed_voxels: int = -1
     camera_centres: torch.Tensor | None = None
     volume_m: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    silhouettes: ViewSilhouettes | None = None
 
     @property
     def num_voxels(self) -> int:
@@ -179,7 +219,7 @@ class VoxelObservation:
         cwt = cw.new_zeros(M, cw.shape[1]).index_add_(0, inv, cw)
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
         return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed,
-                                self.camera_centres, self.volume_m)
+                                self.camera_centres, self.volume_m, self.silhouettes)
 
 
 class Observer(nn.Module):
@@ -201,11 +241,14 @@ class Observer(nn.Module):
     def __init__(self, rig: nn.Module, background: nn.Module, model: str = "bayes", voxel_size_m: float = 0.03,
                  lower_m: tuple[float, float, float] | None = None, upper_m: tuple[float, float, float] | None = None,
                  threshold: float = 0.5, min_views: int | None = None, bayes: BayesConfig | None = None,
-                 hull: HullConfig | None = None) -> None:
+                 hull: HullConfig | None = None, silhouettes: bool = False) -> None:
         super().__init__()
         if model not in MODELS:
             raise InputError(f"observation model must be one of {MODELS}, got {model!r}")
         self.model, self.threshold, self.rig, self.background = model, threshold, rig, background
+        if silhouettes and model != "bayes":
+            raise InputError("observation silhouettes: only the Bayesian grid keeps each camera's foreground")
+        self.silhouettes = silhouettes
         if min_views is None:
             min_views = capture_views(rig.num_cameras, model)
         elif not 1 <= int(min_views) <= rig.num_cameras:
@@ -244,7 +287,11 @@ class Observer(nn.Module):
             return out
         lit, shadowed, yuv = self.background.log_likelihood_and_yuv(images, shadows=True)  # (B, C, H, W) x2, YUV
         prob = self.grid.from_log_likelihood(lit, shadowed).probability()  # (B, V)
-        return self.from_probability(prob, yuv, cameras_valid)
+        out = self.from_probability(prob, yuv, cameras_valid)
+        if self.silhouettes:
+            ev = self.grid.pixel_evidence(lit)  # (B, C, H, W), without the shadow test
+            out = [replace(o, silhouettes=ViewSilhouettes.from_evidence(ev[b], self.rig)) for b, o in enumerate(out)]
+        return out
 
     def from_probability(self, prob: torch.Tensor, yuv: torch.Tensor, cameras_valid: torch.Tensor
                          ) -> list[VoxelObservation]:

@@ -100,9 +100,10 @@ def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]
 def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
     """The :class:`~torchtrack.tracking.observation.Observer` of a config's ``observation`` section."""
     from torchtrack.occupancy import BayesConfig, HullConfig
-    from torchtrack.tracking.observation import Observer
+    from torchtrack.tracking.observation import Observer, default_silhouettes
 
-    known = {"model", "voxel_m", "scale", "threshold", "min_views", "bayes", "hull", "fill_static_subject", "workers"}
+    known = {"model", "voxel_m", "scale", "threshold", "min_views", "bayes", "hull", "fill_static_subject", "workers",
+             "silhouettes"}
     unknown = set(ocfg) - known
     if unknown:
         raise InputError(f"observation config: unknown settings {sorted(unknown)}; known: {sorted(known)}")
@@ -117,8 +118,15 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
         bayes = BayesConfig(**bayes_doc)
     except (TypeError, InputError) as exc:
         raise InputError(f"observation config, bayes: {exc}") from None
+    silhouettes = ocfg.get("silhouettes", False)
+    if silhouettes is None:
+        silhouettes = default_silhouettes(rig.num_cameras, model)
+    elif not isinstance(silhouettes, bool):
+        raise InputError(f"observation config: silhouettes must be true, false or null, got {silhouettes!r}")
+    elif silhouettes and model != "bayes":
+        silhouettes = False  # the hull keeps no per-pixel evidence: its search scores against the voxels
     return Observer(rig, background, model, voxel_m, threshold=float(ocfg.get("threshold", 0.5)),
-                    min_views=ocfg.get("min_views"), bayes=bayes, hull=hull)
+                    min_views=ocfg.get("min_views"), bayes=bayes, hull=hull, silhouettes=silhouettes)
 
 
 def read_start_pose(poses: Poses | str | Path) -> tuple[torch.Tensor, float | None, Any]:

@@ -1,8 +1,11 @@
 """Start anywhere: the whole body's state searched for in one frame's voxels (ALGORITHMS.md §6).
 
 A batch of hypotheses of the state (each a pose, a heading, a size and a place on the floor) is scored against
-the voxels in both directions (:func:`two_way_score`): the share of the voxel weight inside the body's blobs
-and the share of the body's volume on occupied voxels; the best are refined by an annealed search (the
+the observation in both directions (:func:`two_way_score`): the share of the voxel weight inside the body's blobs
+and the share of the body's volume on occupied voxels; or, where the observation keeps each camera's foreground
+(``observation.silhouettes``), the same two shares camera by camera in the images (:func:`image_terms`), where the
+phantom volume of a few views' hull does not count against the true body and one camera's miss costs only that
+camera's share (docs/results.md, "The start search"). The best are refined by an annealed search (the
 hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps). The tracker's own
 EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage is one batched tensor
 computation over the hypotheses, on the device of the voxels.
@@ -30,7 +33,7 @@ from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.observation import ViewSilhouettes, VoxelObservation
 
 __all__ = ["SearchConfig", "SearchResult", "mirrored", "pose_prior", "real_pose_prior", "score_states", "search_pose",
            "turned_round", "two_way_score"]
@@ -189,6 +192,7 @@ class _Voxels:
                                                                            device=p.device) for v in obs.volume_m)
         self.centroid = (obs.weights.float()[:, None] * obs.points.float()).sum(0) / obs.weights.float().sum()
         self.floor, self.top = obs.height_span()
+        self.views = None if obs.silhouettes is None else _Views(obs.silhouettes, obs.cameras_valid)
 
     def occupied(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) points -> (occupied, observed) bool: on an occupied cell; inside the observed volume."""
@@ -204,6 +208,71 @@ class _Voxels:
         return occ, observed
 
 
+class _Views:
+    """Each readable camera's foreground cells as the image term reads them: their centres in pixels (padded per
+    camera) and the cells as a lookup."""
+
+    def __init__(self, sil: ViewSilhouettes, cameras_valid: torch.Tensor) -> None:
+        self.rig, self.cell = sil.rig, float(sil.cell_px)
+        self.fg = sil.fg & cameras_valid.to(sil.fg.device)[:, None, None]  # (C, h, w)
+        C, h, w = self.fg.shape
+        counts = self.fg.flatten(1).sum(1)  # (C,)
+        n = max(int(counts.max()), 1)
+        self.cells = torch.zeros(C, n, 2, device=self.fg.device)
+        self.cell_ok = torch.zeros(C, n, dtype=torch.bool, device=self.fg.device)
+        for c in range(C):
+            iv, iu = self.fg[c].nonzero(as_tuple=True)
+            self.cells[c, :len(iu)] = torch.stack([iu, iv], -1).float() * self.cell + 0.5 * (self.cell - 1)
+            self.cell_ok[c, :len(iu)] = True
+        self.counts = counts.float()
+        self.used = counts > 0  # cameras whose foreground the term compares
+
+    def lookup(self, uv: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+        """(C, ..., 2) pixels, (C, ...) valid -> (C, ...) bool: on a foreground cell."""
+        C, h, w = self.fg.shape
+        iu = torch.floor((uv[..., 0] + 0.5) / self.cell).long().clamp(0, w - 1)
+        iv = torch.floor((uv[..., 1] + 0.5) / self.cell).long().clamp(0, h - 1)
+        cam = torch.arange(C, device=uv.device).reshape(C, *([1] * (uv.dim() - 2)))
+        return self.fg[cam.expand_as(iu), iv, iu] & valid
+
+
+#: Finite-difference step (m) of the projection's Jacobian at each blob's centre (the image term's ellipses).
+JACOBIAN_STEP_M = 1e-3
+
+
+def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, q: torch.Tensor, vol: torch.Tensor,
+                views: _Views) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two terms of the score in the images, camera by camera (a camera's miss or the hull's phantom volume
+    then costs only that camera's share).
+
+    explained: the share of each camera's foreground cells inside the projection of some blob grown by
+    INSIDE_GROW (each ellipsoid projected as the ellipse of its linearised projection at the centre); filled: the
+    share of the body's sample points ``q (h, K, S, 3)`` (by blob volume ``vol (h, K)``) on foreground cells,
+    over the points each camera sees. Both averaged over the cameras with foreground. Returns two (h,)."""
+    rig = views.rig
+    h, K = centres.shape[:2]
+    eye = torch.eye(3, dtype=centres.dtype, device=centres.device)
+    probe = torch.cat([centres[:, :, None], centres[:, :, None] + JACOBIAN_STEP_M * eye], 2)  # (h, K, 4, 3)
+    uv, ok = rig.project(probe.reshape(-1, 4, 3))  # (C, hK, 4, 2)
+    C = uv.shape[0]
+    m = uv[:, :, 0].reshape(C, h, K, 2)
+    J = ((uv[:, :, 1:] - uv[:, :, :1]) / JACOBIAN_STEP_M).transpose(-1, -2).reshape(C, h, K, 2, 3)
+    front = rig.world_to_camera(centres.reshape(-1, 3))[..., 2].reshape(C, h, K) > 0
+    sig = R @ torch.diag_embed((INSIDE_GROW * semi_axes) ** 2) @ R.transpose(-1, -2)  # (h, K, 3, 3)
+    S2 = J @ sig[None] @ J.transpose(-1, -2)  # (C, h, K, 2, 2)
+    Sinv = torch.linalg.inv(S2 + 1e-6 * torch.eye(2, dtype=S2.dtype, device=S2.device))
+    d = views.cells[:, None, None] - m[:, :, :, None]  # (C, h, K, N, 2)
+    inside = (torch.einsum("chkni,chkij,chknj->chkn", d, Sinv, d) <= 1.0) & front[..., None]
+    covered = inside.any(2) & views.cell_ok[:, None]  # (C, h, N)
+    explained_c = covered.float().sum(-1) / views.counts.clamp(min=1)[:, None]  # (C, h)
+    uvq, okq = rig.project(q.reshape(h, -1, 3))  # (C, h, KS, 2)
+    on = views.lookup(uvq, okq).float().reshape(C, h, K, -1).mean(-1)  # (C, h, K)
+    seen = okq.float().reshape(C, h, K, -1).mean(-1)
+    filled_c = (on * vol).sum(-1) / (seen * vol).sum(-1).clamp(min=1e-12)  # (C, h)
+    used = views.used.float()[:, None]
+    return (explained_c * used).sum(0) / used.sum(), (filled_c * used).sum(0) / used.sum()
+
+
 def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,
                   samples: torch.Tensor, chunk: int = 64) -> tuple[torch.Tensor, ...]:
     """How well each hypothesis' blobs and the voxels explain each other.
@@ -215,8 +284,9 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
     Returns:
         score (H,): the harmonic mean of ``explained`` (the share of the voxel weight inside some blob grown by
         INSIDE_GROW) and ``filled`` (the share of the body's volume, over what the cameras observe, on
-        occupied voxels); ``explained``, ``filled`` and ``outside`` (the share of the body's volume out of the
-        observed volume), each (H,).
+        occupied voxels), or of their counterparts in the images where ``vox`` has them (:func:`image_terms`);
+        ``explained``, ``filled`` and ``outside`` (the share of the body's volume out of the observed volume),
+        each (H,).
     """
     H, K, _ = centres.shape
     vol = semi_axes.prod(-1)  # (H, K) proportional to each blob's volume
@@ -235,6 +305,8 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
         seen_v = (seen.float().mean(-1) * v).sum(-1)  # (h,)
         filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
         outside = 1.0 - seen_v / v.sum(-1)
+        if vox.views is not None:  # the images' terms instead (see image_terms)
+            explained, filled = image_terms(c, Rs, a, q, v, vox.views)
         out.append(torch.stack([explained, filled, outside], -1))
     e, f, o = torch.cat(out).unbind(-1)
     return 2 * e * f / (e + f).clamp(min=1e-12), e, f, o
