@@ -248,7 +248,8 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     explained: the share of each camera's foreground cells inside the projection of some blob grown by
     INSIDE_GROW (each ellipsoid projected as the ellipse of its linearised projection at the centre); filled: the
     share of the body's sample points ``q (h, K, S, 3)`` (by blob volume ``vol (h, K)``) on foreground cells,
-    over the points each camera sees. Both averaged over the cameras with foreground. Returns two (h,)."""
+    over the points each camera sees. Both averaged over the cameras with foreground. Returns two (h,).
+    Hand-written: neither kornia nor OpenCV projects an ellipsoid through a lens model."""
     rig = views.rig
     h, K = centres.shape[:2]
     eye = torch.eye(3, dtype=centres.dtype, device=centres.device)
@@ -270,7 +271,8 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     seen = okq.float().reshape(C, h, K, -1).mean(-1)
     filled_c = (on * vol).sum(-1) / (seen * vol).sum(-1).clamp(min=1e-12)  # (C, h)
     used = views.used.float()[:, None]
-    return (explained_c * used).sum(0) / used.sum(), (filled_c * used).sum(0) / used.sum()
+    n = used.sum().clamp(min=1.0)  # no camera with foreground: both terms 0
+    return (explained_c * used).sum(0) / n, (filled_c * used).sum(0) / n
 
 
 def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,
