@@ -69,3 +69,32 @@ def test_a_projected_ellipse_has_the_rendered_silhouettes_size():
                        torch.ones(len(rig), dtype=torch.bool))
         explained, _ = _terms(views, *one)
         assert abs(float(explained) - want) < tol, (factor, float(explained))
+
+
+def test_blobs_past_the_lens_models_fold_cover_nothing():
+    """CameraRig.in_lens_model is project()'s validity without the image bounds: the same on points that land in
+    the images; a point in front of a camera but far off its axis (past the radius where the barrel distortion
+    folds back) is out. The image terms then give such a camera nothing from a body beside it: a starfish 3.5 m
+    aside, level with camera 0, covers none of camera 0's foreground drawn where the folded projection would put
+    its blobs."""
+    rig = make_ring_rig(RigConfig(num_cameras=4, width=160, height=120, radius_m=3.0, k1=-0.08)).float()
+    pts = torch.randn(500, 3, generator=torch.Generator().manual_seed(0)) * torch.tensor([1.0, 1.0, 0.5]) + \
+        torch.tensor([0.0, 0.0, 1.0])
+    _, valid = rig.project(pts)
+    assert bool(rig.in_lens_model(pts)[valid].all())
+    cam0 = rig.centers()[0]
+    side = torch.stack([-cam0[1], cam0[0], torch.tensor(0.0)]) / cam0[:2].norm()  # across camera 0's axis
+    beside = cam0 + 0.2 * (-cam0 / cam0.norm()) + 3.0 * side  # 0.2 m in front of its plane, 3 m aside
+    assert not bool(rig.in_lens_model(beside[None])[0, 0])
+    centres, R, semi = _body()
+    aside = centres + (beside - centres[0, 0])  # the pelvis there
+    uv, _ = rig.project(aside.reshape(-1, 3))
+    folded = torch.zeros(4, 120, 160, dtype=torch.bool)  # foreground wherever the fold puts the blobs' centres
+    for c in range(4):
+        u = uv[c, :, 0].round().long().clamp(0, 159)
+        v = uv[c, :, 1].round().long().clamp(0, 119)
+        folded[c, v, u] = True
+    views = _Views(ViewSilhouettes.from_evidence(folded.float() - 0.5, rig, cell_px=1),
+                   torch.tensor([True, False, False, False]))
+    explained, _ = _terms(views, aside, R, semi)
+    assert float(explained) < 0.2, float(explained)

@@ -259,6 +259,18 @@ class CameraRig(torch.nn.Module):
         valid = in_front & inside & in_model
         return uv.reshape(C, *lead, 2), valid.reshape(C, *lead)
 
+    def in_lens_model(self, points_world: Tensor) -> Tensor:
+        """``(..., N, 3)`` world points -> ``(C, ..., N)`` bool: in front of each camera and within the radius where
+        its distortion model is monotonic (:meth:`project`'s ``valid`` without the image bounds)."""
+        cam = self.world_to_camera(points_world)  # (C, ..., N, 3)
+        C, lead = len(self), cam.shape[1:-1]
+        _, _, _, dist = self._params(cam.dtype)
+        cam = cam.reshape(C, -1, 3)
+        z = cam[..., 2]
+        xy = cam[..., :2] / torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))[..., None]
+        in_model = (xy * xy).sum(-1) < distortion.fold_radius_sq(dist, self.fisheye_mask)[:, None]
+        return ((z > MIN_DEPTH) & in_model).reshape(C, *lead)
+
     def pixel_rays(self, uv_px: Tensor) -> tuple[Tensor, Tensor]:
         """World rays through (distorted) pixels, one camera per leading index.
 

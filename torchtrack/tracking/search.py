@@ -192,7 +192,8 @@ class _Voxels:
                                                                            device=p.device) for v in obs.volume_m)
         self.centroid = (obs.weights.float()[:, None] * obs.points.float()).sum(0) / obs.weights.float().sum()
         self.floor, self.top = obs.height_span()
-        self.views = None if obs.silhouettes is None else _Views(obs.silhouettes, obs.cameras_valid)
+        views = None if obs.silhouettes is None else _Views(obs.silhouettes, obs.cameras_valid)
+        self.views = views if views is not None and bool(views.used.any()) else None  # no foreground: the voxels
 
     def occupied(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(..., 3) points -> (occupied, observed) bool: on an occupied cell; inside the observed volume."""
@@ -258,7 +259,7 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     C = uv.shape[0]
     m = uv[:, :, 0].reshape(C, h, K, 2)
     J = ((uv[:, :, 1:] - uv[:, :, :1]) / JACOBIAN_STEP_M).transpose(-1, -2).reshape(C, h, K, 2, 3)
-    front = rig.world_to_camera(centres.reshape(-1, 3))[..., 2].reshape(C, h, K) > 0
+    front = rig.in_lens_model(centres.reshape(-1, 3)).reshape(C, h, K)  # else the ellipse is meaningless
     sig = R @ torch.diag_embed((INSIDE_GROW * semi_axes) ** 2) @ R.transpose(-1, -2)  # (h, K, 3, 3)
     S2 = J @ sig[None] @ J.transpose(-1, -2)  # (C, h, K, 2, 2)
     Sinv = torch.linalg.inv(S2 + 1e-6 * torch.eye(2, dtype=S2.dtype, device=S2.device))
