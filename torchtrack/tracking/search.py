@@ -221,10 +221,10 @@ class _Views:
         n = max(int(counts.max()), 1)
         self.cells = torch.zeros(C, n, 2, device=self.fg.device)
         self.cell_ok = torch.zeros(C, n, dtype=torch.bool, device=self.fg.device)
-        for c in range(C):
-            iv, iu = self.fg[c].nonzero(as_tuple=True)
-            self.cells[c, :len(iu)] = torch.stack([iu, iv], -1).float() * self.cell + 0.5 * (self.cell - 1)
-            self.cell_ok[c, :len(iu)] = True
+        cam, iv, iu = self.fg.nonzero(as_tuple=True)  # row-major: grouped by camera
+        rank = torch.arange(cam.shape[0], device=cam.device) - (torch.cumsum(counts, 0) - counts)[cam]
+        self.cells[cam, rank] = torch.stack([iu, iv], -1).float() * self.cell + 0.5 * (self.cell - 1)
+        self.cell_ok[cam, rank] = True
         self.counts = counts.float()
         self.used = counts > 0  # cameras whose foreground the term compares
 
@@ -296,20 +296,21 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
     out = []
     for s in range(0, H, chunk):
         c, Rs, a = centres[s:s + chunk], R[s:s + chunk], semi_axes[s:s + chunk]
-        # voxels -> body: |diag(1/a) R^T (p - c)|^2 <= grow^2 for some blob
-        d = vox.points[None, None] - c[:, :, None]  # (h, K, N, 3)
-        local = torch.einsum("hkji,hknj->hkni", Rs, d) / a[:, :, None]  # (h, K, N, 3)
-        inside = (local.square().sum(-1) <= INSIDE_GROW ** 2).any(1)  # (h, N)
-        explained = (inside.float() * vox.weights).sum(-1)  # (h,)
-        # body -> voxels: each blob's sample points on occupied cells, over the observed ones
         q = c[:, :, None] + torch.einsum("hkij,hksj->hksi", Rs, a[:, :, None] * samples[None, None])  # (h,K,S,3)
         occ, seen = vox.occupied(q)
         v = vol[s:s + chunk]
         seen_v = (seen.float().mean(-1) * v).sum(-1)  # (h,)
-        filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
         outside = 1.0 - seen_v / v.sum(-1)
-        if vox.views is not None:  # the images' terms instead (see image_terms)
+        if vox.views is not None:  # the images' terms instead of the voxels' (see image_terms)
             explained, filled = image_terms(c, Rs, a, q, v, vox.views)
+        else:
+            # voxels -> body: |diag(1/a) R^T (p - c)|^2 <= grow^2 for some blob
+            d = vox.points[None, None] - c[:, :, None]  # (h, K, N, 3)
+            local = torch.einsum("hkji,hknj->hkni", Rs, d) / a[:, :, None]  # (h, K, N, 3)
+            inside = (local.square().sum(-1) <= INSIDE_GROW ** 2).any(1)  # (h, N)
+            explained = (inside.float() * vox.weights).sum(-1)  # (h,)
+            # body -> voxels: each blob's sample points on occupied cells, over the observed ones
+            filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
         out.append(torch.stack([explained, filled, outside], -1))
     e, f, o = torch.cat(out).unbind(-1)
     return 2 * e * f / (e + f).clamp(min=1e-12), e, f, o
