@@ -98,3 +98,50 @@ def test_blobs_past_the_lens_models_fold_cover_nothing():
                    torch.tensor([True, False, False, False]))
     explained, _ = _terms(views, aside, R, semi)
     assert float(explained) < 0.2, float(explained)
+
+
+def test_foreground_cells_are_the_pixels_they_pool():
+    """ViewSilhouettes at 4-pixel cells against a plain loop over the pixels: a cell is foreground when more than
+    half of its pixels are (the partial cells at the right and bottom edges over the pixels they have); _Views
+    puts each cell's centre at the centre of its 4 x 4 block and looks every pixel up in its own cell."""
+    rig = make_ring_rig(RigConfig(num_cameras=2, width=22, height=18, radius_m=3.0)).float()
+    gen = torch.Generator().manual_seed(3)
+    ev = torch.rand(2, 18, 22, generator=gen) - 0.45  # > 0: foreground, a little over half the pixels
+    sil = ViewSilhouettes.from_evidence(ev, rig, cell_px=4)
+    views = _Views(sil, torch.ones(2, dtype=torch.bool))
+    want, centres = torch.zeros(2, 5, 6, dtype=torch.bool), [[], []]
+    for c in range(2):
+        for iv in range(5):
+            for iu in range(6):
+                block = ev[c, 4 * iv:4 * iv + 4, 4 * iu:4 * iu + 4] > 0
+                want[c, iv, iu] = block.float().mean() > 0.5
+                if want[c, iv, iu]:
+                    centres[c].append((4 * iu + 1.5, 4 * iv + 1.5))
+    assert torch.equal(sil.fg, want)
+    for c in range(2):
+        got = views.cells[c, views.cell_ok[c]]
+        assert torch.allclose(got, torch.tensor(centres[c]).reshape(-1, 2)), c
+    v, u = torch.meshgrid(torch.arange(18.0), torch.arange(22.0), indexing="ij")
+    uv = torch.stack([u, v], -1).expand(2, -1, -1, -1)
+    looked = views.lookup(uv, torch.ones(2, 18, 22, dtype=torch.bool))
+    assert torch.equal(looked, want[:, (v // 4).long(), (u // 4).long()])
+
+
+def test_an_unreadable_camera_counts_for_nothing():
+    """The terms average the readable cameras' own: a body scored with camera 2 unreadable (its stale
+    foreground all set) equals the mean of the terms scored on each readable camera alone."""
+    rig = make_ring_rig(RigConfig(num_cameras=4, width=160, height=120, radius_m=3.0, k1=-0.08)).float()
+    centres, R, semi = _body()
+    fg = _rendered(rig, centres[0], R[0], semi[0])
+    fg[2] = True  # what an unreadable camera's evidence must not bring
+    sil = ViewSilhouettes.from_evidence(fg.float() - 0.5, rig, cell_px=2)
+    aside = _body(dx=0.15)
+    readable = torch.tensor([True, True, False, True])
+    both = _terms(_Views(sil, readable), *aside)
+    alone = [_terms(_Views(sil, torch.arange(4) == k), *aside) for k in (0, 1, 3)]
+    for term in range(2):
+        want = sum(float(a[term]) for a in alone) / 3
+        assert abs(float(both[term]) - want) < 1e-5, (term, float(both[term]), want)
+    assert float(both[0]) > 0.3 and float(both[1]) > 0.3  # not trivially 0
+    counted = _terms(_Views(sil, torch.ones(4, dtype=torch.bool)), *aside)  # the junk, were it read
+    assert float(counted[0]) < float(both[0]) - 0.05

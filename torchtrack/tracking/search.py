@@ -241,6 +241,20 @@ class _Views:
 JACOBIAN_STEP_M = 1e-3
 
 
+#: The image term's ellipse test holds (cameras, hypotheses, blobs, cells) elements per step, at most this many
+#: (16 MB per float32 temporary): the hypotheses are taken a few at a time beyond it.
+IMAGE_TERM_ELEMENTS = 1 << 22
+
+
+def _covered(cu: torch.Tensor, cv: torch.Tensor, m: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor,
+             front: torch.Tensor) -> torch.Tensor:
+    """(C, h, N) bool: each cell (``cu, cv (C, 1, 1, N)``) inside the ellipse of some blob (centres ``m (C, h, K,
+    2)``, inverse covariance ``[[a, b], [b, c]]``, each (C, h, K, 1)) in front of the lens-model fold."""
+    du, dv = cu - m[..., 0, None], cv - m[..., 1, None]  # (C, h, K, N)
+    quad = a * du * du + 2.0 * b * du * dv + c * dv * dv
+    return ((quad <= 1.0) & front[..., None]).any(2)
+
+
 def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, q: torch.Tensor, vol: torch.Tensor,
                 views: _Views) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the score in the images, camera by camera (a camera's miss or the hull's phantom volume
@@ -263,9 +277,15 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     sig = R @ torch.diag_embed((INSIDE_GROW * semi_axes) ** 2) @ R.transpose(-1, -2)  # (h, K, 3, 3)
     S2 = J @ sig[None] @ J.transpose(-1, -2)  # (C, h, K, 2, 2)
     Sinv = torch.linalg.inv(S2 + 1e-6 * torch.eye(2, dtype=S2.dtype, device=S2.device))
-    d = views.cells[:, None, None] - m[:, :, :, None]  # (C, h, K, N, 2)
-    inside = (torch.einsum("chkni,chkij,chknj->chkn", d, Sinv, d) <= 1.0) & front[..., None]
-    covered = inside.any(2) & views.cell_ok[:, None]  # (C, h, N)
+    # each cell against each blob's ellipse, (d^T Sinv d <= 1 expanded in d's two coordinates), a few hypotheses at
+    # a time: (C, hypotheses, K, N) per step, at most IMAGE_TERM_ELEMENTS
+    a, b, c = (Sinv[..., 0, 0, None], Sinv[..., 0, 1, None], Sinv[..., 1, 1, None])  # (C, h, K, 1)
+    cu, cv = views.cells[:, None, None, :, 0], views.cells[:, None, None, :, 1]  # (C, 1, 1, N)
+    N = views.cells.shape[1]
+    step = max(1, IMAGE_TERM_ELEMENTS // max(1, C * K * N))
+    covered = torch.cat([_covered(cu, cv, m[:, i:i + step], a[:, i:i + step], b[:, i:i + step],
+                                  c[:, i:i + step], front[:, i:i + step]) for i in range(0, h, step)], 1)
+    covered = covered & views.cell_ok[:, None]  # (C, h, N)
     explained_c = covered.float().sum(-1) / views.counts.clamp(min=1)[:, None]  # (C, h)
     uvq, okq = rig.project(q.reshape(h, -1, 3))  # (C, h, KS, 2)
     on = views.lookup(uvq, okq).float().reshape(C, h, K, -1).mean(-1)  # (C, h, K)
