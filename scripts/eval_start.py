@@ -15,11 +15,13 @@ error before EM/CCD; and the share within 50 mm before the race (``--search-only
     .venv/bin/python scripts/eval_start.py --motions walk squat --cameras 8 --frames 10
     .venv/bin/python scripts/eval_start.py --frames 3 --real-poses          # with the real captured poses
     .venv/bin/python scripts/eval_start.py --motions cmu:131_01 --cameras 8 --frames 5 --search-only --truth-score
+    .venv/bin/python scripts/eval_start.py --frames 8 --search-only --search particles=384   # a larger search
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import time
 from dataclasses import replace
@@ -29,6 +31,7 @@ import numpy as np
 import torch
 
 from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.checks import InputError
 from torchtrack.blobs.model import BlobModel, load_blob_specs
 from torchtrack.conventions import LANDMARKS
 from torchtrack.io.outputs import script_work_folder
@@ -76,8 +79,28 @@ def main() -> None:
     ap.add_argument("--silhouettes", action="store_true",
                     help="the search scores bodies against each camera's foreground (observation.silhouettes: true) "
                          "instead of the voxels")
+    ap.add_argument("--search", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="with --search-only, SearchConfig fields for the script's own search (e.g. particles=192 "
+                         "layers=20); the tracker's start keeps the defaults")
     ap.add_argument("--work", type=Path, default=Path("out/eval_start"))
     args = ap.parse_args()
+    fields = {f.name: f.type for f in dataclasses.fields(SearchConfig)}
+    overrides = {}
+    for item in args.search:
+        key, sep, value = item.partition("=")
+        if not sep or key not in fields or fields[key] not in ("int", "float"):
+            ap.error(f"--search {item!r}: KEY=VALUE with KEY one of the numeric SearchConfig fields "
+                     f"({', '.join(k for k, t in fields.items() if t in ('int', 'float'))})")
+        try:
+            overrides[key] = int(value) if fields[key] == "int" else float(value)
+        except ValueError:
+            ap.error(f"--search {item!r}: {value!r} is not {'an integer' if fields[key] == 'int' else 'a number'}")
+    if overrides and not args.search_only:
+        ap.error("--search needs --search-only (the tracker's start uses the default search)")
+    try:
+        SearchConfig(**overrides)  # checked before any sequence is rendered
+    except InputError as exc:
+        ap.error(f"--search: {exc}")
     logging.basicConfig(level=logging.ERROR)
     torch.set_grad_enabled(False)
     torch.set_num_threads(1)
@@ -113,7 +136,7 @@ def main() -> None:
                 obs = observer(fb.images, fb.valid)[0]
                 gen = torch.Generator().manual_seed(t)
                 t0 = time.perf_counter()
-                search = SearchConfig(real_poses=args.real_poses, prior_exclude=leave_out)
+                search = SearchConfig(real_poses=args.real_poses, prior_exclude=leave_out, **overrides)
                 found = search_pose(obs, template, blobs, search, generator=gen)
                 body = template.scaled_to_height(template.height() * float(found.scale[0]))
                 lm = body.forward(found.angles[:1].double()).output_points[0].numpy()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import torch
 
+import torchtrack.tracking.search as search
 from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.skeleton import Skeleton
@@ -128,8 +129,9 @@ def test_foreground_cells_are_the_pixels_they_pool():
 
 
 def test_an_unreadable_camera_counts_for_nothing():
-    """The terms average the readable cameras' own: a body scored with camera 2 unreadable (its stale
-    foreground all set) equals the mean of the terms scored on each readable camera alone."""
+    """The terms come from the readable cameras only: a body scored with camera 2 unreadable (its stale
+    foreground all set) equals the mean of the terms scored on each readable camera alone (each sees the whole
+    body, so the pooled "filled" is their mean too)."""
     rig = make_ring_rig(RigConfig(num_cameras=4, width=160, height=120, radius_m=3.0, k1=-0.08)).float()
     centres, R, semi = _body()
     fg = _rendered(rig, centres[0], R[0], semi[0])
@@ -145,3 +147,56 @@ def test_an_unreadable_camera_counts_for_nothing():
     assert float(both[0]) > 0.3 and float(both[1]) > 0.3  # not trivially 0
     counted = _terms(_Views(sil, torch.ones(4, dtype=torch.bool)), *aside)  # the junk, were it read
     assert float(counted[0]) < float(both[0]) - 0.05
+
+
+def test_a_camera_that_sees_none_of_the_body_does_not_empty_it():
+    """A body beyond camera 0 (behind it, out of its view and of cameras 1 and 3's), seen whole by camera 2;
+    camera 0's foreground is something else: "filled" is camera 2's alone (the cameras pooled by what they see
+    of the body), while "explained" averages camera 0's unexplained foreground in (half camera 2's)."""
+    rig = make_ring_rig(RigConfig(num_cameras=4, width=160, height=120, radius_m=3.0, k1=-0.08)).float()
+    centres, R, semi = _body()
+    cam0 = rig.centers()[0]
+    flat = torch.tensor([1.0, 1.0, 0.0])
+    beyond = centres + (1.35 * cam0 - centres[0, 0]) * flat  # the pelvis 1.05 m behind camera 0
+    fg = _rendered(rig, beyond[0], R[0], semi[0])
+    assert not bool(fg[0].any()) and not bool(fg[1].any()) and not bool(fg[3].any()) and int(fg[2].sum()) > 50
+    fg[0, 40:80, 60:100] = True  # something else in camera 0's view
+    sil = ViewSilhouettes.from_evidence(fg.float() - 0.5, rig, cell_px=2)
+    every = _terms(_Views(sil, torch.ones(4, dtype=torch.bool)), beyond, R, semi)
+    two = _terms(_Views(sil, torch.arange(4) == 2), beyond, R, semi)
+    assert float(two[1]) > 0.6 and abs(float(every[1]) - float(two[1])) < 1e-5, (float(every[1]), float(two[1]))
+    assert abs(float(every[0]) - 0.5 * float(two[0])) < 1e-5
+
+
+def test_the_ellipse_test_in_steps_matches_the_whole_quadratic_form(monkeypatch):
+    """The cells each blob's ellipse covers, taken a few hypotheses at a time (IMAGE_TERM_ELEMENTS forced down to
+    steps of 2 over 7 hypotheses), against the whole quadratic form d^T S^-1 d <= 1 written out here over every
+    hypothesis at once: "explained" identical. A body no camera sees (50 m away) scores 0 in both terms, not
+    NaN."""
+    rig = make_ring_rig(RigConfig(num_cameras=4, width=160, height=120, radius_m=3.0, k1=-0.08)).float()
+    centres, R, semi = _body()
+    fg = _rendered(rig, centres[0], R[0], semi[0])
+    views = _Views(ViewSilhouettes.from_evidence(fg.float() - 0.5, rig, cell_px=2), torch.ones(4, dtype=torch.bool))
+    gen = torch.Generator().manual_seed(1)
+    H = 7
+    c = centres.expand(H, -1, -1) + 0.1 * torch.randn(H, 1, 3, generator=gen)
+    Rh, a = R.expand(H, -1, -1, -1), semi.expand(H, -1, -1) * (0.8 + 0.4 * torch.rand(H, 1, 1, generator=gen))
+    C, K, N = 4, c.shape[1], views.cells.shape[1]
+    monkeypatch.setattr(search, "IMAGE_TERM_ELEMENTS", 2 * C * K * N)  # 2 hypotheses a step: 2, 2, 2, 1
+    stepped, _ = _terms(views, c, Rh, a)
+    # reference: the ellipses from the same linearised projection, every cell against every blob in one einsum
+    eye = torch.eye(3)
+    probe = torch.cat([c[:, :, None], c[:, :, None] + search.JACOBIAN_STEP_M * eye], 2)
+    uv, _ = rig.project(probe.reshape(-1, 4, 3))
+    m = uv[:, :, 0].reshape(C, H, K, 2)
+    J = ((uv[:, :, 1:] - uv[:, :, :1]) / search.JACOBIAN_STEP_M).transpose(-1, -2).reshape(C, H, K, 2, 3)
+    sig = Rh @ torch.diag_embed((INSIDE_GROW * a) ** 2) @ Rh.transpose(-1, -2)
+    Sinv = torch.linalg.inv(J @ sig[None] @ J.transpose(-1, -2) + 1e-6 * torch.eye(2))
+    d = views.cells[:, None, None] - m[:, :, :, None]  # (C, H, K, N, 2)
+    inside = torch.einsum("chkni,chkij,chknj->chkn", d, Sinv, d) <= 1.0
+    inside &= rig.in_lens_model(c.reshape(-1, 3)).reshape(C, H, K)[..., None]
+    covered = inside.any(2) & views.cell_ok[:, None]
+    want = (covered.float().sum(-1) / views.counts[:, None]).mean(0)
+    assert torch.allclose(stepped, want, atol=1e-6), (stepped, want)
+    far = _terms(views, centres + torch.tensor([50.0, 0.0, 0.0]), R, semi)
+    assert float(far[0]) == 0.0 and float(far[1]) == 0.0

@@ -241,8 +241,8 @@ class _Views:
 JACOBIAN_STEP_M = 1e-3
 
 
-#: The image term's ellipse test holds (cameras, hypotheses, blobs, cells) elements per step, at most this many
-#: (16 MB per float32 temporary): the hypotheses are taken a few at a time beyond it.
+#: The image term's ellipse test holds (cameras, hypotheses, blobs, cells) elements per step: as many hypotheses
+#: per step as keep it within this many (16 MB per float32 temporary), at least one.
 IMAGE_TERM_ELEMENTS = 1 << 22
 
 
@@ -263,7 +263,8 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     explained: the share of each camera's foreground cells inside the projection of some blob grown by
     INSIDE_GROW (each ellipsoid projected as the ellipse of its linearised projection at the centre); filled: the
     share of the body's sample points ``q (h, K, S, 3)`` (by blob volume ``vol (h, K)``) on foreground cells,
-    over the points each camera sees. Both averaged over the cameras with foreground. Returns two (h,).
+    over the points the cameras see. Over the cameras with foreground: explained averaged, filled pooled (each
+    camera by how much of the body it sees). Returns two (h,).
     Hand-written: neither kornia nor OpenCV projects an ellipsoid through a lens model."""
     rig = views.rig
     h, K = centres.shape[:2]
@@ -278,7 +279,7 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     S2 = J @ sig[None] @ J.transpose(-1, -2)  # (C, h, K, 2, 2)
     Sinv = torch.linalg.inv(S2 + 1e-6 * torch.eye(2, dtype=S2.dtype, device=S2.device))
     # each cell against each blob's ellipse, (d^T Sinv d <= 1 expanded in d's two coordinates), a few hypotheses at
-    # a time: (C, hypotheses, K, N) per step, at most IMAGE_TERM_ELEMENTS
+    # a time: (C, hypotheses, K, N) per step, within IMAGE_TERM_ELEMENTS (at least one hypothesis)
     a, b, c = (Sinv[..., 0, 0, None], Sinv[..., 0, 1, None], Sinv[..., 1, 1, None])  # (C, h, K, 1)
     cu, cv = views.cells[:, None, None, :, 0], views.cells[:, None, None, :, 1]  # (C, 1, 1, N)
     N = views.cells.shape[1]
@@ -290,10 +291,11 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     uvq, okq = rig.project(q.reshape(h, -1, 3))  # (C, h, KS, 2)
     on = views.lookup(uvq, okq).float().reshape(C, h, K, -1).mean(-1)  # (C, h, K)
     seen = okq.float().reshape(C, h, K, -1).mean(-1)
-    filled_c = (on * vol).sum(-1) / (seen * vol).sum(-1).clamp(min=1e-12)  # (C, h)
     used = views.used.float()[:, None]
     n = used.sum().clamp(min=1.0)  # no camera with foreground: both terms 0
-    return (explained_c * used).sum(0) / n, (filled_c * used).sum(0) / n
+    # filled: pooled over the cameras by what each sees of the body (one that sees none of it has no say)
+    filled = ((on * vol).sum(-1) * used).sum(0) / ((seen * vol).sum(-1) * used).sum(0).clamp(min=1e-12)
+    return (explained_c * used).sum(0) / n, filled
 
 
 def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,
