@@ -406,6 +406,9 @@ def main() -> None:
                     help="RefineConfig overrides of the config's background_refinement section, e.g. blob_scale=1.5")
     ap.add_argument("--no-fill", action="store_true",
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
+    ap.add_argument("--silhouettes", action="store_true",
+                    help="the start search scores bodies in each camera's foreground (observation.silhouettes: "
+                         "true; the tracking config turns it on from 7 cameras only)")
     ap.add_argument("--continue-from", type=Path, default=None, metavar="POSES",
                     help="start from a saved track of the demo (--save-poses): its first pose and body, and the "
                          "background re-estimated from it (with --refine-passes 0: one more pass of that run)")
@@ -463,6 +466,8 @@ def main() -> None:
     if not (args.demo / "videos").is_dir():
         raise SystemExit(f"{args.demo}: the Pose2Sim demo is not there")
     config = load_config("markerless.yaml")
+    if args.silhouettes:
+        config["observation"] = {**config["observation"], "silhouettes": True}
     if args.reference_fit:
         reference_fit(args.demo, not args.scale_only)
         return
