@@ -241,35 +241,35 @@ class CameraRig(torch.nn.Module):
                 monotonic (:func:`~torchtrack.cameras.distortion.fold_radius_sq`; beyond it OpenCV folds points
                 from far outside the field of view back into the image).
         """
-        cam = self.world_to_camera(points_world)  # (C, ..., N, 3)
-        C, lead = len(self), cam.shape[1:-1]
-        K, _, _, dist = self._params(cam.dtype)
-        cam = cam.reshape(C, -1, 3)  # (C, M, 3)
-        z = cam[..., 2]  # (C, M)
-        in_front = z > MIN_DEPTH
-        z_safe = torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))
-        xy = cam[..., :2] / z_safe[..., None]  # (C, M, 2) undistorted normalized
+        xy, in_model, lead = self._normalized(points_world)  # (C, M, 2) undistorted normalized, (C, M)
+        C = len(self)
+        K, _, _, dist = self._params(xy.dtype)
         xy_d = distortion.distort(xy, dist, self.fisheye_mask)  # (C, M, 2) distorted normalized
         f = torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, None, :]  # (C, 1, 2)
         c = K[:, :2, 2][:, None, :]  # (C, 1, 2)
         uv = xy_d * f + c  # (C, M, 2)
         size = self.image_size_wh.to(uv.dtype)[:, None, :]  # (C, 1, 2)
         inside = ((uv >= -0.5) & (uv < size - 0.5)).all(-1)  # (C, M)
-        in_model = (xy * xy).sum(-1) < distortion.fold_radius_sq(dist, self.fisheye_mask)[:, None]
-        valid = in_front & inside & in_model
-        return uv.reshape(C, *lead, 2), valid.reshape(C, *lead)
+        return uv.reshape(C, *lead, 2), (inside & in_model).reshape(C, *lead)
 
-    def in_lens_model(self, points_world: Tensor) -> Tensor:
-        """``(..., N, 3)`` world points -> ``(C, ..., N)`` bool: in front of each camera and within the radius where
-        its distortion model is monotonic (:meth:`project`'s ``valid`` without the image bounds)."""
+    def _normalized(self, points_world: Tensor) -> tuple[Tensor, Tensor, tuple[int, ...]]:
+        """``(..., N, 3)`` world points -> undistorted normalized coordinates ``(C, M, 2)`` (M = ...*N), whether
+        each is in front of its camera and within the radius where the distortion model is monotonic ``(C, M)``,
+        and the leading shape ``(..., N)``."""
         cam = self.world_to_camera(points_world)  # (C, ..., N, 3)
-        C, lead = len(self), cam.shape[1:-1]
+        C, lead = len(self), tuple(cam.shape[1:-1])
         _, _, _, dist = self._params(cam.dtype)
         cam = cam.reshape(C, -1, 3)
         z = cam[..., 2]
         xy = cam[..., :2] / torch.where(z.abs() > MIN_DEPTH, z, torch.full_like(z, MIN_DEPTH))[..., None]
         in_model = (xy * xy).sum(-1) < distortion.fold_radius_sq(dist, self.fisheye_mask)[:, None]
-        return ((z > MIN_DEPTH) & in_model).reshape(C, *lead)
+        return xy, (z > MIN_DEPTH) & in_model, lead
+
+    def in_lens_model(self, points_world: Tensor) -> Tensor:
+        """``(..., N, 3)`` world points -> ``(C, ..., N)`` bool: in front of each camera and within the radius where
+        its distortion model is monotonic (:meth:`project`'s ``valid`` without the image bounds)."""
+        _, ok, lead = self._normalized(points_world)
+        return ok.reshape(len(self), *lead)
 
     def pixel_rays(self, uv_px: Tensor) -> tuple[Tensor, Tensor]:
         """World rays through (distorted) pixels, one camera per leading index.
