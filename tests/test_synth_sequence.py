@@ -212,3 +212,15 @@ def test_body_path_and_start_style_reach_the_ground_truth(tmp_path):
     assert other.angles[0, dof] == pytest.approx(0.9, abs=1e-5) and plain.angles[0, dof] == pytest.approx(1.25, abs=1e-5)
     with pytest.raises(InputError, match="unknown blob"):
         write_sequence(_cfg(body=BodyConfig(colours=(("tail", (0, 0, 0)),))), tmp_path / "c", progress=False)
+
+
+def test_sequences_from_captures_record_the_retargeting_revision(monkeypatch):
+    """A sequence retargeted from a capture is stale once the retargeting changes its bodies; a procedural one
+    does not depend on it."""
+    from torchtrack.synth import sequence as synth_sequence
+
+    capture = _cfg(motion="../shared/data/mocap/cmu/131_01.bvh")
+    before, procedural = synth_sequence._synth_table(capture), synth_sequence._synth_table(_cfg())
+    monkeypatch.setattr(synth_sequence, "RETARGET_REVISION", synth_sequence.RETARGET_REVISION + 1)
+    assert synth_sequence._synth_table(capture) != before
+    assert synth_sequence._synth_table(_cfg()) == procedural

@@ -242,7 +242,7 @@ class Skeleton(nn.Module):
     def proportions(self) -> dict[str, float]:
         """The subject's proportions in metres: every bone's length by name, ``height``, and
         ``neck_above_shoulders`` (the neck landmark's height above the shoulders' in the rest pose; negative where
-        the neck base sits below the shoulder joints, as in the retargeted CMU bodies)."""
+        the neck base sits below the shoulder joints)."""
         z = self.rest_frames[self.frame_index(["head", "l_upperarm", "r_upperarm"])][:, 2, 3]
         out = dict(zip(self.bone_names, (float(v) for v in self.bone_lengths)))
         out.update(height=self.height(), neck_above_shoulders=float(z[0] - z[1:].mean()))

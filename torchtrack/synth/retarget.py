@@ -21,13 +21,20 @@ from torchtrack.skeleton import Skeleton
 
 log = logging.getLogger(__name__)
 
+#: Raised when a change here changes the bodies and motions retargeted from a capture: sequences rendered from
+#: captures record it (meta.toml), and scripts that keep rendered sequences re-render the older ones.
+RETARGET_REVISION = 2
+
 #: Our joint (``Skeleton.joint_names``) -> source joint names whose mean is its position. For CMU BVH files
-#: (bvh11 conversions, as in ../shared/data/mocap/cmu); an ``_end`` suffix names a joint's End Site.
+#: (bvh11 conversions, as in ../shared/data/mocap/cmu); an ``_end`` suffix names a joint's End Site. CMU's
+#: ``lowerneck`` sits at the collar bones, some 9 cm below the shoulder joints, and its head's End Site near the
+#: skull's middle, not its crown: our neck (a few cm above the shoulders) is taken between CMU's ``Neck`` (at the
+#: shoulders' height) and ``Head`` (the skull's base), and the End Site as our ``head_center``.
 CMU_BVH_MAP: dict[str, tuple[str, ...]] = {
     "pelvis": ("LeftHip", "RightHip"),
     "l_thigh": ("LeftHip",), "l_shank": ("LeftKnee",), "l_foot": ("LeftAnkle",), "l_toe": ("LeftToe",),
     "r_thigh": ("RightHip",), "r_shank": ("RightKnee",), "r_foot": ("RightAnkle",), "r_toe": ("RightToe",),
-    "head": ("lowerneck",), "head_top": ("Head_end",),
+    "head": ("Neck", "Head"), "head_center": ("Head_end",),
     "l_upperarm": ("LeftShoulder",), "l_forearm": ("LeftElbow",), "l_hand": ("LeftWrist",),
     "l_hand_tip": ("LFingers",),
     "r_upperarm": ("RightShoulder",), "r_forearm": ("RightElbow",), "r_hand": ("RightWrist",),
@@ -92,10 +99,12 @@ def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> S
     """Fit our proportions to the source subject: overall height, trunk length, hip and shoulder placement,
     then limb lengths (left/right mean), all as medians over the motion."""
     at = {n: target[:, i] for i, n in enumerate(ours)}
-    if {"head_top", "pelvis"} <= at.keys():
-        top = (at["head_top"][:, 2] - at["pelvis"][:, 2]).median()
-        ours_top = skel.height() - skel.standing_root_height()
-        skel = skel.scaled_to_height(skel.height() * float(top) / ours_top)
+    # The height from the highest head point the source gives (the crown, else the head's centre).
+    head_point = next((k for k in ("head_top", "head_center") if k in at), None)
+    if head_point is not None and "pelvis" in at:
+        top = (at[head_point][:, 2] - at["pelvis"][:, 2]).median()
+        z = skel.rest_frames[skel.frame_index([head_point, "pelvis"])][:, 2, 3]
+        skel = skel.scaled_to_height(skel.height() * float(top) / float(z[0] - z[1]))
     if {"head", "pelvis", "l_thigh", "r_thigh"} <= at.keys():
         rel = _body_frame_offsets(at)
         spine = skel.joint_origin("spine_flex")[2]  # pelvis -> lumbar, kept
@@ -114,8 +123,11 @@ def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> S
         if sides:
             mean = float(torch.stack(sides).mean())
             lengths.update({f"l_{bone}": mean, f"r_{bone}": mean})
-    if {"head", "head_top"} <= at.keys():
-        lengths["head"] = float((at["head_top"] - at["head"]).norm(dim=-1).median())
+    if head_point is not None and "head" in at:
+        # the head bone runs from the neck to the crown; a point along it scales with it
+        p = skel.rest_frames[skel.frame_index([head_point, "head"])][:, :3, 3]
+        share = float((p[0] - p[1]).norm()) / float(skel.bone_lengths[skel.bone_names.index("head")])
+        lengths["head"] = float((at[head_point] - at["head"]).norm(dim=-1).median()) / share
     return skel.with_bone_lengths(lengths) if lengths else skel
 
 

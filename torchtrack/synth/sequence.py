@@ -27,6 +27,7 @@ from torchtrack.io.poses import Poses, save_poses
 from torchtrack.resources import builtin_config
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import MOTIONS, on_the_floor, procedural_motion
+from torchtrack.synth.retarget import RETARGET_REVISION
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 
 log = logging.getLogger(__name__)
@@ -325,14 +326,16 @@ def _synth_table(cfg: SynthConfig) -> dict:
             "subject_height_m": cfg.subject_height_m, "background_frames": cfg.background_frames,
             "video_format": cfg.video_format, "body_model": body_model_digest(), "rig": _plain(asdict(cfg.rig)),
             "scene": _plain(asdict(cfg.scene)), "body": _plain(asdict(cfg.body)),
-            "starfish": [cfg.starfish_arms, cfg.starfish_legs], "path": _plain(cfg.path)}
+            "starfish": [cfg.starfish_arms, cfg.starfish_legs], "path": _plain(cfg.path),
+            **({} if cfg.motion in MOTIONS else {"retarget": RETARGET_REVISION})}
 
 
 def is_current(out: str | Path, cfg: SynthConfig) -> bool:
     """Whether ``out`` is a complete sequence that :func:`write_sequence` rendered from ``cfg`` with today's body
     model (its meta.toml's frame rate and ``[synth]`` table equal what ``cfg`` would write now): scripts that keep
     rendered sequences between runs re-render the ones that are not. Not seen: changes to the code (renderer,
-    procedural motions, BVH retargeting) and to a BVH file's contents under the same path."""
+    procedural motions; the retargeting only as far as ``RETARGET_REVISION`` says) and to a capture file's
+    contents under the same path."""
     import tomllib
 
     out = Path(out)
