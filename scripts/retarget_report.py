@@ -1,6 +1,7 @@
 #!/usr/bin/env python
 """Print how closely the retargeted skeleton follows each CMU BVH file (landmark distance after retargeting)
-and its proportions against the template scaled to the same height (what one height scale cannot represent).
+and its proportions against the template scaled to the same height (what one height scale cannot represent) and
+as fractions of its height against Winter's anthropometric tables.
 
 Usage: .venv/bin/python scripts/retarget_report.py [BVH ...] [--fps 30]
 """
@@ -35,6 +36,11 @@ def main() -> None:
             f"{b} {ours[b]:.3f} m ({ours[b] / template[b]:.2f}x)" for b in PROPORTION_BONES)
             + f"; neck above the shoulders {100 * ours['neck_above_shoulders']:+.1f} cm "
               f"(template {100 * template['neck_above_shoulders']:+.1f} cm)")
+        body, H = res.skeleton, res.skeleton.height()
+        z = body.rest_frames[body.frame_index(["l_upperarm", "l_thigh", "l_toe"])][:, 2, 3]
+        print(f"  as fractions of the height (Winter's segment tables in brackets): shoulder joints "
+              f"{float(z[0] - z[2]) / H:.3f} (0.818), hips {float(z[1] - z[2]) / H:.3f} (0.530), thigh + shank "
+              f"{(ours['l_thigh'] + ours['l_shank']) / H:.3f} (0.491)")
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from conftest import shared_data
 from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
@@ -214,13 +215,15 @@ def test_body_path_and_start_style_reach_the_ground_truth(tmp_path):
         write_sequence(_cfg(body=BodyConfig(colours=(("tail", (0, 0, 0)),))), tmp_path / "c", progress=False)
 
 
-def test_sequences_from_captures_record_the_retargeting_revision(monkeypatch):
-    """A sequence retargeted from a capture is stale once the retargeting changes its bodies; a procedural one
-    does not depend on it."""
+def test_a_kept_capture_sequence_goes_stale_when_the_retargeting_changes(tmp_path, monkeypatch):
+    """A sequence rendered from a capture is current for its config until the retargeting's revision changes; a
+    procedural one does not depend on it."""
     from torchtrack.synth import sequence as synth_sequence
 
-    capture = _cfg(motion="../shared/data/mocap/cmu/131_01.bvh")
-    before, procedural = synth_sequence._synth_table(capture), synth_sequence._synth_table(_cfg())
+    capture = _cfg(motion=str(shared_data("mocap", "cmu", "131_01.bvh")), duration_s=0.2, starfish_s=0.0)
+    written = write_sequence(capture, tmp_path / "capture", progress=False)
+    assert synth_sequence.is_current(written, capture)
+    procedural = write_sequence(_cfg(duration_s=0.2, starfish_s=0.0), tmp_path / "procedural", progress=False)
     monkeypatch.setattr(synth_sequence, "RETARGET_REVISION", synth_sequence.RETARGET_REVISION + 1)
-    assert synth_sequence._synth_table(capture) != before
-    assert synth_sequence._synth_table(_cfg()) == procedural
+    assert not synth_sequence.is_current(written, capture)
+    assert synth_sequence.is_current(procedural, _cfg(duration_s=0.2, starfish_s=0.0))
