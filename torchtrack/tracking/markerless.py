@@ -24,7 +24,7 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
 
 Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic: by default from any pose, by the batched
 search of :mod:`torchtrack.tracking.search`, with the starfish start as a fast path where the frame looks like
-one (the better-scoring of the two is kept); with ``start: starfish`` from the starfish pose alone (Caillette
+one (the starfish's kept unless the search's start scores clearly higher); with ``start: starfish`` from the starfish pose alone (Caillette
 §4.2): position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms
 lie along the main one) and the feet (the toes point forwards), subject height from the highest voxel. The
 skeleton is fitted to the voxels and the blobs learn their colours over the first frames. Or the caller gives
@@ -160,11 +160,16 @@ STARFISH_HAND_SHARE = 0.02
 STARFISH_MAX_VOLUME_RATIO = 3.0
 
 #: The start race (``TrackerConfig.start_race_s``): the start turned round replaces the search's start only if its
-#: mean two-way score (:func:`~torchtrack.tracking.search.score_states`, 0-1) over the race is higher by more than
-#: this (a tie keeps the search's answer) and its mean fit cost (:meth:`MarkerlessTracker._fit_cost`) is lower too:
-#: on a 4-camera hull's ghosts the score alone preferred the turned round twin of a wrong start, which was wronger
-#: (docs/results.md, "Robustness").
+#: mean fit cost (:meth:`MarkerlessTracker._fit_cost`) over the race is lower, its mean two-way score
+#: (:func:`~torchtrack.tracking.search.score_states`, 0-1) not lower by more than this, and one of the two wins
+#: clearly: the score by more than this, or the cost by :data:`START_RACE_COST_RATIO`. On a 4-camera hull's ghosts
+#: the score alone preferred the turned round twin of a wrong start, which was wronger; on a walk from a starfish
+#: the two scored the same and only the fit cost (knees that bend one way) told them apart (docs/results.md,
+#: "The start race"). The starfish's fast path takes the same margin: a searched start replaces the starfish's only
+#: if it scores higher by more than this.
 START_RACE_MARGIN = 0.01
+#: The fit cost's clear win in the start race: the twin's mean cost below this fraction of the start's.
+START_RACE_COST_RATIO = 0.8
 
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
@@ -215,7 +220,8 @@ class TrackerConfig:
         start: how the first pose is found. ``"search"``: from any pose, by the batched search of
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``), and the starfish
-            start too where the frame passes its checks, the better-scoring kept; ``"starfish"``: the starfish
+            start too where the frame passes its checks, kept unless the search's scores clearly higher
+            (``START_RACE_MARGIN``); ``"starfish"``: the starfish
             start (Caillette §4.2) alone, which refuses any other pose.
         start_real_poses: the search also starts from real captured poses
             (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
@@ -228,9 +234,11 @@ class TrackerConfig:
         start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
             same silhouette facing the other way, which one frame's voxels cannot tell from it:
             :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long, and the one whose
-            poses fit the voxels better over it (the mean two-way score, by more than ``START_RACE_MARGIN``, and
-            EM/IK's fit cost) is kept, its frames replacing the other's (:meth:`MarkerlessTracker.take_revised`): a
-            body's motion shows which way it faces, as knees and elbows bend one way only (0: off).
+            poses fit the voxels better over it (EM/IK's fit cost lower, the mean two-way score not lower by more
+            than ``START_RACE_MARGIN``, and one of the two clearly better: the score by that margin or the cost by
+            ``START_RACE_COST_RATIO``) is kept, its frames replacing the other's
+            (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees and elbows
+            bend one way only (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -699,7 +707,8 @@ class MarkerlessTracker:
         own, other, own_cost, other_cost = (sum(col) / len(race.fits) for col in zip(*race.fits))
         log.debug("start race over %d frames: the search's start scores %.3f, turned round %.3f; fit cost %.1f / %.1f "
                   "mm", len(race.results), own, other, 1e3 * own_cost, 1e3 * other_cost)
-        if other > own + START_RACE_MARGIN and other_cost < own_cost:
+        if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
+                other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
             revised = race.results
             self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
             self._race, self._revised, self._twin = None, revised, False
@@ -726,10 +735,12 @@ class MarkerlessTracker:
     def _starfish_fast_path(self, obs: VoxelObservation, res: FrameResult, before: MarkerlessTracker
                             ) -> FrameResult:
         """A searched start (``res``, this tracker's state) against the starfish start from the same state
-        (``before``), where its checks take the frame for a starfish: the one whose finished pose scores higher on
-        ``obs`` (the search's two-way score, each with its own fitted body) is kept. The starfish's placement
-        (arms' line, toes, the voxels' height) lands where the search's sampled poses may not, e.g. arms raised
-        above the shoulders on a body of unusual proportions (docs/results.md, "The start search")."""
+        (``before``), where its checks take the frame for a starfish: the starfish's is kept unless the searched
+        one's finished pose scores higher on ``obs`` by more than ``START_RACE_MARGIN`` (the search's two-way score,
+        each with its own fitted body). The starfish's placement (arms' line, toes, the voxels' height) lands where
+        the search's sampled poses may not, e.g. arms raised above the shoulders on a body of unusual proportions;
+        and a starfish scores the same turned round, which its toes tell and the score does not (docs/results.md,
+        "The start search")."""
         from torchtrack.tracking.search import score_states
 
         starfish = before
@@ -743,7 +754,7 @@ class MarkerlessTracker:
         own, other = (float(score_states(obs, t.subject.skeleton, t.subject.blobs, r.angles[None])[0][0])
                       for t, r in ((self, res), (starfish, alt)))
         log.debug("start: the search's start scores %.3f, the starfish's %.3f", own, other)
-        if other <= own:
+        if other < own - START_RACE_MARGIN:
             return res
         config = self.config
         self.__dict__.update(starfish.__dict__)  # this tracker goes on from the starfish's start

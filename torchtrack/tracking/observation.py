@@ -26,7 +26,8 @@ MODELS = ("bayes", "hull")
 SILHOUETTE_CELL_PX = 4
 #: The tracking config's ``observation.silhouettes: null`` keeps them (and the start search scores in the images)
 #: from rigs of this many cameras: with 8 the searched starts are right more often; with 4 no more often, and one
-#: 4-camera squat of the stress table started wrong (docs/results.md, "The start search").
+#: 4-camera squat of the stress table started wrong (docs/results.md, "The start search"). Where it keeps them the
+#: search also keeps both headings (:func:`~torchtrack.tracking.search._top_both_ways`).
 SILHOUETTES_MIN_CAMERAS = 7
 
 

@@ -6,9 +6,10 @@ and the share of the body's volume on occupied voxels; or, where the observation
 (``observation.silhouettes``), the same two shares camera by camera in the images (:func:`image_terms`), where the
 phantom volume of a few views' hull does not count against the true body and one camera's miss costs only that
 camera's share (docs/results.md, "The start search"). The best are refined by an annealed search (the
-hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps). The tracker's own
-EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage is one batched tensor
-computation over the hypotheses, on the device of the voxels.
+hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps; where the images score
+them, half of those kept face away from the best, so that a body turned round stays among them until the score
+tells it). The tracker's own EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage
+is one batched tensor computation over the hypotheses, on the device of the voxels.
 
 The hypotheses: the skeleton's poses from a structured prior (:func:`pose_prior`: arms hanging, bent, forward,
 sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking) and,
@@ -457,6 +458,25 @@ def _top(score: torch.Tensor, n: int) -> torch.Tensor:
     return score.topk(min(n, score.shape[0])).indices
 
 
+def _top_both_ways(score: torch.Tensor, heading: torch.Tensor, n: int) -> torch.Tensor:
+    """``n`` hypotheses: the best ceil(n / 2) facing within 90 deg of the best one's heading (the best among them)
+    and the best floor(n / 2) facing away (fewer on one side: the rest from the other). A walker's silhouette is nearly the same
+    turned round, and the annealed search otherwise settles in whichever basin leads early on: both are kept where
+    the images score the body (their knees and feet tell its front), not on a few views' hull, whose phantom volume
+    the far basin then fits (docs/results.md, "Both headings kept, the race decided by the fit cost too")."""
+    rel = torch.remainder(heading - heading[score.argmax()] + math.pi, 2 * math.pi) - math.pi
+    ahead = rel.abs() < 0.5 * math.pi
+    low = torch.finfo(score.dtype).min
+    a = score.masked_fill(~ahead, low).topk(min(n - n // 2, int(ahead.sum()))).indices
+    b = score.masked_fill(ahead, low).topk(min(n - a.shape[0], int((~ahead).sum()))).indices
+    got = torch.cat([a, b])
+    if got.shape[0] < n:  # one side short: the best of the rest
+        rest = score.clone()
+        rest[got] = low
+        got = torch.cat([got, rest.topk(min(n - got.shape[0], score.shape[0] - got.shape[0])).indices])
+    return got
+
+
 def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config: SearchConfig = SearchConfig(),
                 generator: torch.Generator | None = None, n: int = 3) -> SearchResult:
     """The ``n`` best whole-body states for the voxels of ``obs`` (module docstring).
@@ -535,7 +555,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         poses = torch.cat([poses, child])
         heading, scale = torch.cat([heading, c_heading]), torch.cat([scale, c_scale])
         shift, score = torch.cat([shift, c_shift]), torch.cat([score, c_score])
-        best = _top(score, config.keep)
+        best = _top(score, config.keep) if vox.views is None else _top_both_ways(score, heading, config.keep)
         poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
         step *= config.shrink
     best = _top(score, n)
