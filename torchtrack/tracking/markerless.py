@@ -24,11 +24,12 @@ Per frame, from a :class:`~torchtrack.tracking.observation.VoxelObservation`:
 
 Initialisation (:meth:`MarkerlessTracker.initialize`) is automatic: by default from any pose, by the batched
 search of :mod:`torchtrack.tracking.search`, with the starfish start as a fast path where the frame looks like
-one (the starfish's kept unless the search's start scores clearly higher); with ``start: starfish`` from the starfish pose alone (Caillette
-§4.2): position from the voxels' centroid, heading from the eigenvectors of their horizontal spread (the arms
-lie along the main one) and the feet (the toes point forwards), subject height from the highest voxel. The
-skeleton is fitted to the voxels and the blobs learn their colours over the first frames. Or the caller gives
-an initial state vector and height (de Bem's reusable initialisation, e.g. a previous run's ``poses.npz``).
+one (the starfish's kept unless the search's start scores clearly higher); with ``start: starfish`` from the
+starfish pose alone (Caillette §4.2): position from the voxels' centroid, heading from the eigenvectors of their
+horizontal spread (the arms lie along the main one) and the feet (the toes point forwards), subject height from
+the highest voxel. The skeleton is fitted to the voxels and the blobs learn their colours over the first frames.
+Or the caller gives an initial state vector and height (de Bem's reusable initialisation, e.g. a previous run's
+``poses.npz``).
 """
 
 from __future__ import annotations
@@ -221,8 +222,8 @@ class TrackerConfig:
             :mod:`torchtrack.tracking.search` (hypotheses of the whole state scored against the voxels, the best
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``), and the starfish
             start too where the frame passes its checks, kept unless the search's scores clearly higher
-            (``START_RACE_MARGIN``); ``"starfish"``: the starfish
-            start (Caillette §4.2) alone, which refuses any other pose.
+            (``START_RACE_MARGIN``); ``"starfish"``: the starfish start (Caillette §4.2) alone, which refuses any
+            other pose.
         start_real_poses: the search also starts from real captured poses
             (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
             reaching poses seen by 8 or more cameras, where more starts land right. Off by default: beside phantom

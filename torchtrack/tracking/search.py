@@ -459,22 +459,19 @@ def _top(score: torch.Tensor, n: int) -> torch.Tensor:
 
 
 def _top_both_ways(score: torch.Tensor, heading: torch.Tensor, n: int) -> torch.Tensor:
-    """``n`` hypotheses: the best ceil(n / 2) facing within 90 deg of the best one's heading (the best among them)
-    and the best floor(n / 2) facing away (fewer on one side: the rest from the other). A walker's silhouette is nearly the same
-    turned round, and the annealed search otherwise settles in whichever basin leads early on: both are kept where
-    the images score the body (their knees and feet tell its front), not on a few views' hull, whose phantom volume
-    the far basin then fits (docs/results.md, "Both headings kept, the race decided by the fit cost too")."""
-    rel = torch.remainder(heading - heading[score.argmax()] + math.pi, 2 * math.pi) - math.pi
+    """``n`` hypotheses: the best ceil(n / 2) facing within 90 deg of the best one's heading (the best among them),
+    then the best floor(n / 2) facing away, then, where one side is short, the best of the other's rest. A walker's
+    silhouette is nearly the same turned round, and the annealed search otherwise settles in whichever basin leads
+    early on: both are kept where the images score the body (their knees and feet tell its front), not on a few
+    views' hull, whose phantom volume the far basin then fits (docs/results.md, "Both headings kept, the race
+    decided by the fit cost too"). One sort and no host synchronisation."""
+    order = score.argsort(descending=True, stable=True)
+    rel = torch.remainder(heading[order] - heading[order[0]] + math.pi, 2 * math.pi) - math.pi
     ahead = rel.abs() < 0.5 * math.pi
-    low = torch.finfo(score.dtype).min
-    a = score.masked_fill(~ahead, low).topk(min(n - n // 2, int(ahead.sum()))).indices
-    b = score.masked_fill(ahead, low).topk(min(n - a.shape[0], int((~ahead).sum()))).indices
-    got = torch.cat([a, b])
-    if got.shape[0] < n:  # one side short: the best of the rest
-        rest = score.clone()
-        rest[got] = low
-        got = torch.cat([got, rest.topk(min(n - got.shape[0], score.shape[0] - got.shape[0])).indices])
-    return got
+    rank = torch.where(ahead, ahead.cumsum(0), (~ahead).cumsum(0)) - 1  # each one's place on its own side
+    spare = rank >= torch.where(ahead, n - n // 2, n // 2)  # beyond its side's share
+    group = 2 * spare + (~ahead & ~spare)  # ahead in its share, away in its share, the rest by score
+    return order[group.argsort(stable=True)[:n]]
 
 
 def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config: SearchConfig = SearchConfig(),
