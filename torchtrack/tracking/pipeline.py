@@ -32,7 +32,8 @@ log = logging.getLogger(__name__)
 
 #: The built-in tracking config.
 DEFAULT_CONFIG = "markerless.yaml"
-_SECTIONS = ("observation", "background", "tracker", "background_refinement", "body_refit", "smoothing")
+_SECTIONS = ("observation", "background", "tracker", "keypoint_start", "background_refinement", "body_refit",
+             "smoothing")
 
 
 class NothingTracked(Exception):
@@ -84,7 +85,8 @@ def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]
         raise InputError(f"{path}: not valid YAML ({exc})") from None
     if not isinstance(doc, dict) or set(doc) - {*_SECTIONS, "extends"}:
         raise InputError(f"{path}: expected the sections 'observation', 'background', 'tracker', "
-                         "'background_refinement', 'body_refit' and 'smoothing' (and 'extends') only")
+                         "'keypoint_start', 'background_refinement', 'body_refit' and 'smoothing' (and 'extends') "
+                         "only")
     if "extends" in doc:
         if str(path) in _seen:
             raise InputError(f"{path}: 'extends' loops back to itself")
@@ -95,6 +97,32 @@ def load_config(name: str | Path, _seen: tuple[str, ...] = ()) -> dict[str, Any]
         doc.setdefault(section, {})
     doc["source"] = str(path)
     return doc
+
+
+def keypoint_start(folder: Any, config: Any, start: int, stop: int | None) -> Any:
+    """The start from detected 2D keypoints (:mod:`torchtrack.keypoints.start`), or None where the config turns it
+    off, the detector is not installed (``enabled: auto``) or the start frame shows no consistent person (the
+    tracker then searches the voxels)."""
+    from torchtrack.keypoints.detector import INSTALL_HINT, detector_available, load_detector
+    from torchtrack.keypoints.start import start_from_keypoints
+    from torchtrack.skeleton import Skeleton
+
+    if config.enabled == "off":
+        return None
+    if config.enabled == "auto" and folder.num_cameras > config.max_cameras:
+        return None
+    if config.enabled == "auto" and not detector_available(config.detector):
+        log.info("no keypoint detector installed (%s); the start is searched in the voxels", INSTALL_HINT)
+        return None
+    detector = load_detector(config.detector)
+    try:
+        found, why = start_from_keypoints(folder, folder.rig.float(), Skeleton.from_urdf(), detector, config,
+                                          start, stop)
+    finally:
+        detector.close()
+    if found is None:
+        log.warning("%s: no start from keypoints (%s); the start is searched in the voxels", folder.root, why)
+    return found
 
 
 def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
@@ -227,6 +255,7 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.io.poses import load_poses
     from torchtrack.io.sequence import SequenceFolder
+    from torchtrack.keypoints.start import KeypointStartConfig
     from torchtrack.logging import RunLogger
     from torchtrack.skeleton import Skeleton
     from torchtrack.tracking.body_refit import BodyRefitConfig, track_with_body_refit
@@ -292,6 +321,12 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
                 bcfg = bcfg.for_start(body_given=True)
         else:
             tracker.initialize_from_pose(angles, height_m or height or folder.meta.subject_height_m or 1.75)
+    else:
+        found = keypoint_start(folder, KeypointStartConfig.from_dict(cfg["keypoint_start"], source), start, stop)
+        if found is not None:  # a body fitted to the keypoints of several frames, kept as a given one
+            tracker.initialize_from_pose(found.angles.to(device), skeleton=found.skeleton.to(device))
+            if refit_passes is None:
+                bcfg = bcfg.for_start(body_given=True)
     if not bg.from_moving_sequence and rcfg.passes:
         log.info("%s: the background is measured from its background/ frames, not refined from the track",
                  folder.root)
