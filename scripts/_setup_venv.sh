@@ -16,6 +16,7 @@ if [ ! -f "$STAMP" ] || [ "$(cat "$STAMP")" != "$WANT" ] || ! .venv/bin/python -
   echo "[setup] installing torchtrack and its dependencies into .venv (constraints.txt pins torch)"
   .venv/bin/python -m pip install --quiet --upgrade pip
   .venv/bin/python -m pip install --quiet -c constraints.txt -e ".[dev,keypoints]"
-  .venv/bin/python -m pip install --quiet --no-deps "$KEYPOINT_DETECTOR"
+  .venv/bin/python -m pip install --quiet --no-deps "$KEYPOINT_DETECTOR" || echo "[setup] $KEYPOINT_DETECTOR" \
+    "has no build for this Python: the tracker's start is searched in the voxels alone"
   echo "$WANT" > "$STAMP"
 fi

@@ -10,6 +10,7 @@ at once (:func:`~torchtrack.tracking.landmark_fit.fit_to_landmarks`). The first 
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass, fields
 from typing import Any
@@ -25,6 +26,9 @@ log = logging.getLogger(__name__)
 
 #: Trunk keypoints that place the body: both hips and both shoulders.
 TRUNK = ("l_hip", "r_hip", "l_shoulder", "r_shoulder")
+#: Largest mean distance (m) of the fitted body's keypoints from the triangulated ones: one person's keypoints
+#: fit within a few centimetres (the real demo's 17 mm); more means points of several people or a misdetection.
+MAX_FIT_RESIDUAL_M = 0.05
 
 
 @dataclass(frozen=True)
@@ -133,7 +137,7 @@ def start_from_keypoints(folder, rig, generic, detector: KeypointDetector, confi
     uv, conf = detect_sequence(folder, frames, detector)
     limit = torch.as_tensor(config.max_error * person_size_px(uv, conf))  # (C, T)
     uv_t, conf_t = torch.as_tensor(uv), torch.as_tensor(conf)
-    rig64 = rig.double()
+    rig64 = copy.deepcopy(rig).double()  # nn.Module.double() converts in place: the caller's rig stays as it is
     views = consistent_views(rig64, uv_t, conf_t, limit)  # (C, T)
     tri = triangulate_keypoints(rig64, uv_t, conf_t * views[..., None], limit)
     points = tri.points.float().numpy()  # (T, K, 3)
@@ -159,6 +163,9 @@ def start_from_keypoints(folder, rig, generic, detector: KeypointDetector, confi
     height = float(body.height())
     if not 1.0 <= height <= 2.3:
         return None, f"frame {start}: the keypoints make a {height:.2f} m body"
+    if residual > MAX_FIT_RESIDUAL_M:
+        return None, (f"frame {start}: no body fits the keypoints (the fitted one is {1e3 * residual:.0f} mm from "
+                      f"them on average)")
     cams = [n for n, v in zip(rig.names, views[:, 0].tolist()) if v]
     log.info("start from keypoints: frames %s, %d camera(s) in the first (%s), a %.2f m body fitted %.1f mm from "
              "them on average", [frames[k] for k in keep], len(cams), ", ".join(cams), height, 1e3 * residual)

@@ -116,7 +116,7 @@ def keypoint_start(folder: Any, config: Any, start: int, stop: int | None) -> An
         return None
     detector = load_detector(config.detector)
     try:
-        found, why = start_from_keypoints(folder, folder.rig.float(), Skeleton.from_urdf(), detector, config,
+        found, why = start_from_keypoints(folder, folder.rig, Skeleton.from_urdf(), detector, config,
                                           start, stop)
     finally:
         detector.close()
