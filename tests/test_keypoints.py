@@ -176,6 +176,7 @@ def test_keypoint_start_config_names_bad_settings():
         KeypointStartConfig.from_dict({"frame": 3})
     with pytest.raises(InputError, match="auto, on or off"):
         KeypointStartConfig(enabled="yes")
+    assert KeypointStartConfig.from_dict({"enabled": False}).enabled == "off"  # YAML's bare off
 
 
 @pytest.mark.skipif(not DEMO.is_dir(), reason="needs ../shared/data/pose2sim_demo")
@@ -231,3 +232,25 @@ def test_the_pipeline_uses_keypoints_on_small_rigs_only(monkeypatch):
     assert made == ["mediapipe"]  # neither made a detector
     monkeypatch.setattr(det, "detector_available", lambda name="mediapipe": False)
     assert pipeline.keypoint_start(folder, KeypointStartConfig(), 0, None) is None  # auto: not installed
+
+
+def test_the_start_picture_marks_used_and_dropped_detections():
+    from torchtrack.keypoints.start import KeypointStart, draw_keypoint_start
+
+    rig = _rig(C=2)  # 640x480
+    small = rig.resized(320, 240)
+    skel = Skeleton.from_urdf()
+    uv = np.full((2, len(KEYPOINTS), 2), np.nan)
+    uv[0, 0] = (100.0, 40.0)  # used, in camera 0
+    uv[1, 3] = (500.0, 420.0)  # dropped, in camera 1
+    used = np.zeros((2, len(KEYPOINTS)), bool)
+    used[0, 0] = True
+    angles = skel.rest_angles()
+    angles[0] = 50.0  # the body far out of view: only the detections are drawn
+    found = KeypointStart(angles, skel, 0, [0], 0.0, ["c0"], uv, used)
+    out = draw_keypoint_start(torch.zeros(2, 3, 240, 320), small, found, np.array([[640, 480]] * 2))
+    r = max(2, round(0.006 * 320))
+    # the circles' rims at half the detections' coordinates: white for the used one, red for the dropped one
+    assert out[0, :, 20, 50 + r].min() > 0.3
+    assert out[1, 0, 210, 250 + r] > 0.3 and out[1, 1, 210, 250 + r] < 0.2
+    assert float(out[1, :, 20, 50 + r].max()) == 0.0 and float(out[0, :, 210, 250 + r].max()) == 0.0

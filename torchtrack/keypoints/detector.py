@@ -73,15 +73,20 @@ class MediaPipeDetector(KeypointDetector):
             except ImportError as exc:
                 raise ImportError(f"the keypoint detector needs MediaPipe ({exc}); install it with: "
                                   f"{INSTALL_HINT}") from None
-            self._pose = mp_pose.Pose(static_image_mode=True, model_complexity=complexity,
-                                      min_detection_confidence=min_detection_confidence)
+        self._make = lambda: mp_pose.Pose(static_image_mode=True, model_complexity=complexity,
+                                          min_detection_confidence=min_detection_confidence)
+        self._pose = None  # made at the first image: its graph's threads log while they start
         self._index = [list(MEDIAPIPE_MAP[k]) for k in KEYPOINTS]
 
     def detect(self, image_rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if image_rgb.ndim != 3 or image_rgb.shape[2] != 3 or image_rgb.dtype != np.uint8:
             raise InputError(f"detect wants an (H, W, 3) uint8 RGB image, got {image_rgb.shape} {image_rgb.dtype}")
         K = len(KEYPOINTS)
-        with _quiet_native_stderr():  # the graph's threads log natively while it runs
+        # MediaPipe's graph threads log natively (to file descriptor 2) while they start and run; between
+        # calls they are idle, so nothing of theirs lands in what another library writes there (FFmpeg's log).
+        with _quiet_native_stderr():
+            if self._pose is None:
+                self._pose = self._make()
             result = self._pose.process(np.ascontiguousarray(image_rgb))
         if result.pose_landmarks is None:
             return np.full((K, 2), np.nan), np.zeros(K)
@@ -93,7 +98,10 @@ class MediaPipeDetector(KeypointDetector):
         return uv, np.clip(conf, 0.0, 1.0)
 
     def close(self) -> None:
-        self._pose.close()
+        if self._pose is not None:
+            with _quiet_native_stderr():
+                self._pose.close()  # waits for the graph's threads
+            self._pose = None
 
 
 @contextlib.contextmanager

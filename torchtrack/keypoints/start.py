@@ -72,6 +72,8 @@ class KeypointStartConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None, source: str = "config") -> KeypointStartConfig:
         d = dict(d or {})
+        if isinstance(d.get("enabled"), bool):  # YAML reads a bare on / off as a boolean
+            d["enabled"] = "on" if d["enabled"] else "off"
         known = {f.name for f in fields(cls)}
         unknown = sorted(set(d) - known)
         if unknown:
@@ -82,8 +84,9 @@ class KeypointStartConfig:
 @dataclass
 class KeypointStart:
     """A start found from keypoints: ``angles (D,)`` on ``skeleton`` (the fitted body) at frame ``frame``; the
-    frames used, the mean distance (m) of the fitted body's keypoints from the triangulated ones, and the
-    cameras that saw the person in the start frame."""
+    frames used, the mean distance (m) of the fitted body's keypoints from the triangulated ones, the cameras
+    that saw the person in the start frame, and that frame's detections: ``uv_px (C, K, 2)`` at the videos' size
+    and ``used (C, K)``, those the points were triangulated from."""
 
     angles: torch.Tensor
     skeleton: Any
@@ -91,6 +94,8 @@ class KeypointStart:
     frames: list[int]
     residual_m: float
     cameras: list[str]
+    uv_px: np.ndarray
+    used: np.ndarray
 
 
 def detect_sequence(folder, frames: list[int], detector: KeypointDetector) -> tuple[np.ndarray, np.ndarray]:
@@ -98,8 +103,8 @@ def detect_sequence(folder, frames: list[int], detector: KeypointDetector) -> tu
     ``(C, T, K, 2)`` pixels and ``(C, T, K)`` confidences (0 for a frame that did not decode)."""
     C, T, K = folder.num_cameras, len(frames), len(KEYPOINTS)
     uv, conf = np.full((C, T, K, 2), np.nan), np.zeros((C, T, K))
-    for c in range(C):
-        images, ok = folder.read_camera_frames(c, frames)
+    decoded = [folder.read_camera_frames(c, frames) for c in range(C)]  # all decoded before any detection
+    for c, (images, ok) in enumerate(decoded):
         for t in np.flatnonzero(ok):
             uv[c, t], conf[c, t] = detector.detect(images[t])
     return uv, conf
@@ -169,4 +174,26 @@ def start_from_keypoints(folder, rig, generic, detector: KeypointDetector, confi
     cams = [n for n, v in zip(rig.names, views[:, 0].tolist()) if v]
     log.info("start from keypoints: frames %s, %d camera(s) in the first (%s), a %.2f m body fitted %.1f mm from "
              "them on average", [frames[k] for k in keep], len(cams), ", ".join(cams), height, 1e3 * residual)
-    return KeypointStart(angles[0], body, start, [frames[k] for k in keep], residual, cams), ""
+    return KeypointStart(angles[0], body, start, [frames[k] for k in keep], residual, cams, uv[:, 0],
+                         tri.views[:, 0].numpy()), ""
+
+
+def draw_keypoint_start(images: torch.Tensor, rig, found: KeypointStart, full_size_wh: np.ndarray) -> torch.Tensor:
+    """The start frame's ``images (C, 3, H, W)`` (at ``rig``'s size) with the fitted body's skeleton and the
+    detections over it: white where triangulated, red where dropped. ``full_size_wh (C, 2)``: the size the
+    detections are in."""
+    import cv2
+
+    from torchtrack.tracking.draw import draw_pose_overlays
+
+    with torch.no_grad():
+        landmarks = found.skeleton.forward(found.angles[None]).output_points[0, :16]
+    canvas = draw_pose_overlays(images, rig, landmarks.to(images)).permute(0, 2, 3, 1).numpy().copy()
+    scale = rig.image_size_wh.cpu().numpy() / np.asarray(full_size_wh)  # (C, 2)
+    radius = max(2, round(0.006 * float(rig.image_size_wh.max())))
+    for c in range(canvas.shape[0]):
+        for (u, v), used in zip(found.uv_px[c] * scale[c], found.used[c]):
+            if np.isfinite(u) and np.isfinite(v):
+                cv2.circle(canvas[c], (int(round(u)), int(round(v))), radius, (1.0, 1.0, 1.0) if used else
+                           (1.0, 0.1, 0.1), 1, cv2.LINE_AA)
+    return torch.from_numpy(canvas).permute(0, 3, 1, 2)

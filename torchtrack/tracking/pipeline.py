@@ -1,9 +1,10 @@
 """Track a sequence folder as `torchtrack track` does, in one library call: :func:`track`.
 
 The background (measured from ``background/`` frames or estimated from the video), the observation model, the
-start (the starfish, or a given pose), the track, the background refinement, the body refit and the smoothing in
-time, with the settings of a tracking config (``configs/markerless.yaml``) and the overrides the CLI has. The CLI
-and the evaluation scripts call it, so that what is measured is what users run.
+start (fitted to detected 2D keypoints on small rigs, else searched in the voxels, or a given pose), the track,
+the background refinement, the body refit and the smoothing in time, with the settings of a tracking config
+(``configs/markerless.yaml``) and the overrides the CLI has. The CLI and the evaluation scripts call it, so that
+what is measured is what users run.
 
 Threads: the tracker is thousands of small tensor operations a frame, which one intra-op thread runs as fast as
 several on an idle machine, and which several run many times slower beside a busy process (they wait for each
@@ -125,6 +126,19 @@ def keypoint_start(folder: Any, config: Any, start: int, stop: int | None) -> An
     return found
 
 
+def _log_keypoint_start(tb: Any, folder: Any, found: Any, size_wh: tuple[int, int]) -> None:
+    """TensorBoard: the start frame's images with the detected keypoints and the body fitted to them
+    (``start/keypoints/<camera>``)."""
+    import torch
+
+    from torchtrack.keypoints.start import draw_keypoint_start
+
+    rig = folder.rig.resized(*size_wh).float()
+    images = torch.nan_to_num(folder.read_frame(found.frame, size_wh=size_wh), nan=0.0)
+    tb.camera_images(found.frame, "start/keypoints", draw_keypoint_start(images, rig, found, folder.image_size_wh),
+                     rig.names)
+
+
 def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model: str, voxel_m: float) -> Any:
     """The :class:`~torchtrack.tracking.observation.Observer` of a config's ``observation`` section."""
     from torchtrack.occupancy import BayesConfig, HullConfig
@@ -218,7 +232,7 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
             spawned process), 0 in this process (the default here), None the config's ``observation.workers``
             (`torchtrack track`'s default: 1).
         init_pose: start from the first valid frame of this poses file (with its body where it has one) instead of
-            the starfish. height_m: the subject's height for an ``init_pose`` without a body (default: its
+            the automatic start (the config's ``keypoint_start``, else the search in the voxels). height_m: the subject's height for an ``init_pose`` without a body (default: its
             ``subject_height_m``, else meta.toml's, else 1.75); with a body, the body scaled to it.
         start, stop: the frames ``[start, stop)`` to track. batch: frames read and observed together.
         device: torch device. threads: intra-op threads of this process while it tracks (None: as they are).
@@ -312,6 +326,7 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     else:
         bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=progress)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
+    found = None
     if init_pose is not None:
         angles, height, body = read_start_pose(init_pose)
         angles = angles.to(device)
@@ -337,6 +352,8 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
 
     with contextlib.ExitStack() as stack:
         tb = stack.enter_context(RunLogger(log_dir)) if log_dir is not None else None
+        if tb is not None and found is not None:
+            _log_keypoint_start(tb, folder, found, (W, H))
         passes: list[int] = []  # the passes run (the refinement may stop early)
         refits: list[bool] = []  # whether each body refit pass was kept
 
