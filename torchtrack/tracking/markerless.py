@@ -468,23 +468,14 @@ class FrameResult:
 
 
 @dataclass
-class _Rival:
-    """A start racing the tracker's own: its tracker, its scores and fit costs beside the start's over the frames
-    both fitted (own score, its score, own cost, its cost), and its results with the body version each was tracked
-    in."""
-
-    tracker: MarkerlessTracker
-    fits: list[tuple[float, float, float, float]] = field(default_factory=list)
-    results: list[tuple[FrameResult, int]] = field(default_factory=list)
-
-
-@dataclass
 class _Race:
-    """A start race in progress: the rival starts (the start turned round; a starfish start the search's overrode)
-    and the frames left."""
+    """A start race in progress: the twin tracker (started turned round), the frames left, each side's scores and
+    the twin's results with the body version each was tracked in."""
 
-    rivals: list[_Rival]
+    twin: MarkerlessTracker
     frames_left: int
+    fits: list[tuple[float, float, float, float]] = field(default_factory=list)  # scores, then fit costs
+    results: list[tuple[FrameResult, int]] = field(default_factory=list)
 
 
 class _Subject:
@@ -573,10 +564,6 @@ class MarkerlessTracker:
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
         self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
         self._twin = False  # this tracker races another's start (it starts no race of its own)
-        # the start frame was a starfish (its checks took it): its toes told the front, so no twin races; and the
-        # starfish's start with its first frame where the search's overrode it by the score alone (it races then)
-        self._starfish_frame = False
-        self._overridden: tuple[MarkerlessTracker, FrameResult] | None = None
 
     def set_frame_rate(self, fps: float) -> None:
         """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
@@ -649,7 +636,7 @@ class MarkerlessTracker:
         self.start_refusals = []
 
     def _clear(self) -> None:
-        self._race, self._revised, self._overridden, self._starfish_frame = None, [], None, False
+        self._race, self._revised = None, []
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None
@@ -672,13 +659,8 @@ class MarkerlessTracker:
             raise
         self._remember_feet()
         self._start_hips(learn=True)
-        overridden, self._overridden = self._overridden, None
-        starfish, self._starfish_frame = self._starfish_frame, False
-        if overridden is not None:  # set up as this start is
-            overridden[0]._remember_feet()
-            overridden[0]._start_hips(learn=True)
-        if self.config.start == "search" and self.config.start_race_s > 0 and (overridden or not starfish):
-            self._start_race(obs, res, [overridden] if overridden is not None else [], twin=not starfish)
+        if self.config.start == "search" and self.config.start_race_s > 0:
+            self._start_race(obs, res)
         return res
 
     def _race_frames(self) -> int:
@@ -689,21 +671,12 @@ class MarkerlessTracker:
         shared = (self.generic, self.config, self.blob_specs, self.subject)
         return copy.deepcopy(self, memo={id(x): x for x in shared})
 
-    def _start_race(self, obs: VoxelObservation, res: FrameResult,
-                    others: list[tuple[MarkerlessTracker, FrameResult]] = (), twin: bool = True) -> None:
-        """``start_race_s``: the twin started from this start turned round (``twin``), finished on ``obs`` as a
-        start is, and ``others`` (trackers started on ``obs`` with their results) race this start."""
-        entrants = ([self._turned_round_twin(obs, res)] if twin else []) + list(others)
-        for t, _ in entrants:
-            t._twin, t._race, t.config = True, None, self.config
-        self._race = _Race([_Rival(t) for t, _ in entrants], self._race_frames())
-        self._race_step(obs, res, [(r, t.body_version) for t, r in entrants])
-
-    def _turned_round_twin(self, obs: VoxelObservation, res: FrameResult) -> tuple[MarkerlessTracker, FrameResult]:
-        """A tracker started from the start ``res`` turned round, finished on ``obs`` as a start is."""
+    def _start_race(self, obs: VoxelObservation, res: FrameResult) -> None:
+        """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is."""
         from torchtrack.tracking.search import turned_round
 
         twin = self._fork()
+        twin._twin = True
         twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
         twin.colour = None
         for _ in range(self.config.init_passes):
@@ -711,50 +684,35 @@ class MarkerlessTracker:
             twin.angles = twin.previous = r.angles
         r = twin._learn_colour(obs)
         twin._remember_feet()
-        return twin, r
+        self._race = _Race(twin, self._race_frames())
+        self._race_step(obs, res, r, twin.body_version)
 
-    def _race_step(self, obs: VoxelObservation | None, res: FrameResult,
-                   rival_results: list[tuple[FrameResult, int]]) -> None:
-        """One frame of the race: this start and each rival scored on ``obs`` (None: not observed), each on its
-        own body, the rivals' results kept with the body version each was tracked in, and the race decided at its
-        end: the rival with the lowest mean fit cost among those that beat this start (:data:`START_RACE_MARGIN`)
-        goes on in its place."""
+    def _race_step(self, obs: VoxelObservation | None, res: FrameResult, twin_res: FrameResult, version: int
+                   ) -> None:
+        """One frame of the race: both scored on ``obs`` (None: not observed), the twin's result kept with the body
+        version it was tracked in, and the race decided at its end."""
         from torchtrack.tracking.search import score_states
 
         race = self._race
-        own_score = None
-        for rival, (r, version) in zip(race.rivals, rival_results):
-            rival.results.append((r, version))
-            if obs is None or not (math.isfinite(res.residual_m) and math.isfinite(r.residual_m)):
-                continue  # both fitted, or the frame does not count
-            if own_score is None:
-                own_score = float(score_states(obs, self.subject.skeleton, self.subject.blobs,
-                                               res.angles[None].to(self.subject.skeleton.lower))[0][0])
-            t = rival.tracker
-            score = float(score_states(obs, t.subject.skeleton, t.subject.blobs,
-                                       r.angles[None].to(t.subject.skeleton.lower))[0][0])
-            rival.fits.append((own_score, score, self._fit_cost(res), self._fit_cost(r),
-                               float((res.angles[:3] - r.angles[:3].to(res.angles)).norm())))
+        race.results.append((twin_res, version))
+        if obs is not None and math.isfinite(res.residual_m) and math.isfinite(twin_res.residual_m):  # both fitted
+            both = torch.stack([res.angles, twin_res.angles]).to(self.subject.skeleton.lower)
+            score = score_states(obs, self.subject.skeleton, self.subject.blobs, both)[0]
+            race.fits.append((float(score[0]), float(score[1]), self._fit_cost(res), self._fit_cost(twin_res)))
         race.frames_left -= 1
         if race.frames_left > 0:
             return
         self._race = None
-        winners = []
-        for k, rival in enumerate(race.rivals):
-            if not rival.fits:  # nothing both fitted during the race: this start stays
-                continue
-            own, other, own_cost, other_cost, apart = (sum(col) / len(rival.fits) for col in zip(*rival.fits))
-            log.debug("start race over %d frames: the start scores %.3f, rival %d %.3f; fit cost %.1f / %.1f mm; "
-                      "roots %.0f mm apart", len(rival.results), own, k, other, 1e3 * own_cost, 1e3 * other_cost,
-                      1e3 * apart)
-            if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
-                    other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
-                winners.append((other_cost, k))
-        if winners:
-            rival = race.rivals[min(winners)[1]]
-            config = self.config
-            self.__dict__.update(rival.tracker.__dict__)  # this tracker goes on as the rival
-            self.config, self._race, self._revised, self._twin = config, None, rival.results, False
+        if not race.fits:  # nothing both fitted during the race: the search's start stays
+            return
+        own, other, own_cost, other_cost = (sum(col) / len(race.fits) for col in zip(*race.fits))
+        log.debug("start race over %d frames: the search's start scores %.3f, turned round %.3f; fit cost %.1f / %.1f "
+                  "mm", len(race.results), own, other, 1e3 * own_cost, 1e3 * other_cost)
+        if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
+                other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
+            revised = race.results
+            self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
+            self._race, self._revised, self._twin = None, revised, False
 
     def take_revised(self) -> list[tuple[FrameResult, int]]:
         """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
@@ -794,18 +752,14 @@ class MarkerlessTracker:
         except InputError as exc:  # not a starfish: the search's start stays
             log.debug("start: the starfish's fast path does not take the frame (%s)", str(exc).split(". ")[0])
             return res
-        self._starfish_frame = True
         own, other = (float(score_states(obs, t.subject.skeleton, t.subject.blobs, r.angles[None])[0][0])
                       for t, r in ((self, res), (starfish, alt)))
-        log.debug("start: the search's start scores %.3f, the starfish's %.3f; fit cost %.1f / %.1f mm", own, other,
-                  1e3 * self._fit_cost(res), 1e3 * starfish._fit_cost(alt))
+        log.debug("start: the search's start scores %.3f, the starfish's %.3f", own, other)
         if other < own - START_RACE_MARGIN:
-            # one frame's score may not tell them (a few views' phantom volume): the starfish's start races too
-            self._overridden = (starfish, alt)
             return res
         config = self.config
         self.__dict__.update(starfish.__dict__)  # this tracker goes on from the starfish's start
-        self.config, self._starfish_frame = config, True
+        self.config = config
         return alt
 
     def _body_volume_range(self, device: torch.device) -> tuple[float, float]:
@@ -1355,7 +1309,9 @@ class MarkerlessTracker:
         self.previous = self.angles
         res = self._invalid()
         if self._race is not None:
-            self._race_step(None, res, [self._rival_step(r.tracker, None) for r in self._race.rivals])
+            twin = self._race.twin
+            version = twin.body_version
+            self._race_step(None, res, twin.skip(), version)
         return res
 
     def step(self, obs: VoxelObservation) -> FrameResult:
@@ -1363,16 +1319,11 @@ class MarkerlessTracker:
         the frames before (:meth:`take_revised`)."""
         racing = self._race is not None  # a race started by this frame's initialisation has scored it already
         res = self._step(obs)
-        if racing:  # the rivals race without races of their own: their frame is their _step
-            self._race_step(obs, res, [self._rival_step(r.tracker, obs) for r in self._race.rivals])
+        if racing:  # the twin races without a race of its own: its frame is its _step
+            twin = self._race.twin
+            version = twin.body_version
+            self._race_step(obs, res, twin._step(obs), version)
         return res
-
-    @staticmethod
-    def _rival_step(tracker: MarkerlessTracker, obs: VoxelObservation | None) -> tuple[FrameResult, int]:
-        """A rival's frame (None: not observed) and the body version it was tracked in (read before the step,
-        which may move it)."""
-        version = tracker.body_version
-        return (tracker._step(obs) if obs is not None else tracker.skip()), version
 
     def _step(self, obs: VoxelObservation) -> FrameResult:
         if not self._has_person(obs):
