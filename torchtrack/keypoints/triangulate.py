@@ -17,7 +17,7 @@ from torchtrack.checks import ShapeError
 
 #: Smallest summed weight of a keypoint's views, below which it is not triangulated.
 MIN_WEIGHT = 1e-6
-#: Smallest angle (rad) between two of a keypoint's rays: nearly parallel rays leave its depth unknown.
+#: About the smallest angle (rad) between two of a keypoint's rays: nearly parallel rays leave its depth unknown.
 MIN_RAY_ANGLE_RAD = 0.05
 
 
@@ -39,7 +39,8 @@ def nearest_to_rays(origins: Tensor, directions: Tensor, weights: Tensor) -> Ten
     w = weights[..., None, None]
     A = (w * proj).sum(0)  # (..., 3, 3)
     b = (w * proj @ origins[..., None]).sum(0)[..., 0]  # (..., 3)
-    # The smallest eigenvalue of A is the weight of the rays' spread: ~ w sin^2(angle) for two rays.
+    # The smallest eigenvalue of A is the weight of the rays' spread: w (1 - |cos(angle)|) for two rays of weight w
+    # (0 for parallel or opposite rays), so two rays count from about sqrt(2) MIN_RAY_ANGLE_RAD apart.
     spread = torch.linalg.eigvalsh(A)[..., 0]
     enough = spread > weights.sum(0).clamp_min(MIN_WEIGHT) * 0.5 * MIN_RAY_ANGLE_RAD ** 2
     safe = torch.where(enough[..., None, None], A, eye.expand_as(A))
