@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import torch
 
-from torchtrack.checks import InputError
+from torchtrack.checks import InputError, config_section
 from torchtrack.keypoints.detector import KEYPOINTS, KeypointDetector
 from torchtrack.keypoints.triangulate import consistent_views, triangulate_keypoints
 
@@ -27,7 +27,8 @@ log = logging.getLogger(__name__)
 #: Trunk keypoints that place the body: both hips and both shoulders.
 TRUNK = ("l_hip", "r_hip", "l_shoulder", "r_shoulder")
 #: Largest mean distance (m) of the fitted body's keypoints from the triangulated ones: one person's keypoints
-#: fit within a few centimetres (the real demo's 17 mm); more means points of several people or a misdetection.
+#: fit within a few centimetres (docs/results.md, "The keypoint start"); more means points of several people or a
+#: misdetection.
 MAX_FIT_RESIDUAL_M = 0.05
 
 
@@ -71,13 +72,11 @@ class KeypointStartConfig:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any] | None, source: str = "config") -> KeypointStartConfig:
-        d = dict(d or {})
-        if isinstance(d.get("enabled"), bool):  # YAML reads a bare on / off as a boolean
+        """Build from the YAML section (None: the defaults), naming unknown keys; YAML's bare on / off read as
+        booleans count as "on" / "off"."""
+        d = config_section(cls, d, source, "keypoint_start")
+        if isinstance(d.get("enabled"), bool):
             d["enabled"] = "on" if d["enabled"] else "off"
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise InputError(f"{source}, keypoint_start: unknown keys {unknown}; known: {sorted(known)}")
         return cls(**d)
 
 
