@@ -126,7 +126,7 @@ def main() -> None:
             truth = load_poses(seq / "gt.npz")
             leave_out = tuple(rob.prior_leave_out(motion))
             idx = [truth.joint_names.index(n) for n in LANDMARKS]
-            race = max(1, round(tcfg.start_race_s * folder.fps))  # the start frame and the race's others
+            race = max(1, round(tcfg.start_race_s * folder.fps))  # the start frame and the race's others, if moving
             rng = np.random.default_rng(i)
             last = truth.num_frames - race + 1  # a start whose race ends within the sequence
             frames = np.sort(rng.choice(last, size=min(args.frames, last), replace=False))
@@ -162,12 +162,14 @@ def main() -> None:
                 t0 = time.perf_counter()
                 first = tracker.step(obs)  # the start (a refusal: an invalid frame)
                 before.append(landmark_error_mm(first, truth.joints3d[t, idx]) <= WITHIN_MM)
-                if first.valid and race > 1:
-                    for fb in folder.iter_batches(1, t + 1, t + race, size_wh=(W, H)):
+                if first.valid and tracker.racing:  # on until the race is decided (or the sequence ends)
+                    for fb in folder.iter_batches(1, t + 1, truth.num_frames, size_wh=(W, H)):
                         tracker.step(observer(fb.images, fb.valid)[0])
                         revised = tracker.take_revised()
                         if revised:  # the race's frames, the start frame first
                             first = revised[0][0]
+                        if not tracker.racing:
+                            break
                 seconds.append(time.perf_counter() - t0)
                 errors.append(landmark_error_mm(first, truth.joints3d[t, idx]))
             e = np.asarray(errors)

@@ -171,6 +171,13 @@ STARFISH_MAX_VOLUME_RATIO = 3.0
 START_RACE_MARGIN = 0.01
 #: The fit cost's clear win in the start race: the twin's mean cost below this fraction of the start's.
 START_RACE_COST_RATIO = 0.8
+#: The race's ``start_race_s`` counts from the first frame where the body has moved (a landmark of the start's
+#: track this far from where the start put it, relative to the pelvis), and only the frames from there decide it: a
+#: still body's silhouette is the same turned round, and over such frames the race would only compare how the two
+#: fits happened to settle, which turned a 4-camera squat's start round (docs/results.md, "The start race").
+START_RACE_MOVED_M = 0.1
+#: A race waits this long for the body to move, then is decided on all its frames.
+START_RACE_WAIT_S = 2.0
 
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
@@ -474,8 +481,10 @@ class _Race:
 
     twin: MarkerlessTracker
     frames_left: int
+    origin: torch.Tensor  # the start's output points relative to its pelvis, for START_RACE_MOVED_M
     fits: list[tuple[float, float, float, float]] = field(default_factory=list)  # scores, then fit costs
     results: list[tuple[FrameResult, int]] = field(default_factory=list)
+    moved_at: int | None = None  # the index in fits of the first frame where the body had moved
 
 
 class _Subject:
@@ -663,8 +672,15 @@ class MarkerlessTracker:
             self._start_race(obs, res)
         return res
 
-    def _race_frames(self) -> int:
-        return max(1, round(self.config.start_race_s * (self.frame_rate or self.config.velocity_fps or 30.0)))
+    def _race_frames(self, seconds: float | None = None) -> int:
+        seconds = self.config.start_race_s if seconds is None else seconds
+        return max(1, round(seconds * (self.frame_rate or self.config.velocity_fps or 30.0)))
+
+    @property
+    def racing(self) -> bool:
+        """A start race is in progress (``TrackerConfig.start_race_s``): :meth:`take_revised` may yet revise the
+        frames since the start."""
+        return self._race is not None
 
     def _fork(self) -> MarkerlessTracker:
         """A copy of this tracker's state that tracks on its own (the models and settings shared, read-only)."""
@@ -684,13 +700,15 @@ class MarkerlessTracker:
             twin.angles = twin.previous = r.angles
         r = twin._learn_colour(obs)
         twin._remember_feet()
-        self._race = _Race(twin, self._race_frames())
+        wait = max(self._race_frames(), self._race_frames(START_RACE_WAIT_S))
+        self._race = _Race(twin, wait, res.output_points - res.output_points[:1])
         self._race_step(obs, res, r, twin.body_version)
 
     def _race_step(self, obs: VoxelObservation | None, res: FrameResult, twin_res: FrameResult, version: int
                    ) -> None:
         """One frame of the race: both scored on ``obs`` (None: not observed), the twin's result kept with the body
-        version it was tracked in, and the race decided at its end."""
+        version it was tracked in; ``start_race_s`` counted from the frame where the body moved
+        (``START_RACE_MOVED_M``), and the race decided at its end on the frames from there."""
         from torchtrack.tracking.search import score_states
 
         race = self._race
@@ -699,15 +717,22 @@ class MarkerlessTracker:
             both = torch.stack([res.angles, twin_res.angles]).to(self.subject.skeleton.lower)
             score = score_states(obs, self.subject.skeleton, self.subject.blobs, both)[0]
             race.fits.append((float(score[0]), float(score[1]), self._fit_cost(res), self._fit_cost(twin_res)))
+            if race.moved_at is None:
+                shift = (res.output_points - res.output_points[:1] - race.origin).norm(dim=-1).max()
+                if float(shift) > START_RACE_MOVED_M:
+                    race.moved_at = len(race.fits) - 1
+                    race.frames_left = self._race_frames()
         race.frames_left -= 1
         if race.frames_left > 0:
             return
         self._race = None
-        if not race.fits:  # nothing both fitted during the race: the search's start stays
+        fits = race.fits[race.moved_at or 0:]
+        if not fits:  # nothing both fitted during the race: the search's start stays
             return
-        own, other, own_cost, other_cost = (sum(col) / len(race.fits) for col in zip(*race.fits))
-        log.debug("start race over %d frames: the search's start scores %.3f, turned round %.3f; fit cost %.1f / %.1f "
-                  "mm", len(race.results), own, other, 1e3 * own_cost, 1e3 * other_cost)
+        own, other, own_cost, other_cost = (sum(col) / len(fits) for col in zip(*fits))
+        log.debug("start race over %d frames (decided on the last %d, the body moved on frame %s): the search's start "
+                  "scores %.3f, turned round %.3f; fit cost %.1f / %.1f mm", len(race.results), len(fits),
+                  race.moved_at, own, other, 1e3 * own_cost, 1e3 * other_cost)
         if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
                 other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
             revised = race.results
