@@ -65,12 +65,33 @@ def landmark_error_mm(res, truth: np.ndarray) -> float:
     return float(1e3 * np.linalg.norm(res.output_points[:len(LANDMARKS)].numpy() - truth, axis=-1).mean())
 
 
+def start_report(res, truth: np.ndarray) -> str:
+    """One start's line for --per-start: MPJPE, how far its heading (the hips' horizontal normal) and pelvis are
+    from the truth's, and its worst landmark."""
+    if not res.valid:
+        return "refused"
+    got = res.output_points[:len(LANDMARKS)].numpy().astype(np.float64)
+    err = np.linalg.norm(got - truth, axis=-1)
+    hips = [LANDMARKS.index("l_hip"), LANDMARKS.index("r_hip")]
+
+    def heading(p: np.ndarray) -> float:
+        across = p[hips[0]] - p[hips[1]]
+        return float(np.arctan2(across[0], -across[1]))  # the facing direction's angle, Z up
+
+    turn = np.degrees(np.angle(np.exp(1j * (heading(got) - heading(truth)))))
+    worst = int(err.argmax())
+    return (f"{1e3 * err.mean():6.1f} mm, heading {turn:+5.0f} deg, pelvis {1e3 * err[0]:5.0f} mm, worst "
+            f"{LANDMARKS[worst]} {1e3 * err[worst]:.0f} mm")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--motions", nargs="+", default=list(MOTIONS))
     ap.add_argument("--cameras", nargs="+", type=int, default=[8, 4])
     ap.add_argument("--frames", type=int, default=50, help="random start frames per motion and rig (default: 50)")
     ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
+    ap.add_argument("--per-start", action="store_true",
+                    help="also print each start: its frame, MPJPE, heading and pelvis error and worst landmark")
     ap.add_argument("--real-poses", action="store_true",
                     help="the search also starts from real captured poses (TrackerConfig.start_real_poses)")
     ap.add_argument("--truth-score", action="store_true",
@@ -172,6 +193,9 @@ def main() -> None:
                             break
                 seconds.append(time.perf_counter() - t0)
                 errors.append(landmark_error_mm(first, truth.joints3d[t, idx]))
+                if args.per_start:
+                    print(f"  {motion} {cams} frame {t:>4}: {start_report(first, truth.joints3d[t, idx])}",
+                          flush=True)
             e = np.asarray(errors)
             ok = e <= WITHIN_MM
             totals.setdefault(cams, []).extend(ok.tolist())
