@@ -257,3 +257,29 @@ def test_the_start_picture_marks_used_and_dropped_detections():
     assert out[0, :, 20, 50 + r].min() > 0.3
     assert out[1, 0, 210, 250 + r] > 0.3 and out[1, 1, 210, 250 + r] < 0.2
     assert float(out[1, :, 20, 50 + r].max()) == 0.0 and float(out[0, :, 210, 250 + r].max()) == 0.0
+
+
+def test_a_keypoint_start_beside_a_second_person_is_not_used(caplog):
+    """The detector sees one person per image, so cameras that agree on one of two people would start on them:
+    the pipeline checks the start frame's voxels as the voxel start does, and uses the keypoint start only where
+    they hold one person-sized part (two bodies 1.5 m apart: refused, with a warning naming the sequence; one:
+    used)."""
+    from tests.test_tracking import _observation
+    from torchtrack.blobs.model import BlobModel
+    from torchtrack.tracking import pipeline
+    from torchtrack.tracking.markerless import MarkerlessTracker
+    from torchtrack.tracking.observation import VoxelObservation
+
+    skel = Skeleton.from_urdf()
+    subj, other = skel.scaled_to_height(1.7), skel.scaled_to_height(1.6)
+    alone = _observation(subj, BlobModel.from_config(subj), subj.rest_angles())
+    second = _observation(other, BlobModel.from_config(other), other.rest_angles(), shift=(0.0, 1.5, 0.0))
+    both = VoxelObservation(*(torch.cat([getattr(alone, k), getattr(second, k)])
+                              for k in ("points", "sizes", "weights", "colours")), alone.cameras_valid)
+    batch = SimpleNamespace(images=torch.zeros(4, 3, 8, 8), valid=torch.ones(4, dtype=torch.bool))
+    folder = SimpleNamespace(root=Path("seq_two"), iter_batches=lambda *a, **k: iter([batch]))
+    tracker = MarkerlessTracker(skel)
+    with caplog.at_level("WARNING", logger="torchtrack.tracking.pipeline"):
+        assert not pipeline._one_person(folder, 0, lambda images, valid: [both], tracker, (8, 8), "cpu")
+    assert "seq_two" in caplog.text and "separate person-sized parts" in caplog.text
+    assert pipeline._one_person(folder, 0, lambda images, valid: [alone], tracker, (8, 8), "cpu")

@@ -241,8 +241,8 @@ class TrackerConfig:
             was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
         start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
             same silhouette facing the other way, which one frame's voxels cannot tell from it:
-            :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long, and the one whose
-            poses fit the voxels better over it (EM/IK's fit cost lower, the mean two-way score not lower by more
+            :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long from the body's
+            first move (``START_RACE_MOVED_M``), and the one whose poses fit the voxels better from that move on (EM/IK's fit cost lower, the mean two-way score not lower by more
             than ``START_RACE_MARGIN``, and one of the two clearly better: the score by that margin or the cost by
             ``START_RACE_COST_RATIO``) is kept, its frames replacing the other's
             (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees and elbows
@@ -749,7 +749,7 @@ class MarkerlessTracker:
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
-        self._check_one_person(obs)
+        self.check_one_person(obs)
         if self.config.start == "starfish":
             res, height, body_m3, toe, tried = self._starfish_fit(obs)
             return self._finish_start(obs, res, height, body_m3, toe, tried)
@@ -797,7 +797,7 @@ class MarkerlessTracker:
         lo, hi = SearchConfig().scale_range
         return lo ** 3 * body, hi ** 3 * body
 
-    def _check_one_person(self, obs: VoxelObservation) -> None:
+    def check_one_person(self, obs: VoxelObservation) -> None:
         """Refuse a start frame with two or more separate people in it (:data:`PERSON_MIN_HEIGHT_M`)."""
         _, volume, span = obs.parts()
         person = (span[:, 1] - span[:, 0] >= PERSON_MIN_HEIGHT_M) & (

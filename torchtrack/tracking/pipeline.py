@@ -126,6 +126,22 @@ def keypoint_start(folder: Any, config: Any, start: int, stop: int | None) -> An
     return found
 
 
+def _one_person(folder: Any, frame: int, observer: Any, tracker: Any, size_wh: tuple[int, int],
+                device: torch.device) -> bool:
+    """Whether the keypoint start's frame holds one person in the voxels, as the voxel start requires
+    (:meth:`~torchtrack.tracking.markerless.MarkerlessTracker.check_one_person`): the detector sees one person per
+    image, and the cameras that agree on one of two would start on them silently. Where it does not, says so and
+    the voxel start takes over (it waits for a frame with one person)."""
+    fb = next(iter(folder.iter_batches(1, frame, frame + 1, device=device, size_wh=size_wh)))
+    try:
+        tracker.check_one_person(observer(fb.images, fb.valid)[0])
+    except InputError as exc:
+        log.warning("%s: the start from keypoints is not used (frame %d: %s); the start is searched in the voxels",
+                    folder.root, frame, str(exc).split(". ")[0])
+        return False
+    return True
+
+
 def _log_keypoint_start(tb: Any, folder: Any, found: Any, size_wh: tuple[int, int]) -> None:
     """TensorBoard: the start frame's images with the detected keypoints and the body fitted to them
     (``start/keypoints/<camera>``)."""
@@ -338,10 +354,6 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
             tracker.initialize_from_pose(angles, height_m or height or folder.meta.subject_height_m or 1.75)
     else:
         found = keypoint_start(folder, KeypointStartConfig.from_dict(cfg["keypoint_start"], source), start, stop)
-        if found is not None:  # a body fitted to the keypoints of several frames, kept as a given one
-            tracker.initialize_from_pose(found.angles.to(device), skeleton=found.skeleton.to(device))
-            if refit_passes is None:
-                bcfg = bcfg.for_start(body_given=True)
     if not bg.from_moving_sequence and rcfg.passes:
         log.info("%s: the background is measured from its background/ frames, not refined from the track",
                  folder.root)
@@ -349,6 +361,13 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
 
     def make_observer(background: BackgroundModel) -> Any:
         return observer_from_config(rig, background, ocfg, model, voxel_m).to(device)
+
+    if found is not None and not _one_person(folder, found.frame, make_observer(bg), tracker, (W, H), device):
+        found = None
+    if found is not None:  # a body fitted to the keypoints of several frames, kept as a given one
+        tracker.initialize_from_pose(found.angles.to(device), skeleton=found.skeleton.to(device))
+        if refit_passes is None:
+            bcfg = bcfg.for_start(body_given=True)
 
     with contextlib.ExitStack() as stack:
         tb = stack.enter_context(RunLogger(log_dir)) if log_dir is not None else None
