@@ -76,7 +76,8 @@ def start_report(res, truth: np.ndarray) -> str:
 
     def heading(p: np.ndarray) -> float:
         across = p[hips[0]] - p[hips[1]]
-        return float(np.arctan2(across[0], -across[1]))  # the facing direction's angle, Z up
+        return float(np.arctan2(across[0], -across[1]))  # the hips' axis turned a right angle (Z up); only
+        # the difference of two such angles is printed
 
     turn = np.degrees(np.angle(np.exp(1j * (heading(got) - heading(truth)))))
     worst = int(err.argmax())
