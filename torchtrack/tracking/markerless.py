@@ -244,7 +244,8 @@ class TrackerConfig:
             :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long from the body's
             first move (``START_RACE_MOVED_M``), and the one whose poses fit the voxels better from that move on
             (EM/IK's fit cost lower, the mean two-way score not lower by more than ``START_RACE_MARGIN``, and one
-            of the two clearly better: the score by that margin or the cost by ``START_RACE_COST_RATIO``) is kept, its frames replacing the other's
+            of the two clearly better: the score by that margin or the cost by ``START_RACE_COST_RATIO``) is
+            kept, its frames replacing the other's
             (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees and elbows
             bend one way only (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one

@@ -249,7 +249,8 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
             (`torchtrack track`'s default: 1).
         init_pose: start from the first valid frame of this poses file (with its body where it has one) instead of
             the automatic start (the config's ``keypoint_start``, else the search in the voxels). height_m: the
-            subject's height for an ``init_pose`` without a body (default: its ``subject_height_m``, else meta.toml's, else 1.75); with a body, the body scaled to it.
+            subject's height for an ``init_pose`` without a body (default: its ``subject_height_m``, else
+            meta.toml's, else 1.75); with a body, the body scaled to it.
         start, stop: the frames ``[start, stop)`` to track. batch: frames read and observed together.
         device: torch device. threads: intra-op threads of this process while it tracks (None: as they are).
         background_from_track: start from the background re-estimated from this earlier track of ``seq``.
