@@ -14,6 +14,15 @@ observation.workers: 1; its first column is the time the tracker waited for a fr
 worker's, overlapped with tracking).
 
     .venv/bin/python scripts/bench_track.py [--device cuda] [--frames 60]
+
+``--demo`` times instead what a new user runs on the real Pose2Sim demo (100 frames, 4 cameras, no background
+frames, so the background refinement's passes; the README's worked example without ``--init-pose``): `torchtrack
+track SEQ --scale 0.25 --fill-static-subject`, end to end in a process of its own, and prints its wall clock time
+and MPJPE against Pose2Sim's keypoints. ``--before DIR`` first runs the same command with the code of another
+checkout (e.g. ``git worktree add /tmp/before <commit>``), in the same run, as hosts' speeds drift by a third
+from hour to hour:
+
+    .venv/bin/python scripts/bench_track.py --demo --before /tmp/before
 """
 
 from __future__ import annotations
@@ -21,6 +30,9 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -34,6 +46,9 @@ from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_
 from torchtrack.tracking.pipeline import load_config, observer_from_config
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.stream import observe_batches
+
+ROOT = Path(__file__).resolve().parents[1]
+DEMO = ROOT / ".." / "shared" / "data" / "pose2sim_demo"
 
 
 def sequence(work: Path, cameras: int, width: int, height: int, seconds: float) -> Path:
@@ -127,6 +142,22 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
             "fps": m * S / sum(t.values())}
 
 
+def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:
+    """`torchtrack track` of the demo with the package at ``code`` (its root, on PYTHONPATH) in a process of its
+    own: wall clock seconds, and its error against Pose2Sim's keypoints as eval_pose2sim_tracking.py prints it."""
+    env = {**os.environ, "PYTHONPATH": str(code.resolve())}
+    cmd = [sys.executable, "-m", "torchtrack.cli", "track", str(seq), "--out", str(out), "--scale", "0.25",
+           "--fill-static-subject", "--overwrite"]
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} (code {code}) failed:\n{done.stderr[-3000:]}")
+    score = subprocess.run([sys.executable, str(Path(__file__).parent / "eval_pose2sim_tracking.py"), "--score",
+                            str(out / "poses.npz")], capture_output=True, text=True, check=True)
+    return wall, score.stdout.splitlines()[0].split(": ", 1)[-1]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -136,7 +167,24 @@ def main() -> None:
                     help="also time this many sequences tracked in lockstep (observation batched); 1: skip")
     ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
                     help="tracking configs to time")
+    ap.add_argument("--demo", action="store_true",
+                    help="time `torchtrack track` on the real Pose2Sim demo end to end instead (see above)")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="with --demo: first time the same command with the code of the checkout DIR")
     args = ap.parse_args()
+    if args.demo:
+        from torchtrack.io.pose2sim import pose2sim_sequence
+
+        seq = pose2sim_sequence(DEMO, args.work / "pose2sim_demo")
+        runs = ([("before", args.before)] if args.before is not None else []) + [("this checkout", ROOT)]
+        walls = {}
+        for name, code in runs:
+            walls[name], err = demo_run(code, seq, args.work / f"pose2sim_track_{name.replace(' ', '_')}")
+            print(f"Pose2Sim demo, `torchtrack track --scale 0.25 --fill-static-subject`, {name} ({code}): "
+                  f"{walls[name]:.0f} s wall clock; {err}", flush=True)
+        if args.before is not None:
+            print(f"this checkout takes {walls['this checkout'] / walls['before']:.2f} of the time before")
+        return
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
     device = torch.device(args.device)

@@ -15,7 +15,8 @@ from conftest import shared_data
 from scipy import ndimage, stats
 
 from torchtrack.background import (
-    FOREGROUND_MAHALANOBIS2, BackgroundConfig, BackgroundModel, estimate, sequence_statistics, static,
+    FOREGROUND_MAHALANOBIS2, BackgroundConfig, BackgroundModel, MovingSequence, estimate, sequence_statistics,
+    static,
 )
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.io.sequence import SequenceFolder
@@ -439,6 +440,12 @@ def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free():
                                np.maximum(ref_std, EXACT.min_std).transpose(0, 2, 3, 1)[ok], rtol=1e-9)
     corner = (slice(None), slice(None), slice(0, 3), slice(0, 3))  # < MIN_CLEAN_FRAMES free: as without masks
     torch.testing.assert_close(model.mean_yuv[corner], plain.mean_yuv[corner], rtol=0, atol=0)
+    # one MovingSequence refined again and again (the background refinement's passes): each time as from scratch
+    seq = MovingSequence(frames, EXACT, ["a", "b"])
+    none = BackgroundModel.from_moving(seq, torch.zeros_like(masks))  # every frame everywhere: the plain median
+    np.testing.assert_allclose(none.mean_yuv.numpy(), np.median(yuv, 0), atol=1e-12)
+    again = BackgroundModel.from_moving(seq, masks)
+    torch.testing.assert_close(again.state_dict(), model.state_dict(), rtol=0, atol=0)
     with pytest.raises(ShapeError, match="subject_masks"):
         BackgroundModel.from_sequence(frames, EXACT, subject_masks=masks[:40])
     with pytest.raises(InputError, match="subject_masks.*bool"):

@@ -543,6 +543,7 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
@@ -599,6 +600,7 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", fake_background)
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
@@ -673,6 +675,7 @@ def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
     tracker.initialize_from_pose = recording_init
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     observer = SimpleNamespace(rig=_rig())
@@ -704,6 +707,7 @@ def test_an_automatic_start_is_searched_for_again_on_each_pass(monkeypatch, skel
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: f"refined {len(events)}")
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=False, subject=SimpleNamespace(skeleton=skel, blobs=None),

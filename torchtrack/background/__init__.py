@@ -6,8 +6,8 @@ relaxation, global gain compensation, dead frames).
 
 from torchtrack.background.model import (
     FOREGROUND_MAHALANOBIS2, MIN_FRAMES, MIN_SEQUENCE_FRAMES, BackgroundConfig, BackgroundModel,
-    sequence_statistics,
+    MovingSequence, sequence_statistics,
 )
 
 __all__ = ["FOREGROUND_MAHALANOBIS2", "MIN_FRAMES", "MIN_SEQUENCE_FRAMES", "BackgroundConfig", "BackgroundModel",
-           "sequence_statistics"]
+           "MovingSequence", "sequence_statistics"]

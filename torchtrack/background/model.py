@@ -254,14 +254,15 @@ class BackgroundModel(nn.Module):
             ShapeError: bad shape. InputError: fewer than 5 usable frames in some camera (named).
         """
         _check_frames(frames, MIN_SEQUENCE_FRAMES)
-        names = _camera_names(camera_names, frames.shape[1])
-        if subject_masks is not None:
-            N, C, _, H, W = frames.shape
-            check_shape(subject_masks, (N, C, H, W), "subject_masks")
-            if subject_masks.dtype != torch.bool:
-                raise InputError(f"subject_masks: expected a bool tensor, got {subject_masks.dtype}")
-        mean, std = sequence_statistics(frames, config, names, refine=True, subject_masks=subject_masks)
-        model = cls(mean, std, config, names)
+        seq = MovingSequence(frames, config, _camera_names(camera_names, frames.shape[1]))
+        return cls.from_moving(seq, subject_masks)
+
+    @classmethod
+    def from_moving(cls, seq: MovingSequence, subject_masks: torch.Tensor | None = None) -> BackgroundModel:
+        """:meth:`from_sequence` of a sequence whose passes 1-3 are done (:class:`MovingSequence`), with
+        ``subject_masks`` (N, C, H, W) over its N frames (before their subsampling) or None."""
+        mean, std = (seq.mean, seq.std) if subject_masks is None else seq.with_subject_masks(subject_masks)
+        model = cls(mean, std, seq.config, seq.names)
         model.from_moving_sequence = True
         return model
 
@@ -466,6 +467,81 @@ class BackgroundModel(nn.Module):
         return f"cameras={self.camera_names}, size_hw=({H}, {W}), config={self.config}"
 
 
+class MovingSequence:
+    """A moving sequence's frames with its background's passes 1-3 (:meth:`BackgroundModel.from_sequence`), to be
+    refined with subject masks as often as a caller has new ones (:meth:`with_subject_masks`): the background
+    refinement re-estimates it from each pass's track (:mod:`torchtrack.tracking.refine`), and passes 1-3, two
+    thirds of the work, depend on the frames alone.
+
+    Args:
+        frames: (N, C, 3, H, W) RGB in [0, 1]; at most ``config.max_frames`` are used, evenly sampled. names: (C,)
+            camera names for messages. refine: False stops after pass 1 (to measure what the second pass brings;
+            no fill or masks either).
+
+    Attributes:
+        mean, std: (C, 3, H, W) the background of passes 1-3.
+    """
+
+    def __init__(self, frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str], refine: bool = True
+                 ) -> None:
+        _check_frames(frames, MIN_SEQUENCE_FRAMES)
+        self.config, self.names, self.refine = config, list(names), refine
+        self.shape = tuple(frames.shape)  # the subject masks' frames are the frames given
+        self.frames = frames = est.subsample(frames, config.max_frames)
+        self.dead = dead = est.dead_frames(frames)  # (N, C)
+        est.check_cameras(dead, names, MIN_SEQUENCE_FRAMES, "sequence frames")
+        self.dtype = dtype = est.compute_dtype(frames)
+        relax = (config.min_std, config.luminance_relax)
+        H, W = frames.shape[-2:]
+        gains = None
+        if config.compensate_gain:  # gains against the plain median (on a pixel grid: a median of ratios needs few)
+            step = max(1, math.ceil(math.sqrt(H * W / est.GAIN_PIXELS)))
+            grid = frames[..., ::step, ::step]  # (N, C, 3, H / step, W / step)
+            y_ref = est.median_mad(grid, dead, None, dtype, spread=False)[0][:, 0]  # (C, h, w)
+            gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
+        self.gains = gains
+        med, spread, _ = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
+        std = est.floor_and_relax(spread, *relax)
+        if not refine:
+            self.mean, self.std = med, std
+            return
+        fg = est.foreground_masks(frames, dead, gains, med, std, FOREGROUND_MAHALANOBIS2, max(1, max(H, W) // 160))
+        touched = fg.any(0)  # (C, H, W): elsewhere pass 2 would use the same frames as pass 1
+        med2, spread2, count = est.median_mad(frames, dead, gains, dtype, foreground=fg, pixels=touched)
+        use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
+        logger.info("background second pass: %.1f%% of the pixels were foreground in some frame, %.1f%% re-estimated "
+                    "from their non-foreground frames (mean foreground fraction %.1f%%)",
+                    100 * float(touched.float().mean()), 100 * float(use.float().mean()),
+                    100 * float(fg.float().mean()))
+        mean, std = torch.where(use, med2, med), torch.where(use, est.floor_and_relax(spread2, *relax), std)
+        if config.fill_static_subject:
+            ghost = static.static_subject(frames, dead, gains, mean, std, FOREGROUND_MAHALANOBIS2, names,
+                                          prior_log_odds=config.fill_prior_log_odds)
+            mean = static.paint_out(mean, ghost)
+        self.mean, self.std = mean, std
+
+    def with_subject_masks(self, subject_masks: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Mean and std (C, 3, H, W) from each pixel's frames free of ``subject_masks (N, C, H, W)`` (the frames
+        given, before the subsampling to ``max_frames``) wherever at least ``MIN_CLEAN_FRAMES`` are, passes 1-3's
+        elsewhere (see ``from_sequence``)."""
+        if not self.refine:
+            raise InputError("MovingSequence: subject masks refine the background of passes 1-3; this one stopped "
+                             "after pass 1 (refine=False)")
+        N, C, _, H, W = self.shape
+        check_shape(subject_masks, (N, C, H, W), "subject_masks")
+        if subject_masks.dtype != torch.bool:
+            raise InputError(f"subject_masks: expected a bool tensor, got {subject_masks.dtype}")
+        subject_masks = est.subsample(subject_masks, self.config.max_frames)  # the same frames as the frames'
+        # every pixel, also those the masks never cover: the masks override pass 3's fill and pass 2's guesses
+        med3, spread3, count = est.median_mad(self.frames, self.dead, self.gains, self.dtype,
+                                              foreground=subject_masks.to(self.frames.device))
+        use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
+        logger.info("background from the frames free of the given subject masks at %.1f%% of the pixels",
+                    100 * float(use.float().mean()))
+        relax = (self.config.min_std, self.config.luminance_relax)
+        return torch.where(use, med3, self.mean), torch.where(use, est.floor_and_relax(spread3, *relax), self.std)
+
+
 def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str],
                         refine: bool = True, subject_masks: torch.Tensor | None = None
                         ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -476,41 +552,7 @@ def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: S
         refine: False stops after pass 1 (to measure what the second pass brings; no fill or masks either).
         subject_masks: (N, C, H, W) bool where the subject is, or None (see ``from_sequence``).
     """
-    if subject_masks is not None:
-        subject_masks = est.subsample(subject_masks, config.max_frames)  # the same frames as below
-    frames = est.subsample(frames, config.max_frames)
-    dead = est.dead_frames(frames)  # (N, C)
-    est.check_cameras(dead, names, MIN_SEQUENCE_FRAMES, "sequence frames")
-    dtype = est.compute_dtype(frames)
-    relax = (config.min_std, config.luminance_relax)
-    H, W = frames.shape[-2:]
-    gains = None
-    if config.compensate_gain:  # gains against the plain median (on a pixel grid: a median of ratios needs few)
-        step = max(1, math.ceil(math.sqrt(H * W / est.GAIN_PIXELS)))
-        grid = frames[..., ::step, ::step]  # (N, C, 3, H / step, W / step)
-        y_ref = est.median_mad(grid, dead, None, dtype, spread=False)[0][:, 0]  # (C, h, w)
-        gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
-    med, spread, _ = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
-    std = est.floor_and_relax(spread, *relax)
-    if not refine:
-        return med, std
-    fg = est.foreground_masks(frames, dead, gains, med, std, FOREGROUND_MAHALANOBIS2, max(1, max(H, W) // 160))
-    touched = fg.any(0)  # (C, H, W): elsewhere pass 2 would use the same frames as pass 1
-    med2, spread2, count = est.median_mad(frames, dead, gains, dtype, foreground=fg, pixels=touched)
-    use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
-    logger.info("background second pass: %.1f%% of the pixels were foreground in some frame, %.1f%% re-estimated "
-                "from their non-foreground frames (mean foreground fraction %.1f%%)",
-                100 * float(touched.float().mean()), 100 * float(use.float().mean()), 100 * float(fg.float().mean()))
-    mean, std = torch.where(use, med2, med), torch.where(use, est.floor_and_relax(spread2, *relax), std)
-    if config.fill_static_subject:
-        ghost = static.static_subject(frames, dead, gains, mean, std, FOREGROUND_MAHALANOBIS2, names,
-                                      prior_log_odds=config.fill_prior_log_odds)
-        mean = static.paint_out(mean, ghost)
-    if subject_masks is not None:
-        # every pixel, also those the masks never cover: the masks override pass 3's fill and pass 2's guesses
-        med3, spread3, count = est.median_mad(frames, dead, gains, dtype, foreground=subject_masks.to(frames.device))
-        use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
-        logger.info("background from the frames free of the given subject masks at %.1f%% of the pixels",
-                    100 * float(use.float().mean()))
-        mean, std = torch.where(use, med3, mean), torch.where(use, est.floor_and_relax(spread3, *relax), std)
-    return mean, std
+    seq = MovingSequence(frames, config, names, refine)
+    if subject_masks is None or not refine:
+        return seq.mean, seq.std
+    return seq.with_subject_masks(subject_masks)

@@ -40,7 +40,7 @@ from typing import Any, Callable
 import numpy as np
 import torch
 
-from torchtrack.background import BackgroundConfig, BackgroundModel
+from torchtrack.background import BackgroundConfig, BackgroundModel, MovingSequence
 from torchtrack.background.estimate import MIN_CLEAN_FRAMES
 from torchtrack.background.model import MIN_SEQUENCE_FRAMES
 from torchtrack.blobs import BlobModel
@@ -240,13 +240,15 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
     return out
 
 
-def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRig, skeleton: Skeleton,
-                       bg_config: BackgroundConfig, config: RefineConfig, camera_names: list[str] | None = None,
-                       blobs: BlobModel | None = None) -> BackgroundModel:
+def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tensor, rig: CameraRig,
+                       skeleton: Skeleton, bg_config: BackgroundConfig, config: RefineConfig,
+                       camera_names: list[str] | None = None, blobs: BlobModel | None = None) -> BackgroundModel:
     """The background re-estimated from each pixel's frames clearest of the tracked body (module docstring).
 
     Args:
-        frames: (N, C, 3, H, W) RGB frames of the sequence (float16 is fine), at the rig's size.
+        frames: (N, C, 3, H, W) RGB frames of the sequence (float16 is fine), at the rig's size; or a
+            :class:`~torchtrack.background.MovingSequence` of them (its config and names are used), which keeps
+            the background's passes 1-3 for every refinement pass.
         angles: (N, D) the tracked state vectors of those frames (NaN where untracked).
         skeleton, blobs: the tracked subject's skeleton and blob model (see :func:`body_masks`).
     """
@@ -258,6 +260,8 @@ def refined_background(frames: torch.Tensor, angles: torch.Tensor, rig: CameraRi
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
         masks[:, c] = clear_frame_masks(clearance_px(body[:, c]), config.clear_frames, clear_px,
                                         config.near_fraction * max(H, W))
+    if isinstance(frames, MovingSequence):
+        return BackgroundModel.from_moving(frames, masks.to(frames.frames.device))
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
 
 
@@ -423,10 +427,11 @@ def track_with_background_refinement(
                               f"{'' if p == 1 else 'further '}from it",
                               DataWarning, stacklevel=2)
                 break
-            if frames is None:
+            if frames is None:  # read once, and the background's passes 1-3 on them done once
                 indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device,
                                                        size_wh=(W, H),
                                                        progress="background refinement" if progress else None)
+                frames = MovingSequence(frames, bg_config, folder.camera_names)
             k = np.asarray(indices) - start
             angles = torch.as_tensor(poses.angles[k])  # a lost frame: the pose the tracker held for it
             if p == 1 and start_state is not None and tracker.body_version:

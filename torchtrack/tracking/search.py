@@ -299,6 +299,29 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
     return (explained_c * used).sum(0) / n, filled
 
 
+def ellipsoid_distance2(points: torch.Tensor, centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor
+                        ) -> torch.Tensor:
+    """(N, 3) points, ellipsoids (H, K) -> (N, H, K) ``|diag(1/a) R^T (p - c)|^2``, the squared normalised distance
+    of every point from every ellipsoid's centre (<= 1 inside it).
+
+    As one matrix product of the points' quadratic monomials with each ellipsoid's quadric (its matrix
+    ``A = R diag(1/a^2) R^T``, ``-2 A c`` and ``c^T A c``), about the points' mean so that float32 keeps the
+    difference of its terms: the plain form's (H, K, N, 3) offsets, each turned by its own rotation, cost ten times
+    as much and were nine tenths of the start search's time.
+    """
+    N, (H, K) = points.shape[0], centres.shape[:2]
+    mid = points.mean(0)
+    p, c = points - mid, centres - mid
+    A = (R / semi_axes[..., None, :].square()) @ R.transpose(-1, -2)  # (H, K, 3, 3)
+    b = (A @ c[..., None])[..., 0]  # (H, K, 3)
+    x, y, z = p.unbind(-1)
+    mono = torch.stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, -2 * x, -2 * y, -2 * z,
+                        torch.ones_like(x)], -1)  # (N, 10)
+    quad = torch.stack([A[..., 0, 0], A[..., 1, 1], A[..., 2, 2], A[..., 0, 1], A[..., 0, 2], A[..., 1, 2],
+                        b[..., 0], b[..., 1], b[..., 2], (c * b).sum(-1)], -1)  # (H, K, 10)
+    return (mono @ quad.reshape(H * K, 10).T).reshape(N, H, K)
+
+
 def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,
                   samples: torch.Tensor, chunk: int = 64) -> tuple[torch.Tensor, ...]:
     """How well each hypothesis' blobs and the voxels explain each other.
@@ -327,11 +350,9 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
         if vox.views is not None:  # the images' terms instead of the voxels' (see image_terms)
             explained, filled = image_terms(c, Rs, a, q, v, vox.views)
         else:
-            # voxels -> body: |diag(1/a) R^T (p - c)|^2 <= grow^2 for some blob
-            d = vox.points[None, None] - c[:, :, None]  # (h, K, N, 3)
-            local = torch.einsum("hkji,hknj->hkni", Rs, d) / a[:, :, None]  # (h, K, N, 3)
-            inside = (local.square().sum(-1) <= INSIDE_GROW ** 2).any(1)  # (h, N)
-            explained = (inside.float() * vox.weights).sum(-1)  # (h,)
+            # voxels -> body: the weight of the voxels inside some blob grown by INSIDE_GROW
+            inside = (ellipsoid_distance2(vox.points, c, Rs, a) <= INSIDE_GROW ** 2).any(-1)  # (N, h)
+            explained = vox.weights @ inside.float()  # (h,)
             # body -> voxels: each blob's sample points on occupied cells, over the observed ones
             filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
         out.append(torch.stack([explained, filled, outside], -1))
