@@ -500,8 +500,9 @@ class MovingSequence:
             y_ref = est.median_mad(grid, dead, None, dtype, spread=False)[0][:, 0]  # (C, h, w)
             gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
         self.gains = gains
-        med, spread, _ = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
+        med, spread, count = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
         std = est.floor_and_relax(spread, *relax)
+        self.plain = (med, std, count)  # pass 1: what subject masks that never cover a pixel leave it
         if not refine:
             self.mean, self.std = med, std
             return
@@ -531,15 +532,21 @@ class MovingSequence:
         check_shape(subject_masks, (N, C, H, W), "subject_masks")
         if subject_masks.dtype != torch.bool:
             raise InputError(f"subject_masks: expected a bool tensor, got {subject_masks.dtype}")
-        subject_masks = est.subsample(subject_masks, self.config.max_frames)  # the same frames as the frames'
-        # every pixel, also those the masks never cover: the masks override pass 3's fill and pass 2's guesses
+        subject_masks = est.subsample(subject_masks, self.config.max_frames).to(self.frames.device)  # the same
+        # frames as the frames'. Every pixel, also those the masks never cover (pass 1's median of all frames):
+        # the masks override pass 3's fill and pass 2's guesses
+        touched = subject_masks.any(0)  # (C, H, W)
         med3, spread3, count = est.median_mad(self.frames, self.dead, self.gains, self.dtype,
-                                              foreground=subject_masks.to(self.frames.device))
-        use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
+                                              foreground=subject_masks, pixels=touched)
+        relax = (self.config.min_std, self.config.luminance_relax)
+        plain_med, plain_std, plain_count = self.plain
+        mask3 = touched[:, None]  # (C, 1, H, W)
+        med3 = torch.where(mask3, med3, plain_med)
+        std3 = torch.where(mask3, est.floor_and_relax(spread3, *relax), plain_std)
+        use = (torch.where(touched, count, plain_count) >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
         logger.info("background from the frames free of the given subject masks at %.1f%% of the pixels",
                     100 * float(use.float().mean()))
-        relax = (self.config.min_std, self.config.luminance_relax)
-        return torch.where(use, med3, self.mean), torch.where(use, est.floor_and_relax(spread3, *relax), self.std)
+        return torch.where(use, med3, self.mean), torch.where(use, std3, self.std)
 
 
 def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str],

@@ -50,7 +50,6 @@ from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
-from torchtrack.synth.render import ray_ellipsoid_intersect
 from torchtrack.tracking.body_refit import mean_ik_residual_m
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
@@ -155,12 +154,66 @@ def track_change_m(poses: Poses, before: Poses) -> float:
     return float(np.linalg.norm(poses.landmarks()[both] - before.landmarks()[both], axis=-1).mean())
 
 
+def rays_meet_ellipsoids(origins: torch.Tensor, dirs: torch.Tensor, centres: torch.Tensor, R: torch.Tensor,
+                         semi_axes: torch.Tensor) -> torch.Tensor:
+    """Whether each camera's rays meet any of each frame's ellipsoids ahead of the camera.
+
+    All rays of a camera leave its centre, so for the ray ``o + t d`` and the ellipsoid ``(x - c)^T A (x - c) = 1``
+    (``A = R diag(1/a^2) R^T``, ``m = o - c``, ``g = m^T A m - 1 > 0`` for a camera outside it) the two roots in
+    ``t`` are real where ``d^T ((A m)(A m)^T / g - A) d >= 0`` and positive where ``d . A m < 0``: a quadratic and
+    a linear form in ``d`` whose coefficients are the camera's and ellipsoid's, one matrix product of the rays'
+    monomials per camera and frame; only for the rays within the cone of the sphere around the frame's ellipsoids
+    (most of an image misses the body). Solving every ray's quadratic for its nearest hit, as a renderer must
+    (:func:`~torchtrack.synth.render.ray_ellipsoid_intersect`), took a fifth of each background refinement pass.
+    A camera inside an ellipsoid sees it everywhere.
+
+    Args:
+        origins: (C, 3) camera centres. dirs: (C, P, 3) unit ray directions. centres: (T, K, 3), R: (T, K, 3, 3)
+            (columns: the axes), semi_axes: (K, 3) or (T, K, 3): T frames' K ellipsoids.
+
+    Returns:
+        (T, C, P) bool.
+    """
+    T, K, _ = centres.shape
+    C, P, _ = dirs.shape
+    semi_axes = semi_axes.expand(T, K, 3)
+    A = (R / semi_axes[..., None, :].square()) @ R.transpose(-1, -2)  # (T, K, 3, 3)
+    m = origins[:, None, None] - centres[None]  # (C, T, K, 3)
+    Am = (A[None] @ m[..., None])[..., 0]  # (C, T, K, 3)
+    g = (m * Am).sum(-1) - 1.0  # (C, T, K), > 0: the camera outside
+    B = Am[..., :, None] * Am[..., None, :] / g.clamp(min=1e-12)[..., None, None] - A[None]  # (C, T, K, 3, 3)
+    quad = torch.stack([B[..., 0, 0], B[..., 1, 1], B[..., 2, 2], 2 * B[..., 0, 1], 2 * B[..., 0, 2],
+                        2 * B[..., 1, 2]], -1)  # (C, T, K, 6)
+    # the cone of each frame's bounding sphere (about the ellipsoids' mean, through their farthest reach) seen from
+    # each camera, a little wider for the rounding: rays outside it miss every ellipsoid
+    middle = centres.mean(1)  # (T, 3)
+    radius = ((centres - middle[:, None]).norm(dim=-1) + semi_axes.amax(-1)).amax(-1) * 1.01 + 1e-3  # (T,)
+    to_mid = middle[None] - origins[:, None]  # (C, T, 3)
+    dist = to_mid.norm(dim=-1)  # (C, T)
+    cos_cone = (1 - (radius[None] / dist).clamp(max=1).square()).sqrt()  # (C, T); 0: the camera inside the sphere
+    near = dirs @ (to_mid / dist[..., None]).transpose(1, 2) >= cos_cone[:, None]  # (C, P, T)
+    out = torch.zeros((T, C, P), dtype=torch.bool, device=dirs.device)
+    for c in range(C):
+        for t in range(T):
+            if bool((g[c, t] <= 0).any()):
+                out[t, c] = True
+                continue
+            idx = near[c, :, t].nonzero()[:, 0]
+            if idx.numel() == 0:
+                continue
+            x, y, z = dirs[c, idx].unbind(-1)
+            mono = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z], -1)  # (n, 6)
+            hit = (mono @ quad[c, t].T >= 0) & (dirs[c, idx] @ Am[c, t].T < 0)  # (n, K)
+            out[t, c, idx] = hit.any(-1)
+    return out
+
+
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
                blobs: BlobModel | None = None) -> torch.Tensor:
     """Where the body of the blob model is seen: the union of its ellipsoids in every view.
 
     A pixel is set when its ray (through the lens model, :meth:`CameraRig.pixel_rays`) meets an ellipsoid in
-    front of the camera (:func:`~torchtrack.synth.render.ray_ellipsoid_intersect`).
+    front of the camera (:func:`rays_meet_ellipsoids`).
 
     Args:
         rig: the cameras at the size of the masks (one size for all).
@@ -191,10 +244,7 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     if bool(ok.any()):
         centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
         axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
-        for i, t in enumerate(ok.nonzero()[:, 0].tolist()):  # per frame: its own K ellipsoids, all views' rays
-            _, part, _ = ray_ellipsoid_intersect(origins, dirs, centres[i].to(origins.dtype),
-                                                 R[i].to(origins.dtype), axes)
-            out[t] = part >= 0
+        out[ok] = rays_meet_ellipsoids(origins[:, 0], dirs, centres.to(origins.dtype), R.to(origins.dtype), axes)
     return out.reshape(T, C, H, W)
 
 
@@ -377,8 +427,10 @@ def track_with_background_refinement(
 
     A tracker given its initial pose starts every pass from it; one that was not (the automatic start) is reset
     before each pass and searches for its start on that pass's observation (:meth:`MarkerlessTracker.reset`), so
-    that a wrong start on the first, poorest background is not carried through the passes. The background is re-estimated from ``bg_config.max_frames`` evenly spaced frames
-    of ``[start, stop)``, read once (the first background may come from the whole clip). A frame a pass lost
+    that a wrong start on the first, poorest background is not carried through the passes. The background is
+    re-estimated from ``bg_config.max_frames`` evenly spaced frames of ``[start, stop)``, read once with the
+    background's passes 1-3 on them done once (:class:`~torchtrack.background.MovingSequence`; the first
+    background may come from the whole clip). A frame a pass lost
     is drawn at the pose the tracker held for it; leaving such frames out of every pixel's estimate instead
     was worse on the Pose2Sim demo (docs/results.md, "Tried and dropped"). Frames never tracked (before the
     first initialisation) are left out. A first pass that tracks no frame ends the refinement with a warning and
