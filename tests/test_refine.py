@@ -592,11 +592,13 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
         calls.append((p, kwargs.get("logger")))
         valid = np.ones(T, bool)
         valid[0] = p != 5
-        return _poses_at(np.full((T, 16, 3), float(p)), valid, skel, residuals[p]), 1.0
+        return _poses_at(np.full((T, 16, 3), place[p]), valid, skel, residuals[p]), 1.0
 
     def fake_background(*args, **kwargs):
         backgrounds.append(f"background {len(backgrounds)}")
         return backgrounds[-1]
+
+    place = [0.001 * p for p in range(20)]  # every pass 1 mm from the one before: settled
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", fake_background)
@@ -618,7 +620,8 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
         # (the tracker ends in its state), with the logger when there is one
         assert [p for p, _ in calls] == list(range(7)) + [3]
         assert [c for _, c in calls] == [None] * 7 + [log]
-        assert poses.joints3d[0, 0, 0] == 3.0 and bg == "background 3" and int(poses.extra["refinement_pass"]) == 4
+        assert poses.joints3d[0, 0, 0] == pytest.approx(0.003) and bg == "background 3"
+        assert int(poses.extra["refinement_pass"]) == 4
     # the best pass is the last (residuals falling to the end): no logger, so it is not tracked again
     residuals[:] = [0.05, 0.04, 0.03, 0.02]
     calls.clear()
@@ -645,7 +648,26 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
         folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
         RefineConfig(passes=8, min_change_m=0.0, keep="last"), BackgroundConfig(), logger=logger)
     assert [p for p, _ in calls] == list(range(9)) and calls[-1][1] is logger and bg == "background 8"
-    assert poses.joints3d[0, 0, 0] == 8.0 and "refinement_pass" not in poses.extra
+    assert poses.joints3d[0, 0, 0] == pytest.approx(0.008) and "refinement_pass" not in poses.extra
+    # passes whose tracks still move (1 m, then 5 mm and less from pass 3 on) do not compete, however well they
+    # fit: the best settled pass (4) is kept, and the patience counts from it
+    place[:] = [0.0, 1.0, 2.0, 2.005, 2.008, 2.009, 2.0095, 2.0097, 2.0098] + [2.0099] * 11
+    residuals[:] = [0.001, 0.005, 0.006, 0.020, 0.015, 0.017, 0.016, 0.018, 0.019]
+    calls.clear()
+    backgrounds[:] = ["background 0"]
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+        RefineConfig(passes=16, patience=3), BackgroundConfig())
+    assert [p for p, _ in calls] == list(range(8)) + [4] and bg == "background 4"
+    assert int(poses.extra["refinement_pass"]) == 5
+    # none settled: the best of all refined passes, after all of them
+    place[:] = [float(p) for p in range(20)]
+    calls.clear()
+    backgrounds[:] = ["background 0"]
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+        RefineConfig(passes=8, patience=3), BackgroundConfig())
+    assert [p for p, _ in calls] == list(range(9)) + [1] and bg == "background 1"
 
 
 def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):

@@ -84,17 +84,19 @@ class RefineConfig:
             off). On the Pose2Sim demo's occupancy it brings the stance foot's toes back and grows the volume
             (docs/results.md, "Occupancy"); between tracking passes it made the track worse, so the tracking config
             leaves it off (docs/results.md, "Tracker settings").
-        min_change_m: with ``keep: last``, the passes stop early once a pass's track moved less than this from
-            the one before (:func:`track_change_m`) without losing a frame that one tracked: one more pass is then
-            the last (0: all ``passes`` are run).
-        keep: which pass's track is the result: ``fit``, the refined pass (after the first re-estimation) whose
-            track fits its own observation best, the fewest lost frames and then the lowest mean IK residual
-            (the goals' distance from the fitted skeleton, ``extra['ik_residual_m']``); ``last``, the last pass.
-            ``fit`` because the passes may wander between tracks, which the residual tells apart, rather than
-            settle (docs/results.md, "The real Pose2Sim demo").
-        patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best (fewer
-            lost frames, or as many and a lower residual), instead of at ``min_change_m``: a pass that moved
-            little can still be followed by one that moves on to a better track.
+        min_change_m: a pass whose track moved less than this from the one before (:func:`track_change_m`) has
+            settled. With ``keep: fit`` only settled passes compete (once there are any); with ``keep: last`` the
+            passes stop early at the first that settled without losing a frame the one before tracked: one more
+            pass is then the last (0: all ``passes`` are run).
+        keep: which pass's track is the result: ``fit``, the settled refined pass (after the first
+            re-estimation) whose track fits its own observation best, the fewest lost frames and then the lowest
+            mean IK residual (the goals' distance from the fitted skeleton, ``extra['ik_residual_m']``), or the
+            best of all refined passes where none settled; ``last``, the last pass. ``fit`` because the passes may
+            wander between tracks, which the residual tells apart, rather than settle (docs/results.md, "The real
+            Pose2Sim demo"); settled ones only because the residuals of passes whose backgrounds still move
+            compare fits to different observations: an early pass's fit to a poor background can be the closest.
+        patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best settled
+            pass: a pass that moved little can still be followed by one that moves on to a better track.
     """
 
     passes: int = 16
@@ -421,7 +423,7 @@ def track_with_background_refinement(
         on_pass: Callable[[int, Poses], None] | None = None, workers: int = 0
 ) -> tuple[Poses, float, BackgroundModel]:
     """Track, then up to ``config.passes`` times re-estimate the background from the track and track again; with
-    ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting one, with ``keep: last`` and
+    ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting settled one, with ``keep: last`` and
     ``config.min_change_m`` the pass after the first whose track moved less than that from the one before
     (:func:`track_change_m`), and tracked as many frames, is the last.
 
@@ -471,6 +473,7 @@ def track_with_background_refinement(
     final = config.passes  # the last pass: all of them, or the one after convergence
     select = config.keep == "fit" and config.passes > 0
     best: tuple[tuple[int, float], int, Poses, BackgroundModel] | None = None  # (rank, pass, track, background)
+    settled: tuple[tuple[int, float], int, Poses, BackgroundModel] | None = None  # the same of settled passes
     for p in range(config.passes + 1):
         last = p == final
         if p > 0:
@@ -507,12 +510,19 @@ def track_with_background_refinement(
         if select and p > 0:
             res = mean_ik_residual_m(poses)  # NaN: no valid frame
             rank = (int((~poses.valid).sum()), res if np.isfinite(res) else float("inf"))
+            change = track_change_m(poses, before)
+            log.info("background refinement: pass %d moved the track %.1f mm, mean IK residual %.1f mm", p + 1,
+                     1e3 * change, 1e3 * res)
             if best is None or rank < best[0]:
                 best = (rank, p, poses, background)
+            # the residuals of passes whose backgrounds still move compare fits to different observations: only
+            # settled passes compete, once there are any
+            if change < config.min_change_m and (settled is None or rank < settled[0]):
+                settled = (rank, p, poses, background)
         if last:
             break
-        if select and best is not None and p >= best[1] + config.patience:  # patience passes without a better fit
-            break
+        if select and settled is not None and p >= settled[1] + config.patience:  # patience passes without a
+            break  # better settled fit
         if not select and p > 0 and config.min_change_m > 0:
             change = track_change_m(poses, before)
             log.info("background refinement: pass %d moved the track %.1f mm", p + 1, 1e3 * change)
@@ -521,6 +531,7 @@ def track_with_background_refinement(
                 # one more pass, on the newest background, is the last
                 final = p + 1
                 log.info("background refinement: converged; pass %d is the last", p + 2)
+    best = settled if settled is not None else best
     if best is not None:
         _, chosen, poses, background = best
         log.info("background refinement: pass %d fits its observation best (mean IK residual %.1f mm)",
