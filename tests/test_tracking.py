@@ -881,6 +881,33 @@ def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
     assert float(err) < 0.05, float(err)
 
 
+def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
+    """MarkerlessTracker._fit_many against _track run round after round on each start in turn, as re-acquisition
+    fitted its hypotheses before: a walking body's voxels, the last pose at four headings."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    for t in range(4):
+        assert tracker.step(_observation(subj, blobs, walk[t])).valid
+    obs = _observation(subj, blobs, walk[8])
+    tracker.colour = None
+    names = list(skel.dof_names)
+    starts = tracker.angles.repeat(4, 1)
+    starts[:, names.index("root_rz")] += torch.tensor([0.0, 0.5, 1.0, -0.5]).to(starts) * math.pi
+    got = tracker._fit_many(obs, starts, 3, math.radians(45))
+    for h in range(4):
+        tracker.angles = tracker.previous = starts[h]
+        for _ in range(3):
+            want = tracker._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            tracker.angles = tracker.previous = want.angles
+        torch.testing.assert_close(got[h].angles, want.angles, rtol=1e-4, atol=1e-4)
+        assert got[h].residual_m == pytest.approx(want.residual_m, rel=1e-3, abs=1e-5)
+        assert got[h].explained == pytest.approx(want.explained, rel=1e-5)
+        torch.testing.assert_close(got[h].confidence, want.confidence, rtol=1e-4, atol=1e-5)
+    assert got[0].residual_m < min(r.residual_m for r in got[1:])  # the right heading fits best
+
+
 def test_a_reacquired_body_learns_its_colours_afresh(skel):
     """A colour model learnt before a loss (here: in a light 40 % dimmer, as elsewhere in a room) is not carried
     over a re-acquisition: the re-acquired frame learns the colours again, each blob's as rendered (the synthetic

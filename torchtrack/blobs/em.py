@@ -20,7 +20,7 @@ gain-normalised YUV in the tracker); NaN marks a view that does not see the voxe
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import torch
 
@@ -260,5 +260,50 @@ def fit_blobs(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, 
         blobs = m_step(points, weights, sizes, colours, assign, view, blobs, prior, config,
                        learn_colour=learn_colour and last)
         if not last:  # keep every blob in play for the next E-step; activity is decided on the last pass
+            blobs = replace(blobs, active=prior.active)
+    return blobs, assign
+
+
+def fit_blobs_many(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, prior: Blobs,
+                   config: EMConfig = EMConfig()) -> tuple[Blobs, torch.Tensor]:
+    """:func:`fit_blobs` of H bodies' blobs on one frame's voxels at once, without colours: the hypotheses of a
+    start or a re-acquisition, each its own EM (every voxel goes to the nearest blob of each body), in one batch.
+
+    Args:
+        points: (N, 3). weights: (N,). sizes: (N,). prior: :class:`Blobs` whose tensors have a leading H, e.g. mean
+            (H, K, 3); its colour model is carried, not used.
+
+    Returns:
+        the fitted blobs (H, K, ...) and ``assign (H, N)`` of the last E-step (-1: left out).
+    """
+    N = points.shape[0]
+    check_shape(points, (N, 3), "points")
+    check_shape(weights, (N,), "weights")
+    check_shape(sizes, (N,), "sizes")
+    check_shape(prior.mean, ("H", "K", 3), "prior.mean")
+    H, K = prior.mean.shape[:2]
+
+    def flat(b: Blobs) -> Blobs:  # the H bodies' blobs as H K blobs of one body: the M-step is per blob
+        return Blobs(*(getattr(b, f.name).reshape(H * K, *getattr(b, f.name).shape[2:]) for f in fields(Blobs)))
+
+    def unflat(b: Blobs) -> Blobs:
+        return Blobs(*(getattr(b, f.name).reshape(H, K, *getattr(b, f.name).shape[1:]) for f in fields(Blobs)))
+
+    prior_flat = flat(prior)
+    pts, w, sz = points.repeat(H, 1), weights.repeat(H), sizes.repeat(H)  # (H N, ...) a copy per body
+    offset = (torch.arange(H, device=points.device) * K)[:, None]  # (H, 1)
+    blobs = prior
+    assign = torch.full((H, N), -1, dtype=torch.long, device=points.device)
+    for it in range(config.iterations):
+        d = mahalanobis2(points, blobs.mean.reshape(H * K, 3), blobs.cov.reshape(H * K, 3, 3)).view(N, H, K)
+        d = torch.where(blobs.active[None], d, torch.inf)
+        d = torch.where(d <= config.gate_mahalanobis2, d, torch.inf)  # only blobs within the gate compete
+        least, nearest = d.min(dim=-1)  # (N, H)
+        assign = torch.where(torch.isfinite(least), nearest, -1).T  # (H, N)
+        joined = torch.where(assign >= 0, assign + offset, -1).reshape(-1)  # (H N,) into the H K blobs
+        fitted = m_step(pts, w, sz, None, joined, torch.full_like(joined, -1), flat(blobs), prior_flat, config,
+                        learn_colour=False)
+        blobs = unflat(fitted)
+        if it != config.iterations - 1:  # every blob in play for the next E-step; activity decided on the last
             blobs = replace(blobs, active=prior.active)
     return blobs, assign

@@ -44,7 +44,7 @@ from typing import Any
 
 import torch
 
-from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
+from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, fit_blobs_many, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
 from torchtrack.checks import InputError, check_shape, config_section
@@ -96,7 +96,7 @@ BONE_FIT_RIDGE = 0.02
 BONE_FITS = ("blobs", "shape")
 #: How the first pose is found (TrackerConfig.start).
 STARTS = ("search", "starfish")
-#: While lost, the re-acquisition searches for the whole state (a few seconds on a CPU) every this many frames.
+#: While lost, the re-acquisition searches for the whole state (a second or more on a CPU) every this many frames.
 REACQUIRE_SEARCH_EVERY = 5
 #: Re-acquisition: of its fits that pass the checks, those within this of the best two-way score
 #: (:func:`~torchtrack.tracking.search.score_states`, 0-1) compete by EM/IK's fit cost. The score tells a wrong
@@ -1315,6 +1315,54 @@ class MarkerlessTracker:
         return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
                            fk.bone_frames[0], (fk.joints[0, sub.feet], ~self._feet_unobserved(goal_w)[0]))
 
+    def _fit_many(self, obs: VoxelObservation, starts: torch.Tensor, passes: int, max_rot: float
+                  ) -> list[FrameResult]:
+        """Each of H states ``starts (H, D)`` fitted to ``obs`` by ``passes`` rounds of :meth:`_track` without the
+        prediction's trust, held feet, colours or velocity (as ``_track(obs, learn_colour=False, max_rot,
+        predicted=False, hold=False)`` from each round's result), all H in one batch: the hypotheses of a
+        re-acquisition. The tracker's state is not changed."""
+        sub, cfg = self.subject, self.config
+        if self.colour is not None:
+            raise InputError("_fit_many fits without colours: the tracker's colour model must be dropped first")
+        state = starts
+        dof_rz = sub.skeleton.dof_names.index("root_rz")
+        for _ in range(passes):
+            a = sub.skeleton.clamp(state)
+            fk = sub.skeleton.forward(a)
+            mean, cov = sub.blobs.gaussians(fk.bone_frames)  # (H, K, 3), (H, K, 3, 3)
+            priors = [prior_blobs(m, c) for m, c in zip(mean, cov)]
+            prior = Blobs(*(torch.stack([getattr(p, f.name) for p in priors]) for f in dataclasses.fields(Blobs)))
+            blobs, assign = fit_blobs_many(obs.points, obs.weights, obs.sizes, prior, cfg.em)
+            weight = blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1)  # (H, K)
+            state = a
+            for r in range(cfg.refinements):
+                if r:
+                    fk = sub.skeleton.forward(state)
+                goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean, blobs.cov, weight)
+                ik_goals, ik_w = goals, goal_w
+                if cfg.floor_contact and self.floor_z is not None:
+                    ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet,
+                                                   sub.ankle_height)
+                trunk = fk.joints
+                if cfg.rigid_trunk:
+                    state = state.index_fill(1, sub.spine_dofs, 0.0)
+                    trunk = sub.skeleton.forward(state).joints
+                state = sub.goals.fit_root(state, trunk, ik_goals, ik_w, max_rotation=max_rot)
+                state[:, dof_rz] = _unwrap(state[:, dof_rz], a[:, dof_rz])
+                idx = sub.ccd_goal_index
+                state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
+        fk = sub.skeleton.forward(state)
+        residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum(-1) / goal_w.sum(-1).clamp(min=1e-12)  # (H,)
+        explained = (obs.weights[None] * (assign >= 0)).sum(-1) / obs.weights.sum().clamp(min=1e-30)  # (H,)
+        conf_joint = self._goal_confidence(goal_w)  # (H, G)
+        oj = sub.output_joint
+        conf = torch.where(oj >= 0, conf_joint[:, oj.clamp(min=0)], conf_joint.mean(-1, keepdim=True))
+        unobserved = self._feet_unobserved(goal_w)
+        return [FrameResult(state[h], fk.output_points[h], conf[h], True, float(residual[h]), float(explained[h]),
+                            False, Blobs(*(getattr(blobs, f.name)[h] for f in dataclasses.fields(Blobs))),
+                            fk.bone_frames[h], (fk.joints[h, sub.feet], ~unobserved[h]))
+                for h in range(state.shape[0])]
+
     def _invalid(self) -> FrameResult:
         sub = self.subject
         if sub is None or self.angles is None:
@@ -1549,17 +1597,10 @@ class MarkerlessTracker:
         base = self.angles.clone()
         self.colour = None  # learnt before the loss (elsewhere in the room, or from frames losing the body)
         ix, iy, irz = (skel.dof_names.index(n) for n in ("root_tx", "root_ty", "root_rz"))
-        fits = []
-        for turn in (0.0, 0.5 * math.pi, math.pi, -0.5 * math.pi):
-            a = base.clone()
-            a[ix], a[iy] = c[0], c[1]
-            a[irz] = base[irz] + turn
-            self.angles = self.previous = a
-            res = None
-            for _ in range(max(2, self.config.init_passes // 2)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
-                self.angles = self.previous = res.angles
-            fits.append(res)
+        starts = base.repeat(4, 1)
+        starts[:, ix], starts[:, iy] = c[0], c[1]
+        starts[:, irz] = base[irz] + torch.tensor([0.0, 0.5, 1.0, -0.5], dtype=base.dtype, device=base.device) * math.pi
+        fits = self._fit_many(obs, starts, max(2, self.config.init_passes // 2), math.radians(45))
         if (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
             found = self._searched(obs)
             if found is not None:
