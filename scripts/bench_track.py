@@ -146,15 +146,15 @@ def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:
     """`torchtrack track` of the demo with the package at ``code`` (its root, on PYTHONPATH) in a process of its
     own: wall clock seconds, and its error against Pose2Sim's keypoints as eval_pose2sim_tracking.py prints it."""
     env = {**os.environ, "PYTHONPATH": str(code.resolve())}
-    cmd = [sys.executable, "-m", "torchtrack.cli", "track", str(seq), "--out", str(out), "--scale", "0.25",
-           "--fill-static-subject", "--overwrite"]
-    t0 = time.perf_counter()
-    done = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    cmd = [sys.executable, "-m", "torchtrack.cli", "track", str(seq.resolve()), "--out", str(out.resolve()),
+           "--scale", "0.25", "--fill-static-subject", "--overwrite"]
+    t0 = time.perf_counter()  # run in the checkout: `python -m` puts the working directory first on sys.path
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, cwd=code.resolve())
     wall = time.perf_counter() - t0
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} (code {code}) failed:\n{done.stderr[-3000:]}")
-    score = subprocess.run([sys.executable, str(Path(__file__).parent / "eval_pose2sim_tracking.py"), "--score",
-                            str(out / "poses.npz")], capture_output=True, text=True, check=True)
+    score = subprocess.run([sys.executable, str(Path(__file__).resolve().parent / "eval_pose2sim_tracking.py"),
+                            "--score", str(out.resolve() / "poses.npz")], capture_output=True, text=True, check=True)
     return wall, score.stdout.splitlines()[0].split(": ", 1)[-1]
 
 

@@ -651,23 +651,18 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
     assert poses.joints3d[0, 0, 0] == pytest.approx(0.008) and "refinement_pass" not in poses.extra
     # passes whose tracks still move (1 m, then 5 mm and less from pass 3 on) do not compete, however well they
     # fit: the best settled pass (4) is kept, and the patience counts from it
-    place[:] = [0.0, 1.0, 2.0, 2.005, 2.008, 2.009, 2.0095, 2.0097, 2.0098] + [2.0099] * 11
     residuals[:] = [0.001, 0.005, 0.006, 0.020, 0.015, 0.017, 0.016, 0.018, 0.019]
-    calls.clear()
-    backgrounds[:] = ["background 0"]
-    poses, _, bg = refine.track_with_background_refinement(
-        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
-        RefineConfig(passes=16, patience=3), BackgroundConfig())
-    assert [p for p, _ in calls] == list(range(8)) + [4] and bg == "background 4"
-    assert int(poses.extra["refinement_pass"]) == 5
-    # none settled: the best of all refined passes, after all of them
-    place[:] = [float(p) for p in range(20)]
-    calls.clear()
-    backgrounds[:] = ["background 0"]
-    poses, _, bg = refine.track_with_background_refinement(
-        folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
-        RefineConfig(passes=8, patience=3), BackgroundConfig())
-    assert [p for p, _ in calls] == list(range(9)) + [1] and bg == "background 1"
+    for moves, passes, want in (([0.0, 1.0, 2.0, 2.005, 2.008, 2.009, 2.0095, 2.0097, 2.0098], 16,
+                                 list(range(8)) + [4]),
+                                ([float(p) for p in range(9)], 8, list(range(9)) + [1])):  # none settled: the best
+        place[:] = moves + [moves[-1]] * 11  # of all refined passes, after all of them
+        calls.clear()
+        backgrounds[:] = ["background 0"]
+        poses, _, bg = refine.track_with_background_refinement(
+            folder, "background 0", lambda b: SimpleNamespace(rig=rig, background=b), tracker,
+            RefineConfig(passes=passes, patience=3), BackgroundConfig())
+        assert [p for p, _ in calls] == want and bg == f"background {want[-1]}"
+        assert int(poses.extra["refinement_pass"]) == want[-1] + 1
 
 
 def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):

@@ -888,8 +888,7 @@ def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
     tracker = MarkerlessTracker(skel)
-    for t in range(4):
-        assert tracker.step(_observation(subj, blobs, walk[t])).valid
+    assert all(tracker.step(_observation(subj, blobs, a)).valid for a in walk[:4])
     obs = _observation(subj, blobs, walk[8])
     tracker.colour = None
     names = list(skel.dof_names)
