@@ -1330,8 +1330,8 @@ class MarkerlessTracker:
             a = sub.skeleton.clamp(state)
             fk = sub.skeleton.forward(a)
             mean, cov = sub.blobs.gaussians(fk.bone_frames)  # (H, K, 3), (H, K, 3, 3)
-            priors = [prior_blobs(m, c) for m, c in zip(mean, cov)]
-            prior = Blobs(*(torch.stack([getattr(p, f.name) for p in priors]) for f in dataclasses.fields(Blobs)))
+            prior = prior_blobs(mean.flatten(0, 1), cov.flatten(0, 1))  # the H bodies' blobs as H K, then (H, K)
+            prior = Blobs(*(getattr(prior, f.name).unflatten(0, mean.shape[:2]) for f in dataclasses.fields(Blobs)))
             blobs, assign = fit_blobs_many(obs.points, obs.weights, obs.sizes, prior, cfg.em)
             weight = blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1)  # (H, K)
             state = a
