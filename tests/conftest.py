@@ -39,3 +39,36 @@ def small_walk(out: Path, *, duration_s: float, video_format: str, starfish_s: f
                       background_frames=background_frames, video_format=video_format,
                       rig=RigConfig(num_cameras=4, width=size_wh[0], height=size_wh[1]), scene=scene)
     return write_sequence(cfg, out, progress=False)
+
+
+def voxelise(centres, R, semi, voxel=0.03):
+    """Voxel centres of a 3D grid (cells aligned to the origin) inside any of the ellipsoids, and which ellipsoid
+    (nearest in unit distance) each belongs to."""
+    from torchtrack.occupancy.metrics import inside_ellipsoids
+
+    reach = float(semi.max())
+    lower = torch.floor((centres.amin(0) - reach) / voxel) * voxel
+    upper = centres.amax(0) + reach
+    axes = [torch.arange(float(lo) + voxel / 2, float(hi), voxel, dtype=torch.float64) for lo, hi in zip(lower, upper)]
+    g = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = inside_ellipsoids(g, centres, R, semi)
+    pts = g[inside]
+    local = torch.einsum("nkj,kji->nki", pts[:, None] - centres[None], R) / semi[None]
+    owner = (local ** 2).sum(-1).argmin(1)
+    return pts, owner
+
+
+def voxelised_observation(skel, blobs, angles, voxel=0.03, shift=(0.0, 0.0, 0.0), cameras=4):
+    """The voxels of the body ``skel`` with ``blobs`` at ``angles (D,)``, each seen by every camera in its blob's
+    colour (float32)."""
+    from torchtrack.tracking.observation import VoxelObservation
+
+    fk = skel.forward(angles[None].double())
+    centres, R = blobs.ellipsoids(fk.bone_frames)
+    pts, owner = voxelise(centres[0] + torch.tensor(shift, dtype=torch.float64), R[0], blobs.semi_axes.double(),
+                           voxel)
+    colour = blobs.colour.double()[owner]  # (N, 3) every view sees the blob's colour
+    colours = colour[:, None, :].expand(-1, cameras, -1).clone()
+    sizes = torch.full((pts.shape[0],), voxel, dtype=torch.float64)
+    return VoxelObservation(pts.float(), sizes.float(), (sizes ** 3).float(), colours.float(),
+                            torch.ones(cameras, dtype=torch.bool))

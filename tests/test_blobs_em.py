@@ -3,46 +3,72 @@
 from __future__ import annotations
 
 import math
+from dataclasses import fields, replace
 
 import torch
 
 from torchtrack.blobs import BlobModel
-from torchtrack.blobs.em import EMConfig, fit_blobs, fit_blobs_many, prior_blobs
+from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.skeleton import Skeleton
 
 
-def test_many_bodies_fitted_at_once_as_each_alone():
-    """fit_blobs_many against fit_blobs run on each body in turn: the voxels of a body in a walking pose, four
-    hypotheses (headings a quarter turn apart, one shifted and with the arms raised, as a re-acquisition tries),
-    float64."""
+def _frame(skel, blobs, angles, n, cameras, g):
+    """n voxels drawn from the blobs of the body at ``angles``, each seen in some of ``cameras`` views with its
+    blob's colour plus noise (float64)."""
+    mean, cov = blobs.gaussians(skel.forward(angles[None]).bone_frames)
+    K = mean.shape[1]
+    k = torch.randint(K, (n,), generator=g)
+    L = torch.linalg.cholesky(cov[0].double())
+    points = mean[0, k].double() + (L[k] @ torch.randn(n, 3, 1, generator=g, dtype=torch.float64))[..., 0]
+    colours = blobs.colour.double()[k][:, None].expand(n, cameras, 3) + 0.05 * torch.randn(n, cameras, 3, generator=g,
+                                                                                        dtype=torch.float64)
+    colours = colours.masked_fill(torch.rand(n, cameras, 1, generator=g) < 0.3, math.nan)
+    weights, sizes = torch.rand(n, generator=g, dtype=torch.float64) + 0.5, torch.full((n,), 0.03).double()
+    return points, weights, sizes, colours
+
+
+def test_frames_of_different_sizes_fitted_at_once_as_each_alone():
+    """fit_blobs of three frames padded into one batch against fit_blobs of each frame alone (float64): different
+    voxel counts and cameras, bodies at different headings, colour models learnt for some blobs of some frames,
+    one frame that does not learn colour; a quarter of the hypotheses' blobs start far from their voxels."""
     skel = Skeleton.from_urdf()
     blobs = BlobModel.from_config(skel)
     names = skel.dof_names
     g = torch.Generator().manual_seed(0)
-    true = skel.rest_angles().double()
-    true[names.index("l_hip_flex")], true[names.index("r_knee_flex")] = 0.4, 0.6
-    mean, cov = blobs.gaussians(skel.forward(true[None]).bone_frames)  # (1, K, 3), (1, K, 3, 3)
-    K = mean.shape[1]
-    k = torch.randint(K, (3000,), generator=g)
-    L = torch.linalg.cholesky(cov[0].double())
-    points = mean[0, k].double() + (L[k] @ torch.randn(3000, 3, 1, generator=g, dtype=torch.float64))[..., 0]
-    weights, sizes = torch.rand(3000, generator=g, dtype=torch.float64) + 0.5, torch.full((3000,), 0.03).double()
-    starts = skel.rest_angles().double().repeat(4, 1)
-    for h in range(4):
-        starts[h, names.index("root_rz")] = h * math.pi / 2
-    starts[3, names.index("root_tx")] = 0.2
-    starts[3, names.index("l_shoulder_abd")] = 1.5
-    m, c = blobs.gaussians(skel.forward(starts).bone_frames)
-    priors = [prior_blobs(m[h].double(), c[h].double()) for h in range(4)]
-    stacked = type(priors[0])(*(torch.stack([getattr(p, f) for p in priors]) for f in (
-        "mean", "cov", "colour_mean", "colour_cov", "colour_known", "fill", "active")))
+    poses, frames = [], []
+    for h, (n, cams) in enumerate(((3000, 4), (1800, 3), (2500, 4))):
+        a = skel.rest_angles().double()
+        a[names.index("root_rz")], a[names.index("root_tx")] = h * math.pi / 2, 0.3 * h
+        a[names.index("l_hip_flex")], a[names.index("r_knee_flex")] = 0.4, 0.2 * h
+        frames.append(_frame(skel, blobs, a, n, cams, g))
+        a = a.clone()
+        a[names.index("l_shoulder_abd")] = 1.2 * (h == 2)  # the prediction off the voxels' arm in one frame
+        poses.append(a)
+    m, c = blobs.gaussians(skel.forward(torch.stack(poses)).bone_frames)
+    K = m.shape[1]
+    priors = []
+    for h in range(3):
+        p = prior_blobs(m[h].double(), c[h].double())
+        known = torch.rand(K, generator=g) < 0.5 * h  # frame 0: no colour model yet
+        priors.append(replace(p, colour_mean=blobs.colour.double() + 0.02, colour_cov=0.01 * p.colour_cov,
+                              colour_known=known))
+    N, C = max(f[0].shape[0] for f in frames), max(f[3].shape[1] for f in frames)
+    points = torch.full((3, N, 3), math.nan, dtype=torch.float64)
+    weights, sizes = torch.zeros(3, N, dtype=torch.float64), torch.zeros(3, N, dtype=torch.float64)
+    colours = torch.full((3, N, C, 3), math.nan, dtype=torch.float64)
+    for h, (p, w, s, col) in enumerate(frames):
+        points[h, :len(p)], weights[h, :len(p)], sizes[h, :len(p)] = p, w, s
+        colours[h, :len(p), :col.shape[1]] = col
+    stacked = Blobs(*(torch.stack([getattr(p, f.name) for p in priors]) for f in fields(Blobs)))
     config = EMConfig(min_fill=0.3)
-    got, assign = fit_blobs_many(points, weights, sizes, stacked, config)
-    for h in range(4):
-        want, want_assign = fit_blobs(points, weights, sizes, None, priors[h], config, learn_colour=False)
-        assert torch.equal(assign[h], want_assign)
-        torch.testing.assert_close(got.mean[h], want.mean, rtol=1e-9, atol=1e-12)
-        torch.testing.assert_close(got.cov[h], want.cov, rtol=1e-9, atol=1e-12)
-        torch.testing.assert_close(got.fill[h], want.fill, rtol=1e-9, atol=1e-12)
-        assert torch.equal(got.active[h], want.active)
-    assert not torch.equal(assign[0], assign[1])  # the bodies differ: each voxel's blob is each body's own
+    learn = torch.tensor([True, False, True])
+    got, assign = fit_blobs(points, weights, sizes, colours, stacked, config, learn_colour=learn)
+    for h, (p, w, s, col) in enumerate(frames):
+        want, want_assign = fit_blobs(p, w, s, col, priors[h], config, learn_colour=bool(learn[h]))
+        assert torch.equal(assign[h, :len(p)], want_assign)
+        assert bool((assign[h, len(p):] == -1).all())  # the padding is no blob's
+        for f in fields(Blobs):
+            torch.testing.assert_close(getattr(got, f.name)[h], getattr(want, f.name), rtol=1e-9, atol=1e-12,
+                                       msg=f"frame {h}: {f.name}")
+    assert bool(got.colour_known[0].any()) and torch.equal(got.colour_known[1], priors[1].colour_known)
+    assert not bool(got.active[2].all()) and bool(got.active[0].all())  # the raised arm's blobs found no voxels

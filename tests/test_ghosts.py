@@ -97,6 +97,36 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
         np.testing.assert_array_equal(got, ref)
 
 
+def test_frames_of_different_rigs_in_one_batch_match_the_plain_loop_each():
+    """Three frames padded into one batch (the lockstep tracker's): different voxel counts, 3 to 5 cameras, bodies
+    and covering blobs; each frame's ghosts are the plain loop's on that frame alone, and padding is no ghost."""
+    rng = np.random.default_rng(1)
+    K, frames = 5, []
+    for N, C in ((300, 4), (180, 3), (250, 5)):
+        mean = rng.uniform(-0.4, 0.4, (K, 3)) + [rng.uniform(-1, 1), rng.uniform(-1, 1), 1.0]
+        A = rng.normal(size=(K, 3, 3)) * 0.15
+        cov = A @ A.transpose(0, 2, 1) + 0.004 * np.eye(3)
+        az = np.arange(C) * 2 * np.pi / C + rng.uniform(0, 1)
+        centres = np.stack([3.5 * np.cos(az), 3.5 * np.sin(az), np.full(C, 2.2)], 1)
+        points = mean.mean(0) + rng.uniform(-0.7, 0.7, (N, 3))
+        seen = rng.uniform(size=(N, C)) > 0.1
+        covers = rng.uniform(size=K) > 0.3
+        frames.append((points, seen, centres, mean, cov, covers))
+    B, N, C = len(frames), max(len(f[0]) for f in frames), max(f[2].shape[0] for f in frames)
+    points, seen = np.full((B, N, 3), np.nan), np.zeros((B, N, C), bool)
+    centres, mean, cov = np.zeros((B, C, 3)), np.stack([f[3] for f in frames]), np.stack([f[4] for f in frames])
+    for b, (p, sn, cen, *_) in enumerate(frames):
+        points[b, :len(p)], seen[b, :len(p), :sn.shape[1]], centres[b, :len(cen)] = p, sn, cen
+    got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
+                       torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(np.stack([f[5] for f in frames])),
+                       self_scale=1.3, chunk=64).numpy()
+    for b, (p, sn, cen, m, c, cv) in enumerate(frames):
+        ref = _reference(p, sn, cen, m, c, 1.15, 1.2, cv, 1.3)
+        assert 5 < ref.sum() < len(p) - 5
+        np.testing.assert_array_equal(got[b, :len(p)], ref)
+        assert not got[b, len(p):].any()
+
+
 def test_a_limb_that_moved_past_its_prediction_is_not_explained_away_by_itself():
     """An arm raised faster than predicted, seen by 4 cameras 5 m up that look down on it: the voxels just
     beyond the predicted arm's tip have every view's ray through the predicted arm itself, so without

@@ -32,6 +32,9 @@ from torchtrack.tracking.goals import (GoalModel, bound_rotation, feet_index, fl
                                      weighted_kabsch)
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.step import SubjectStack
+
+from conftest import voxelised_observation as _observation, voxelise as _voxelise
 
 from conftest import small_walk
 
@@ -99,33 +102,6 @@ def test_bound_rotation_clips_the_angle_about_the_same_axis():
 
 
 # ------------------------------------------------------------------------------------------------------ EM
-def _voxelise(centres, R, semi, voxel=0.03):
-    """Voxel centres of a 3D grid (cells aligned to the origin) inside any of the ellipsoids, and which ellipsoid
-    (nearest in unit distance) each belongs to."""
-    reach = float(semi.max())
-    lower = torch.floor((centres.amin(0) - reach) / voxel) * voxel
-    upper = centres.amax(0) + reach
-    axes = [torch.arange(float(lo) + voxel / 2, float(hi), voxel, dtype=torch.float64) for lo, hi in zip(lower, upper)]
-    g = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    inside = inside_ellipsoids(g, centres, R, semi)
-    pts = g[inside]
-    local = torch.einsum("nkj,kji->nki", pts[:, None] - centres[None], R) / semi[None]
-    owner = (local ** 2).sum(-1).argmin(1)
-    return pts, owner
-
-
-def _observation(skel, blobs, angles, voxel=0.03, shift=(0.0, 0.0, 0.0), cameras=4):
-    fk = skel.forward(angles[None].double())
-    centres, R = blobs.ellipsoids(fk.bone_frames)
-    pts, owner = _voxelise(centres[0] + torch.tensor(shift, dtype=torch.float64), R[0], blobs.semi_axes.double(),
-                           voxel)
-    colour = blobs.colour.double()[owner]  # (N, 3) every view sees the blob's colour
-    colours = colour[:, None, :].expand(-1, cameras, -1).clone()
-    sizes = torch.full((pts.shape[0],), voxel, dtype=torch.float64)
-    return VoxelObservation(pts.float(), sizes.float(), (sizes ** 3).float(), colours.float(),
-                            torch.ones(cameras, dtype=torch.bool))
-
-
 def test_e_step_matches_a_plain_loop():
     gen = torch.Generator().manual_seed(0)
     K, N, C = 4, 60, 3
@@ -557,13 +533,14 @@ def test_the_prediction_velocity_follows_the_frame_rate(skel, monkeypatch):
     class Predicted(Exception):
         pass
 
-    def capture(angles):
+    def capture(stack, angles):
         raise Predicted(angles)
 
-    monkeypatch.setattr(tracker, "_regenerate", capture)
+    monkeypatch.setattr(SubjectStack, "clamp", capture)
+    obs = _observation(tracker.subject.skeleton, tracker.subject.blobs, last)
     with pytest.raises(Predicted) as got:
-        tracker._track(None, learn_colour=False, max_rot=0.1)
-    predicted = got.value.args[0]
+        tracker._track(obs, learn_colour=False, max_rot=0.1)
+    predicted = got.value.args[0][0]
     assert float(predicted[skel.dof_names.index("root_tx")]) == pytest.approx(0.05 + 0.2 * 0.05)
 
 
@@ -1537,7 +1514,7 @@ def test_a_blob_mostly_out_of_the_volume_gives_no_goals(skel, monkeypatch):
     forearm's and hand's blobs, mostly outside, give no goals (the wrist's confidence 0, the arm kept where the
     prediction puts it), the upper arm's, a little outside, still does. With every blob's goals kept the
     half-forearm gives the wrist a goal (confidence 0.19)."""
-    import torchtrack.tracking.markerless as markerless
+    import torchtrack.tracking.step as step
 
     subj = skel.scaled_to_height(1.80)
     blobs = BlobModel.from_config(subj)
@@ -1560,7 +1537,7 @@ def test_a_blob_mostly_out_of_the_volume_gives_no_goals(skel, monkeypatch):
     r = run()
     assert float(r.confidence[wrist]) == 0.0 and float(r.confidence[elbow]) > 0.3
     assert float((r.output_points[wrist] - truth[wrist]).norm()) < 0.02
-    monkeypatch.setattr(markerless, "MAX_OUTSIDE", 1.0)
+    monkeypatch.setattr(step, "MAX_OUTSIDE", 1.0)
     assert float(run().confidence[wrist]) > 0.1
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields, replace
+from functools import partial
 
 import torch
 
@@ -113,19 +114,24 @@ _UNSEEN_COLOUR = 1e4
 
 
 def mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-    """x (..., 3), mean (K, 3), covariances (K, 3, 3) -> (..., K) squared Mahalanobis distances.
+    """x (..., 3), mean (K, 3), covariances (K, 3, 3) -> (..., K) squared Mahalanobis distances; or B sets at
+    once: x (B, ..., 3), mean (B, K, 3), cov (B, K, 3, 3) -> (B, ..., K), each x[b] against blobs b.
 
     Whitened with the inverse Cholesky factors W_k (W_k^T W_k = cov_k^-1): ``|W_k x - W_k mu_k|^2``, all K blobs
     in one matrix product; the subtraction is of first-order terms, so float32 keeps its precision.
     """
-    K = mean.shape[0]
+    K = mean.shape[-2]
     eye = torch.eye(3, dtype=cov.dtype, device=cov.device).expand_as(cov)
-    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # (K, 3, 3)
-    Wmu = torch.einsum("kij,kj->ki", W, mean)  # (K, 3)
-    flat = x.reshape(-1, 3)  # one matrix product (a strided 3D operand would run as a loop of small ones)
-    y = torch.addmm(-Wmu.reshape(1, K * 3), flat, W.reshape(K * 3, 3).T)  # (M, 3 K): W_k x - W_k mu_k
+    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # ([B,] K, 3, 3)
+    Wmu = torch.einsum("...kij,...kj->...ki", W, mean)  # ([B,] K, 3)
     # the squares summed per blob by a matrix product with a (3 K, K) block of ones: faster than a strided sum
-    groups = torch.eye(K, dtype=y.dtype, device=y.device).repeat_interleave(3, dim=0)
+    groups = torch.eye(K, dtype=x.dtype, device=x.device).repeat_interleave(3, dim=0)
+    if mean.dim() == 2:
+        flat = x.reshape(-1, 3)  # one matrix product (a strided 3D operand would run as a loop of small ones)
+        y = torch.addmm(-Wmu.reshape(1, K * 3), flat, W.reshape(K * 3, 3).T)  # (M, 3 K): W_k x - W_k mu_k
+        return (y.square_() @ groups).view(*x.shape[:-1], K)
+    B = mean.shape[0]
+    y = torch.baddbmm(-Wmu.reshape(B, 1, K * 3), x.reshape(B, -1, 3), W.reshape(B, K * 3, 3).mT)  # (B, M, 3 K)
     return (y.square_() @ groups).view(*x.shape[:-1], K)
 
 
@@ -134,36 +140,38 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
     """Assign every voxel to its blob (eq. 2-3).
 
     Args:
-        points: (N, 3) voxel centres. colours: (N, C, 3) per-view colours (NaN: unseen) or None.
+        points: (N, 3) voxel centres. colours: (N, C, 3) per-view colours (NaN: unseen) or None. Or B voxel sets
+            at once, each against its own blobs: points (B, N, 3), colours (B, N, C, 3), ``blobs`` (B, K, ...); a
+            NaN point (padding) is no blob's.
 
     Returns:
-        assign (N,) int64 blob index, -1 for voxels outside the gate; view (N,) int64 the view whose colour
+        assign ([B,] N) int64 blob index, -1 for voxels outside the gate; view ([B,] N) int64 the view whose colour
         was used, or for a blob without a colour model yet the first view that sees the voxel (-1 if none);
-        cost (N,) the least distance.
+        cost ([B,] N) the least distance.
     """
-    d_pos = mahalanobis2(points, blobs.mean, blobs.cov)  # (N, K)
-    d_pos = torch.where(blobs.active, d_pos, torch.inf)
-    view = torch.full((points.shape[0],), -1, dtype=torch.long, device=points.device)
+    d_pos = mahalanobis2(points, blobs.mean, blobs.cov)  # ([B,] N, K)
+    d_pos = torch.where(blobs.active.unsqueeze(-2), d_pos, torch.inf)
+    view = torch.full(points.shape[:-1], -1, dtype=torch.long, device=points.device)
     cost = d_pos
     best_view = None
-    seen_views = torch.isfinite(colours).all(-1) if colours is not None else None  # (N, C)
+    seen_views = torch.isfinite(colours).all(-1) if colours is not None else None  # ([B,] N, C)
     if colours is not None and bool(blobs.colour_known.any()) and config.colour_weight > 0:
         # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
         # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
         far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
-        d_col = mahalanobis2(far, blobs.colour_mean, blobs.colour_cov)  # (N, C, K)
-        d_col_min, best_view = d_col.min(dim=1)  # (N, K)
-        seen = seen_views.any(dim=1, keepdim=True) & blobs.colour_known  # (N, K)
+        d_col = mahalanobis2(far, blobs.colour_mean, blobs.colour_cov)  # ([B,] N, C, K)
+        d_col_min, best_view = d_col.min(dim=-2)  # ([B,] N, K)
+        seen = seen_views.any(dim=-1, keepdim=True) & blobs.colour_known.unsqueeze(-2)  # ([B,] N, K)
         cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
     cost = torch.where(d_pos <= config.gate_mahalanobis2, cost, torch.inf)  # only blobs within the gate compete
-    least, assign = cost.min(dim=1)
+    least, assign = cost.min(dim=-1)
     assign = torch.where(torch.isfinite(least), assign, -1)
     if seen_views is not None:
-        v = seen_views.to(torch.uint8).argmax(dim=1)  # the first view that sees the voxel
+        v = seen_views.to(torch.uint8).argmax(dim=-1)  # the first view that sees the voxel
         if best_view is not None:  # blobs with a colour model: the view whose colour fits it best
             a = assign.clamp(min=0)
-            v = torch.where(blobs.colour_known[a], best_view.gather(1, a[:, None])[:, 0], v)
-        view = torch.where((assign >= 0) & seen_views.any(dim=1), v, -1)
+            v = torch.where(blobs.colour_known.gather(-1, a), best_view.gather(-1, a[..., None])[..., 0], v)
+        view = torch.where((assign >= 0) & seen_views.any(dim=-1), v, -1)
     return assign, view, least
 
 
@@ -184,13 +192,13 @@ def _weighted_moments(x: torch.Tensor, w: torch.Tensor, assign: torch.Tensor, K:
 
 def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, colours: torch.Tensor | None,
            assign: torch.Tensor, view: torch.Tensor, blobs: Blobs, prior: Blobs, config: EMConfig,
-           learn_colour: bool = True) -> Blobs:
+           learn_colour: bool | torch.Tensor = True) -> Blobs:
     """Re-estimate the blobs from their voxels, pulled towards ``prior`` (see the module docstring).
 
     Args:
         points (N, 3), weights (N,), sizes (N,) voxel edge (m), colours (N, C, 3) or None, assign and view
         from :func:`e_step`; blobs: the current estimate (its colour model is updated); prior: the regenerated
-        blobs (position mean and covariance used).
+        blobs (position mean and covariance used). learn_colour: update the colour model, or (K,) bool which blobs'.
     """
     K = blobs.num_blobs
     total, mu, scatter_obs = _weighted_moments(points, weights, assign, K)
@@ -212,14 +220,15 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
     mean = torch.where(active[:, None], mean, prior.mean)
     cov = torch.where(active[:, None, None], cov, prior.cov)
     colour_mean, colour_cov, known = blobs.colour_mean, blobs.colour_cov, blobs.colour_known
-    if colours is not None and learn_colour:
+    learn = learn_colour if isinstance(learn_colour, torch.Tensor) else None
+    if colours is not None and (learn is not None or learn_colour):
         has = (assign >= 0) & (view >= 0)
         idx = has.nonzero()[:, 0]
         c = colours[idx, view[idx]]  # (n, 3) the chosen view's colour
         ctot, cmu, ccov = _weighted_moments(c, weights[idx], assign[idx], K)
         ccov = _floor_determinant(ccov + 1e-6 * eye, config.min_colour_std)
         rate = torch.where(known, config.colour_rate, 1.0).to(cmu.dtype)  # (K,): a blob's first colours in full
-        upd = (ctot > 0) & active
+        upd = (ctot > 0) & active if learn is None else (ctot > 0) & active & learn.to(active.device)
         colour_mean = torch.where(upd[:, None], (1 - rate[:, None]) * colour_mean + rate[:, None] * cmu, colour_mean)
         colour_cov = torch.where(upd[:, None, None], (1 - rate[:, None, None]) * colour_cov
                                  + rate[:, None, None] * ccov, colour_cov)
@@ -235,75 +244,56 @@ def _floor_determinant(cov: torch.Tensor, min_std: float) -> torch.Tensor:
 
 
 def fit_blobs(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, colours: torch.Tensor | None,
-              prior: Blobs, config: EMConfig = EMConfig(), learn_colour: bool = True
+              prior: Blobs, config: EMConfig = EMConfig(), learn_colour: bool | torch.Tensor = True
               ) -> tuple[Blobs, torch.Tensor]:
-    """EM from the prior blobs (with its colour model) on one frame's voxels.
+    """EM from the prior blobs (with its colour model) on one frame's voxels, or on B frames' at once.
 
     Args:
         points: (N, 3) voxel centres (m). weights: (N,). sizes: (N,) voxel edges (m).
         colours: (N, C, 3) or None. prior: :class:`Blobs` regenerated from the predicted pose.
+        learn_colour: whether the colour model learns from this frame (for B frames: one flag, or (B,) bool).
+        B frames (the lockstep tracker's sequences): points (B, N, 3), weights, sizes (B, N), colours
+        (B, N, C, 3), prior (B, K, ...); a set of fewer voxels padded with NaN points of weight 0 (no blob's).
+        Each frame's EM is the one it gets alone.
 
     Returns:
-        the fitted blobs and ``assign (N,)`` of the last E-step (-1: left out).
+        the fitted blobs ([B,] K, ...) and ``assign ([B,] N)`` of the last E-step (-1: left out).
     """
-    N = points.shape[0]
-    check_shape(points, (N, 3), "points")
-    check_shape(weights, (N,), "weights")
-    check_shape(sizes, (N,), "sizes")
+    batched = points.dim() == 3
+    N = points.shape[-2]
+    lead = tuple(points.shape[:-2])
+    check_shape(points, (*lead, N, 3), "points")
+    check_shape(weights, (*lead, N), "weights")
+    check_shape(sizes, (*lead, N), "sizes")
     if colours is not None:
-        check_shape(colours, (N, None, 3), "colours")
+        check_shape(colours, (*lead, N, None, 3), "colours")
     blobs = prior
-    assign = torch.full((N,), -1, dtype=torch.long, device=points.device)
+    assign = torch.full((*lead, N), -1, dtype=torch.long, device=points.device)
+    if batched:  # the M-step is per blob: the B frames' blobs as B K blobs, their voxels as B N
+        B, K = prior.mean.shape[:2]
+        flat = partial(_reshape_blobs, shape=(B * K,))
+        prior_flat = flat(prior)
+        offset = (torch.arange(B, device=points.device) * K)[:, None]  # (B, 1)
+        pts, w, sz = points.reshape(B * N, 3), weights.reshape(B * N), sizes.reshape(B * N)
+        col = None if colours is None else colours.reshape(B * N, *colours.shape[2:])
+        if isinstance(learn_colour, torch.Tensor):  # (B,) -> per blob
+            learn_colour = learn_colour.to(torch.bool).repeat_interleave(K)
     for it in range(config.iterations):
         assign, view, _ = e_step(points, colours, blobs, config)
         last = it == config.iterations - 1
-        blobs = m_step(points, weights, sizes, colours, assign, view, blobs, prior, config,
-                       learn_colour=learn_colour and last)
+        learn = learn_colour if last else False
+        if batched:
+            joined = torch.where(assign >= 0, assign + offset, -1).reshape(-1)
+            blobs = _reshape_blobs(m_step(pts, w, sz, col, joined, view.reshape(-1), flat(blobs), prior_flat, config,
+                                          learn_colour=learn), (B, K))
+        else:
+            blobs = m_step(points, weights, sizes, colours, assign, view, blobs, prior, config, learn_colour=learn)
         if not last:  # keep every blob in play for the next E-step; activity is decided on the last pass
             blobs = replace(blobs, active=prior.active)
     return blobs, assign
 
 
-def fit_blobs_many(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, prior: Blobs,
-                   config: EMConfig = EMConfig()) -> tuple[Blobs, torch.Tensor]:
-    """:func:`fit_blobs` of H bodies' blobs on one frame's voxels at once, without colours: the hypotheses of a
-    start or a re-acquisition, each its own EM (every voxel goes to the nearest blob of each body), in one batch.
-
-    Args:
-        points: (N, 3). weights: (N,). sizes: (N,). prior: :class:`Blobs` whose tensors have a leading H, e.g. mean
-            (H, K, 3); its colour model is carried, not used.
-
-    Returns:
-        the fitted blobs (H, K, ...) and ``assign (H, N)`` of the last E-step (-1: left out).
-    """
-    N = points.shape[0]
-    check_shape(points, (N, 3), "points")
-    check_shape(weights, (N,), "weights")
-    check_shape(sizes, (N,), "sizes")
-    check_shape(prior.mean, ("H", "K", 3), "prior.mean")
-    H, K = prior.mean.shape[:2]
-
-    def flat(b: Blobs) -> Blobs:  # the H bodies' blobs as H K blobs of one body: the M-step is per blob
-        return Blobs(*(getattr(b, f.name).reshape(H * K, *getattr(b, f.name).shape[2:]) for f in fields(Blobs)))
-
-    def unflat(b: Blobs) -> Blobs:
-        return Blobs(*(getattr(b, f.name).reshape(H, K, *getattr(b, f.name).shape[1:]) for f in fields(Blobs)))
-
-    prior_flat = flat(prior)
-    pts, w, sz = points.repeat(H, 1), weights.repeat(H), sizes.repeat(H)  # (H N, ...) a copy per body
-    offset = (torch.arange(H, device=points.device) * K)[:, None]  # (H, 1)
-    blobs = prior
-    assign = torch.full((H, N), -1, dtype=torch.long, device=points.device)
-    for it in range(config.iterations):
-        d = mahalanobis2(points, blobs.mean.reshape(H * K, 3), blobs.cov.reshape(H * K, 3, 3)).view(N, H, K)
-        d = torch.where(blobs.active[None], d, torch.inf)
-        d = torch.where(d <= config.gate_mahalanobis2, d, torch.inf)  # only blobs within the gate compete
-        least, nearest = d.min(dim=-1)  # (N, H)
-        assign = torch.where(torch.isfinite(least), nearest, -1).T  # (H, N)
-        joined = torch.where(assign >= 0, assign + offset, -1).reshape(-1)  # (H N,) into the H K blobs
-        fitted = m_step(pts, w, sz, None, joined, torch.full_like(joined, -1), flat(blobs), prior_flat, config,
-                        learn_colour=False)
-        blobs = unflat(fitted)
-        if it != config.iterations - 1:  # every blob in play for the next E-step; activity decided on the last
-            blobs = replace(blobs, active=prior.active)
-    return blobs, assign
+def _reshape_blobs(b: Blobs, shape: tuple[int, ...]) -> Blobs:
+    """The blobs' tensors with their leading blob dimensions reshaped to ``shape`` (e.g. B bodies' K <-> B K)."""
+    lead = b.mean.dim() - 1  # the blob dimensions: those before the mean's 3
+    return Blobs(*(getattr(b, f.name).reshape(*shape, *getattr(b, f.name).shape[lead:]) for f in fields(Blobs)))

@@ -13,6 +13,8 @@ of the uniform solid ellipsoid, which is what EM estimates from voxels.
 
 from __future__ import annotations
 
+import copy
+
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -119,6 +121,20 @@ class BlobModel(nn.Module):
         self.to(skeleton.lower.device)
 
     @classmethod
+    def stack(cls, models: list[BlobModel]) -> BlobModel:
+        """B subjects' blob models as one whose geometry buffers (``offset_local``, ``R_bone_blob``,
+        ``semi_axes``) have a leading B: its :meth:`gaussians` of ``(B, nb, 4, 4)`` bone frames places body b's
+        blobs on frames b (the lockstep tracker's subjects). The blobs' names, bones and colours must agree."""
+        first = models[0]
+        for m in models[1:]:
+            if m.names != first.names or not torch.equal(m.bone_of_blob, first.bone_of_blob):
+                raise InputError(f"BlobModel.stack: blob sets differ ({first.names} and {m.names})")
+        out = copy.deepcopy(first)
+        for name in ("offset_local", "R_bone_blob", "semi_axes"):
+            setattr(out, name, torch.stack([getattr(m, name) for m in models]))
+        return out
+
+    @classmethod
     def from_config(cls, skeleton: Skeleton, path: str | Path | None = None) -> BlobModel:
         specs, ref = load_blob_specs(path)
         return cls(skeleton, specs, ref)
@@ -139,7 +155,7 @@ class BlobModel(nn.Module):
         check_shape(bone_frames, ("B", None, 4, 4), "bone_frames")
         T = bone_frames[:, self.bone_of_blob.to(bone_frames.device)]  # (B, K, 4, 4)
         R_wb, P_wb = T[..., :3, :3], T[..., :3, 3]
-        centres = P_wb + torch.einsum("bkij,kj->bki", R_wb, self.offset_local.to(T))  # eq. 17
+        centres = P_wb + torch.einsum("...kij,...kj->...ki", R_wb, self.offset_local.to(T))  # eq. 17
         R_world_blob = R_wb @ self.R_bone_blob.to(T)  # (B, K, 3, 3)
         return centres, R_world_blob
 

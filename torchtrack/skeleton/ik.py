@@ -247,8 +247,8 @@ class CCDSolver(nn.Module):
         names = [self.skeleton.dof_names[i] for i in self.active_index.tolist()]
         return [[names[a] for a in getattr(self, lv["dofs"]).tolist()] for lv in self._levels]
 
-    def forward(self, angles: torch.Tensor, goals: torch.Tensor, goal_weights: torch.Tensor | None = None
-                ) -> torch.Tensor:
+    def forward(self, angles: torch.Tensor, goals: torch.Tensor, goal_weights: torch.Tensor | None = None,
+                frames: torch.Tensor | None = None) -> torch.Tensor:
         """Move ``angles`` towards putting the goal joints on ``goals``.
 
         Args:
@@ -256,6 +256,8 @@ class CCDSolver(nn.Module):
             goals: (B, G, 3) goal positions (world, m) of ``goal_joints``.
             goal_weights: (B, G) or (G,) optional confidences multiplying lambda (and weighting the squared
                 errors of the refinement steps); 0 ignores a goal, which may then be NaN (a missing one).
+            frames: (B, F, 4, 4) the frames of ``angles`` where the caller has them, e.g. of several bodies of
+                this chain (:class:`~torchtrack.skeleton.stack.SkeletonStack`); default: the solver's skeleton's.
 
         Returns:
             (B, D_all) the solved state vectors, within the joint limits.
@@ -274,7 +276,8 @@ class CCDSolver(nn.Module):
         if not self._levels:
             return out
         active = self.active_index.to(dev)
-        T = skel.forward_frames(angles)  # (B, F, 4, 4): one FK; the sweeps then update the chain in closed form
+        # one FK; the sweeps then update the chain in closed form
+        T = skel.forward_frames(angles) if frames is None else frames  # (B, F, 4, 4)
         T_dof = T[:, self.active_frame.to(dev)]  # (B, A, 4, 4)
         axis = torch.einsum("bdij,dj->bdi", T_dof[..., :3, :3], skel.axes_local.to(dev, dt)[active])  # (B, A, 3)
         base = T_dof[..., :3, 3]  # (B, A, 3)

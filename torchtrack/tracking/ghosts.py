@@ -53,62 +53,69 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         covers: (K,) bool, the blobs that may explain a ray (default: all); every blob counts for "inside".
         self_scale: a blob does not explain a ray for a voxel inside its ellipsoid grown by this (0: it does;
             only values above ``inside_scale`` act, since voxels inside that are never ghosts).
-        chunk: voxels per batch (bounds the (chunk, 2 K C) and (chunk, K, C) temporaries).
+        chunk: voxels per batch (bounds the (chunk, K, C) temporaries).
+        B frames at once (the lockstep tracker's sequences): a leading B on every tensor, each frame's voxels
+        against its own cameras and body; padding: NaN points, and cameras that see nothing (``seen`` False).
 
     Returns:
-        (N,) bool. A voxel that no view sees is not a ghost.
+        ([B,] N) bool. A voxel that no view sees is not a ghost.
     """
-    N = points.shape[0]
-    check_shape(points, (N, 3), "points")
-    C = camera_centres.shape[0]
-    check_shape(seen, (N, C), "seen")
-    check_shape(camera_centres, (C, 3), "camera_centres")
-    K = mean.shape[0]
-    check_shape(mean, (K, 3), "mean")
-    check_shape(cov, (K, 3, 3), "cov")
+    if points.dim() == 2:
+        return ghost_voxels(points[None], seen[None], camera_centres[None], mean[None], cov[None], inside_scale,
+                            cover_scale, None if covers is None else covers[None], self_scale, chunk)[0]
+    B, N = points.shape[:2]
+    check_shape(points, (B, N, 3), "points")
+    C = camera_centres.shape[1]
+    check_shape(seen, (B, N, C), "seen")
+    check_shape(camera_centres, (B, C, 3), "camera_centres")
+    K = mean.shape[1]
+    check_shape(mean, (B, K, 3), "mean")
+    check_shape(cov, (B, K, 3, 3), "cov")
     if not (inside_scale > 0 and cover_scale > 0):
         raise InputError(f"ghost_voxels: the scales must be > 0, got {inside_scale} and {cover_scale}")
     if not self_scale >= 0:
         raise InputError(f"ghost_voxels: self_scale must be >= 0 (0: off), got {self_scale}")
-    out = torch.zeros(N, dtype=torch.bool, device=points.device)
+    out = torch.zeros(B, N, dtype=torch.bool, device=points.device)
     if covers is not None:
-        check_shape(covers, (K,), "covers")
+        check_shape(covers, (B, K), "covers")
     if N == 0 or K == 0:
         return out
-    cover_k = (torch.ones(K, dtype=torch.bool, device=points.device) if covers is None
-               else covers.to(device=points.device, dtype=torch.bool))[:, None]  # (K, 1)
-    # Mahalanobis distances under each blob's covariance (A = cov^-1): a voxel x is inside a blob when
-    # (x - m)^T A (x - m) is small; the ray from a camera c through x passes the blob's mean at the squared
+    cover_k = (torch.ones(B, K, dtype=torch.bool, device=points.device) if covers is None
+               else covers.to(device=points.device, dtype=torch.bool))[..., None]  # (B, K, 1)
+    # Mahalanobis distances under each blob's covariance (A = cov^-1 = W^T W): a voxel x is inside a blob when
+    # |W (x - m)|^2 is small; the ray from a camera c through x passes the blob's mean at the squared
     # distance (c - m)^T A (c - m) - ((c - m)^T A (x - c))^2 / (x - c)^T A (x - c), on the camera's side when the
     # middle term is negative. All about the blobs' centroid, so that float32 keeps its precision however far
     # the world origin lies from the subject.
     dt = points.dtype
-    origin = mean.to(dt).mean(0)
+    origin = mean.to(dt).mean(1, keepdim=True)  # (B, 1, 3)
     cov = cov.to(dt)
-    m, c = mean.to(dt) - origin, camera_centres.to(dt) - origin
-    A = torch.cholesky_inverse(torch.linalg.cholesky(cov))  # (K, 3, 3)
-    d = c[None] - m[:, None]  # (K, C, 3) from each blob's mean to each camera
-    v = torch.einsum("kij,kcj->kci", A, d)  # (K, C, 3): A (c - m)
-    dAd = (v * d).sum(-1)  # (K, C)
-    vc = (v * c[None]).sum(-1)  # (K, C): (c - m)^T A c
-    cams = c[None].expand(K, C, 3).reshape(K * C, 3)  # each camera under each blob's covariance
-    cams_cov = cov[:, None].expand(K, C, 3, 3).reshape(K * C, 3, 3)
+    m, c = mean.to(dt) - origin, camera_centres.to(dt) - origin  # (B, K, 3), (B, C, 3)
+    eye = torch.eye(3, dtype=dt, device=points.device).expand_as(cov)
+    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # (B, K, 3, 3)
+    A = W.mT @ W
+    d = c[:, None] - m[:, :, None]  # (B, K, C, 3) from each blob's mean to each camera
+    v = torch.einsum("bkij,bkcj->bkci", A, d)  # A (c - m)
+    dAd = (v * d).sum(-1)  # (B, K, C)
+    vc = (v * c[:, None]).sum(-1)  # (B, K, C): (c - m)^T A c
+    Wc = torch.einsum("bkij,bcj->bkci", W, c)  # (B, K, C, 3)
     r_in2 = _SURFACE_M2 * inside_scale ** 2
     r_cov2 = _SURFACE_M2 * cover_scale ** 2
     r_self2 = _SURFACE_M2 * self_scale ** 2
     for lo in range(0, N, chunk):
-        x, sn = points[lo:lo + chunk].to(dt) - origin, seen[lo:lo + chunk]
-        d2 = mahalanobis2(x, m, cov)  # (n, K)
-        inside = (d2 <= r_in2).any(-1)  # (n,)
-        cand = (~inside & sn.any(-1)).nonzero()[:, 0]
-        if cand.numel() == 0:
+        x, sn = points[:, lo:lo + chunk].to(dt) - origin, seen[:, lo:lo + chunk]
+        d2 = mahalanobis2(x, m, cov)  # (B, n, K); NaN (padding) is inside nothing
+        inside = (d2 <= r_in2).any(-1)  # (B, n)
+        bi, ni = (~inside & sn.any(-1)).nonzero(as_tuple=True)
+        if bi.numel() == 0:
             continue
-        xc = x[cand]
-        along = (xc @ v.reshape(K * C, 3).T).view(-1, K, C) - vc  # (c - m)^T A (x - c); < 0: in front of c
-        qq = mahalanobis2(xc, cams, cams_cov).view(-1, K, C).clamp(min=1e-30)  # (x - c)^T A (x - c)
-        hit = (dAd - along.square() / qq <= r_cov2) & (along < 0) & cover_k  # (m, K, C)
+        xc = x[bi, ni]  # (M, 3) the candidates, each with its frame's cameras and blobs (bi)
+        along = torch.einsum("mj,mkcj->mkc", xc, v[bi]) - vc[bi]  # (c - m)^T A (x - c); < 0: in front of c
+        y = torch.einsum("mkij,mj->mki", W[bi], xc)[:, :, None] - Wc[bi]  # (M, K, C, 3): W (x - c)
+        qq = y.square().sum(-1).clamp(min=1e-30)  # (x - c)^T A (x - c)
+        hit = (dAd[bi] - along.square() / qq <= r_cov2) & (along < 0) & cover_k[bi]  # (M, K, C)
         if self_scale > 0:  # not by the blob whose own shell holds the voxel
-            hit &= (d2[cand] > r_self2)[..., None]
-        covered = hit.any(1)  # (m, C)
-        out[lo + cand] = (covered | ~sn[cand]).all(-1)
+            hit &= (d2[bi, ni] > r_self2)[..., None]
+        covered = hit.any(1)  # (M, C)
+        out[bi, lo + ni] = (covered | ~sn[bi, ni]).all(-1)
     return out

@@ -18,6 +18,7 @@ change of orientation from the prediction bounded, and CCD moves the limbs onto 
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
@@ -119,6 +120,23 @@ class GoalModel(nn.Module):
         self.has_pairs = any(p >= 0 for p in partner)
         self.trunk_index = [JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]
 
+    @classmethod
+    def stack(cls, models: list[GoalModel], blobs: BlobModel) -> GoalModel:
+        """B subjects' goal models as one whose per-subject buffers (``local``, ``elongated``, ``principal``) have
+        a leading B, on ``blobs`` (:meth:`BlobModel.stack` of theirs): its :meth:`joint_goals` of B bodies gives
+        body b's goals from its own geometry. Which joints ride on which bone must agree."""
+        first = models[0]
+        for m in models[1:]:
+            if not (torch.equal(m.attached, first.attached) and torch.equal(m.partner, first.partner)):
+                raise InputError("GoalModel.stack: the bodies' joints do not ride on the same bones")
+        out = copy.copy(first)
+        nn.Module.__init__(out)
+        out.skeleton, out.blob_model = first.skeleton, blobs
+        for name, buf in first._buffers.items():
+            out.register_buffer(name, torch.stack([m._buffers[name] for m in models]) if name in (
+                "local", "elongated", "principal") else buf, persistent=False)
+        return out
+
     def joint_goals(self, bone_frames: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor, weight: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Merged goals of the 22 kinematic joints.
@@ -137,15 +155,16 @@ class GoalModel(nn.Module):
         dt = mean.dtype
         bone = bm.bone_of_blob
         Rb = bone_frames[:, bone, :3, :3]  # (B, K, 3, 3)
-        axes_blob = bm.R_bone_blob.to(dt).gather(2, self.principal[:, None, None].expand(-1, 3, 1))  # (K, 3, 1)
+        principal = self.principal[..., None, None].expand(*self.principal.shape, 3, 1)
+        axes_blob = bm.R_bone_blob.to(dt).gather(-1, principal)  # ([B,] K, 3, 1)
         a = (Rb @ axes_blob)[..., 0]  # (B, K, 3) predicted main axis
         u = main_axis(cov, a)
         Rmin = least_rotation(a, u)
-        Rmin = torch.where(self.elongated[None, :, None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))
+        Rmin = torch.where(self.elongated[..., None, None], Rmin, torch.eye(3, dtype=dt, device=mean.device))
         if self.has_pairs:
             paired = self.partner >= 0  # (K,)
             other = self.partner.clamp(min=0)
-            c_pred = torch.einsum("bkij,kj->bki", Rb, bm.offset_local.to(dt))  # blob centre - bone origin
+            c_pred = torch.einsum("...kij,...kj->...ki", Rb, bm.offset_local.to(dt))  # blob centre - bone origin
             v_pred = c_pred[:, other] - c_pred  # (B, K, 3) towards the partner, predicted
             v_fit = mean[:, other] - mean
             # a fitted line pointing against the predicted one is a mismatch, not a half turn of the bone
@@ -154,9 +173,9 @@ class GoalModel(nn.Module):
                                    v_fit / v_fit.norm(dim=-1, keepdim=True).clamp(min=1e-9))
             Rmin = torch.where(pair_ok[..., None, None], Rpair, Rmin)
         Rnew = Rmin @ Rb  # (B, K, 3, 3)
-        Pnew = mean - torch.einsum("bkij,kj->bki", Rnew, bm.offset_local.to(dt))  # bone origin
-        local = self.local.to(dt)[bone]  # (K, G, 3)
-        goals_k = torch.einsum("bkij,kgj->bkgi", Rnew, local) + Pnew[:, :, None]  # (B, K, G, 3)
+        Pnew = mean - torch.einsum("...kij,...kj->...ki", Rnew, bm.offset_local.to(dt))  # bone origin
+        local = self.local.to(dt)[..., bone, :, :]  # ([B,] K, G, 3)
+        goals_k = torch.einsum("...kij,...kgj->...kgi", Rnew, local) + Pnew[:, :, None]  # (B, K, G, 3)
         w = weight[:, :, None] * self.attached[bone].to(dt)[None]  # (B, K, G)
         total = w.sum(1)  # (B, G)
         goals = (w[..., None] * goals_k).sum(1) / total.clamp(min=1e-12)[..., None]
@@ -206,7 +225,7 @@ def sole_heights(feet_points: torch.Tensor, ankle_height: torch.Tensor) -> torch
     return torch.minimum(feet_points[..., 1, 2], feet_points[..., 0, 2] - ankle_height.to(feet_points))
 
 
-def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor, floor_z: float,
+def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tensor, floor_z: float | torch.Tensor,
                   feet: torch.Tensor, ankle_height: torch.Tensor, min_weight: float = 1.0
                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Goals with the lowest foot standing on the floor (Caillette §4.2: at least one part of the body touches
@@ -221,9 +240,9 @@ def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tens
     Args:
         goals, weights: (B, G, 3), (B, G) from :meth:`GoalModel.joint_goals`.
         joints: (B, G, 3) the current joint positions (for feet without goals).
-        floor_z: the floor's height (m).
+        floor_z: the floor's height (m), or (B,) each state's.
         feet: (F, 2) long, each foot's ankle and toe indices into G (:func:`feet_index`).
-        ankle_height: (F,) each ankle's height above its sole in the rest pose (m).
+        ankle_height: (F,) each ankle's height above its sole in the rest pose (m), or (B, F) each state's.
 
     Returns:
         the goals and weights with the support foot's replaced (new tensors; the inputs are not modified).
@@ -232,7 +251,10 @@ def floor_contact(goals: torch.Tensor, weights: torch.Tensor, joints: torch.Tens
     check_shape(weights, (B, G), "weights")
     check_shape(joints, (B, G, 3), "joints")
     F = feet.shape[0]
-    check_shape(ankle_height, (F,), "ankle_height")
+    if ankle_height.dim() == 2:
+        check_shape(ankle_height, (B, F), "ankle_height")
+    else:
+        check_shape(ankle_height, (F,), "ankle_height")
     feet = feet.to(goals.device)
     has = weights[:, feet] > 0  # (B, F, 2)
     pos = torch.where(has[..., None], goals[:, feet], joints[:, feet])  # (B, F, 2, 3)

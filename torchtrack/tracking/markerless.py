@@ -44,17 +44,19 @@ from typing import Any
 
 import torch
 
-from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, fit_blobs_many, prior_blobs
+from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs, prior_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes, load_blob_specs
 from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
 from torchtrack.checks import InputError, check_shape, config_section
 from torchtrack.conventions import LANDMARKS
-from torchtrack.skeleton.ik import CCDConfig, CCDSolver
-from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, Skeleton, root_rotation_matrix
+from torchtrack.skeleton.ik import CCDConfig
+from torchtrack.skeleton.model import FKResult, Skeleton, root_rotation_matrix
 from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
-from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact, sole_heights
+from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.step import (CCD_GOALS, MAX_OUTSIDE, StepConfig, StepState, Stepped, Subject,
+                                      VoxelBatch, prior_state, track_step)
 
 log = logging.getLogger(__name__)
 
@@ -185,20 +187,6 @@ START_ADVICE = ("The tracker starts at the first frame that shows one whole pers
                 "--init-pose START.npz: a poses.npz of this subject whose first valid frame is the pose (an earlier "
                 "run's output), or one fitted to 3D keypoints of the first frame by `torchtrack init-pose "
                 "KEYPOINTS.trc --out START.npz`")
-
-#: The spine's DOFs, between the pelvis (the root) and the torso: straight (0) in the rest pose.
-SPINE_DOFS: tuple[str, ...] = ("spine_flex", "spine_abd", "spine_twist")
-
-#: A blob with more than this share of its predicted ellipsoid out of the observed volume's sides or top gives no
-#: goals (:meth:`VoxelObservation.outside`): its voxels are only the part inside, whose mean and axis pull the
-#: bone inwards (a forearm coming back into the volume folded onto its upper arm, the elbow at its limit).
-MAX_OUTSIDE = 0.25
-
-#: lost_hand_frames: the DOFs of each arm (after its side's ``l_`` / ``r_``) put back at rest when its hand is lost.
-ARM_DOFS: tuple[str, ...] = ("shoulder_flex", "shoulder_abd", "shoulder_twist", "elbow_flex", "wrist_flex")
-
-#: Goal joints for CCD: every kinematic joint but the root (which the trunk fit places).
-CCD_GOALS: tuple[str, ...] = tuple(j for j in JOINT_FRAMES if j != "pelvis")
 
 
 @dataclass(frozen=True)
@@ -488,37 +476,6 @@ class _Race:
     moved_at: int | None = None  # the index in fits of the first frame where the body had moved
 
 
-class _Subject:
-    """The subject-specific models: skeleton scaled to the subject, its blobs, goals and CCD."""
-
-    def __init__(self, skeleton: Skeleton, config: TrackerConfig, specs: tuple[list, float]) -> None:
-        specs, ref = specs
-        self.skeleton = skeleton
-        self.blobs = BlobModel(skeleton, specs, ref)
-        self.goals = GoalModel(skeleton, self.blobs)
-        self.ccd = CCDSolver(skeleton, CCD_GOALS, config.ccd)
-        self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
-        self.spine_dofs = skeleton.dof_index([n for n in SPINE_DOFS if n in skeleton.dof_names])  # rigid_trunk
-        self.feet = feet_index()  # (2, 2) ankle and toe site of each foot (JOINT_FRAMES indices)
-        rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
-        self.ankle_height = rest[self.feet[:, 0], 2] - rest[self.feet[:, 1], 2]  # (2,) ankle above the sole
-        self.body_volume_m3 = float(blob_volumes(self.blobs).sum())
-        # lost_hand_frames: each arm's DOFs (left, right) and their rest values, (2, len(ARM_DOFS))
-        self.arm_dofs = torch.stack([skeleton.dof_index([f"{side}_{d}" for d in ARM_DOFS]) for side in ("l", "r")])
-        self.arm_rest = skeleton.rest_angles()[self.arm_dofs]
-        self.output_joint = torch.tensor([JOINT_FRAMES.index(LANDMARK_FRAMES.get(n, n)) if
-                                          LANDMARK_FRAMES.get(n, n) in JOINT_FRAMES else -1
-                                          for n in skeleton.output_names])
-
-    def to(self, device: torch.device) -> _Subject:
-        for m in (self.skeleton, self.blobs, self.goals, self.ccd):
-            m.to(device)
-        self.output_joint, self.spine_dofs = self.output_joint.to(device), self.spine_dofs.to(device)
-        self.feet, self.ankle_height = self.feet.to(device), self.ankle_height.to(device)
-        self.arm_dofs, self.arm_rest = self.arm_dofs.to(device), self.arm_rest.to(device)
-        return self
-
-
 def with_hips_raised(skeleton: Skeleton, dz_m: float) -> Skeleton:
     """The body with its hips ``dz_m`` higher on the trunk (``functional_hips``): the pelvis' origin, which the
     hips sit on, moved up by ``dz_m`` along its z axis, the spine's joint on it down as much and the thighs
@@ -533,10 +490,6 @@ def with_hips_raised(skeleton: Skeleton, dz_m: float) -> Skeleton:
         {b: lengths[b] + dz_m for b in THIGH_BLOBS})
 
 
-def _unwrap(angle: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    return angle + 2 * math.pi * torch.round((reference - angle) / (2 * math.pi))
-
-
 class MarkerlessTracker:
     """Tracks one subject through a sequence of voxel observations (see the module docstring).
 
@@ -548,7 +501,7 @@ class MarkerlessTracker:
     def __init__(self, skeleton: Skeleton, config: TrackerConfig = TrackerConfig()) -> None:
         self.generic, self.config = skeleton, config
         self.blob_specs = load_blob_specs(config.blobs)  # read once; every subject model reuses them
-        self.subject: _Subject | None = None
+        self.subject: Subject | None = None
         self.angles: torch.Tensor | None = None  # (D,) last good pose
         self.previous: torch.Tensor | None = None  # (D,) the one before (velocity)
         self.colour: Blobs | None = None  # carries the learnt colour model
@@ -574,6 +527,10 @@ class MarkerlessTracker:
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
         self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
         self._twin = False  # this tracker races another's start (it starts no race of its own)
+
+    @property
+    def _step_config(self) -> StepConfig:
+        return StepConfig.of(self.config)
 
     def set_frame_rate(self, fps: float) -> None:
         """The frame rate of the sequence being tracked (:func:`~torchtrack.tracking.run.track_sequence` sets it
@@ -604,7 +561,7 @@ class MarkerlessTracker:
         self._use(self.generic.scaled_to_height(height_m).to(device))
 
     def _use(self, skeleton: Skeleton) -> None:
-        self.subject = _Subject(skeleton, self.config, self.blob_specs).to(skeleton.lower.device)
+        self.subject = Subject(skeleton, self.config.ccd, self.blob_specs).to(skeleton.lower.device)
         self.height_m = skeleton.height()
 
     def initialize_from_pose(self, angles: torch.Tensor, height_m: float | None = None, *,
@@ -1210,26 +1167,6 @@ class MarkerlessTracker:
         self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
         self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
 
-    def _goal_confidence(self, goal_w: torch.Tensor) -> torch.Tensor:
-        """(B, G) goal weights -> each joint goal's confidence in [0, 1]: its weight over its blobs' count."""
-        return (goal_w / self.subject.goals.attached.sum(0).clamp(min=1).to(goal_w)).clamp(0, 1)
-
-    def _feet_unobserved(self, goal_w: torch.Tensor) -> torch.Tensor:
-        """(B, 2, 2) whether each foot's ankle and toe goal's confidence is under ``hold_min_confidence``."""
-        return self._goal_confidence(goal_w)[:, self.subject.feet] < self.config.hold_min_confidence
-
-    def _hold_feet(self, goals: torch.Tensor, weights: torch.Tensor, goal_w: torch.Tensor
-                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        """IK goals with each unobserved foot that was still when last observed held there (weight
-        ``hold_lost_feet``): a planted foot stays planted while no view shows it (new tensors)."""
-        feet = self.subject.feet
-        hold = self._feet_unobserved(goal_w) & self.feet_still[None]  # (B, 2, 2)
-        goals, weights = goals.clone(), weights.clone()
-        goals[:, feet] = torch.where(hold[..., None], self.feet_seen[None].to(goals), goals[:, feet])
-        weights[:, feet] = torch.where(hold, torch.full_like(weights[:, feet], self.config.hold_lost_feet),
-                                       weights[:, feet])
-        return goals, weights
-
     def _regenerate(self, angles: torch.Tensor) -> tuple[FKResult, Blobs]:
         """The prior blobs at ``angles (D,)`` with the colour model, and the forward kinematics they came from."""
         sub = self.subject
@@ -1267,53 +1204,40 @@ class MarkerlessTracker:
                              self_scale=cfg.ghost_self_scale)
         return torch.where(ghost, obs.weights * cfg.ghost_weight, obs.weights)
 
+    def _step_state(self, angles: torch.Tensor, previous: torch.Tensor, velocity: float) -> StepState:
+        """The step's start from states ``angles``, ``previous (H, D)`` with this tracker's colour model, held feet
+        and floor (the same for all H)."""
+        H, K = angles.shape[0], self.subject.blobs.num_blobs
+        kw = prior_state(angles, K)
+        if self.colour is not None:
+            c = self.colour
+            kw.update(colour_mean=c.colour_mean.expand(H, K, 3), colour_cov=c.colour_cov.expand(H, K, 3, 3),
+                      colour_known=c.colour_known.expand(H, K), covers=c.active.expand(H, K))
+        if self.feet_seen is not None:
+            kw.update(feet_seen=self.feet_seen.expand(H, 2, 2, 3), feet_still=self.feet_still.expand(H, 2, 2))
+        floor = math.nan if self.floor_z is None else self.floor_z
+        return StepState(angles, previous, angles.new_full((H,), velocity), floor_z=angles.new_full((H,), floor),
+                         **kw)
+
+    def _results(self, st: Stepped) -> list[FrameResult]:
+        """The step's batch as one :class:`FrameResult` per row (one wait for the host)."""
+        residual, explained = st.residual_m.tolist(), st.explained.tolist()
+        blobs = [Blobs(*v) for v in zip(*(getattr(st.blobs, f.name).unbind(0) for f in dataclasses.fields(Blobs)))]
+        return [FrameResult(st.angles[h], st.output_points[h], st.confidence[h], True, residual[h], explained[h],
+                            False, blobs[h], st.bone_frames[h], (st.feet[h], st.feet_observed[h]))
+                for h in range(len(residual))]
+
     def _track(self, obs: VoxelObservation, learn_colour: bool, max_rot: float, predicted: bool = True,
                hold: bool = True) -> FrameResult:
-        """One frame from the predicted pose; ``predicted``: trust the prediction, to explain ghost voxels away
-        against it and to silence the blobs it puts out of the volume (off where it is only a guess: the heading
-        search of initialisation and re-acquisition, whose hypotheses must be scored on the same goals); ``hold``:
-        hold unseen planted feet where they were last seen (off in re-acquisition's search)."""
-        sub, cfg = self.subject, self.config
-        a = self.angles + self.prediction_velocity * (self.angles - self.previous)
-        a = sub.skeleton.clamp(a)
-        fk, prior = self._regenerate(a)
-        weights = self._ghost_weights(obs, prior) if predicted else obs.weights
-        blobs, assign = fit_blobs(obs.points, weights, obs.sizes, obs.colours, prior, cfg.em,
-                                  learn_colour=learn_colour)
-        # a blob the volume's boundary cuts shows only its inside part: no goals from it
-        seen = blobs.active & (self._inside_volume(obs, prior) if predicted else True)
-        weight = (seen.to(a.dtype) * blobs.fill.clamp(0, 1))[None]  # (1, K)
-        residual = torch.zeros((), dtype=a.dtype, device=a.device)
-        goal_w = None
-        state = a[None]
-        for r in range(cfg.refinements):
-            if r:  # the first pass starts from the prediction, whose kinematics the prior came from
-                fk = sub.skeleton.forward(state)
-            goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean[None], blobs.cov[None], weight)
-            ik_goals, ik_w = goals, goal_w  # the residual and confidences below are the observation's
-            if hold and cfg.hold_lost_feet > 0 and self.feet_seen is not None:  # the floor contact moves them too
-                ik_goals, ik_w = self._hold_feet(ik_goals, ik_w, goal_w)
-            if cfg.floor_contact and self.floor_z is not None:
-                ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet, sub.ankle_height)
-            trunk = fk.joints
-            if cfg.rigid_trunk:  # the root fits a straight trunk, CCD bends the spine from there
-                state = state.index_fill(1, sub.spine_dofs, 0.0)
-                trunk = sub.skeleton.forward(state).joints
-            state = sub.goals.fit_root(state, trunk, ik_goals, ik_w, max_rotation=max_rot)
-            rz = sub.skeleton.dof_names.index("root_rz")
-            state[:, rz] = _unwrap(state[:, rz], a[rz])
-            idx = sub.ccd_goal_index
-            state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
-        fk = sub.skeleton.forward(state)
-        wsum = goal_w.sum().clamp(min=1e-12)
-        residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum() / wsum
-        # of all the voxels' weight, ghosts included: the divergence test must not grow blind with the ghost test
-        explained = float(obs.weights[assign >= 0].sum() / obs.weights.sum().clamp(min=1e-30))
-        conf_joint = self._goal_confidence(goal_w)[0]  # (G,)
-        oj = sub.output_joint
-        conf = torch.where(oj >= 0, conf_joint[oj.clamp(min=0)], conf_joint.mean())
-        return FrameResult(state[0], fk.output_points[0], conf, True, float(residual), explained, False, blobs,
-                           fk.bone_frames[0], (fk.joints[0, sub.feet], ~self._feet_unobserved(goal_w)[0]))
+        """One frame from the predicted pose (:func:`~torchtrack.tracking.step.track_step`); ``predicted``: trust
+        the prediction, to explain ghost voxels away against it and to silence the blobs it puts out of the volume
+        (off where it is only a guess: the heading search of initialisation and re-acquisition, whose hypotheses
+        must be scored on the same goals); ``hold``: hold unseen planted feet where they were last seen (off in
+        re-acquisition's search)."""
+        state = self._step_state(self.angles[None], self.previous[None], self.prediction_velocity)
+        batch = VoxelBatch.of([obs], self.config.ghost_max_cameras)
+        return self._results(track_step(self.subject.stack, batch, state, self._step_config, learn_colour,
+                                        max_rot, predicted, hold))[0]
 
     def _fit_many(self, obs: VoxelObservation, starts: torch.Tensor, passes: int, max_rot: float
                   ) -> list[FrameResult]:
@@ -1321,47 +1245,15 @@ class MarkerlessTracker:
         prediction's trust, held feet, colours or velocity (as ``_track(obs, learn_colour=False, max_rot,
         predicted=False, hold=False)`` from each round's result), all H in one batch: the hypotheses of a
         re-acquisition. The tracker's state is not changed."""
-        sub, cfg = self.subject, self.config
         if self.colour is not None:
             raise InputError("_fit_many fits without colours: the tracker's colour model must be dropped first")
+        batch = VoxelBatch.of([obs], self.config.ghost_max_cameras).repeat(starts.shape[0])
         state = starts
-        dof_rz = sub.skeleton.dof_names.index("root_rz")
         for _ in range(passes):
-            a = sub.skeleton.clamp(state)
-            fk = sub.skeleton.forward(a)
-            mean, cov = sub.blobs.gaussians(fk.bone_frames)  # (H, K, 3), (H, K, 3, 3)
-            prior = prior_blobs(mean.flatten(0, 1), cov.flatten(0, 1))  # the H bodies' blobs as H K, then (H, K)
-            prior = Blobs(*(getattr(prior, f.name).unflatten(0, mean.shape[:2]) for f in dataclasses.fields(Blobs)))
-            blobs, assign = fit_blobs_many(obs.points, obs.weights, obs.sizes, prior, cfg.em)
-            weight = blobs.active.to(a.dtype) * blobs.fill.clamp(0, 1)  # (H, K)
-            state = a
-            for r in range(cfg.refinements):
-                if r:
-                    fk = sub.skeleton.forward(state)
-                goals, goal_w = sub.goals.joint_goals(fk.bone_frames, blobs.mean, blobs.cov, weight)
-                ik_goals, ik_w = goals, goal_w
-                if cfg.floor_contact and self.floor_z is not None:
-                    ik_goals, ik_w = floor_contact(ik_goals, ik_w, fk.joints, self.floor_z, sub.feet,
-                                                   sub.ankle_height)
-                trunk = fk.joints
-                if cfg.rigid_trunk:
-                    state = state.index_fill(1, sub.spine_dofs, 0.0)
-                    trunk = sub.skeleton.forward(state).joints
-                state = sub.goals.fit_root(state, trunk, ik_goals, ik_w, max_rotation=max_rot)
-                state[:, dof_rz] = _unwrap(state[:, dof_rz], a[:, dof_rz])
-                idx = sub.ccd_goal_index
-                state = sub.ccd(state, ik_goals[:, idx], ik_w[:, idx])
-        fk = sub.skeleton.forward(state)
-        residual = ((fk.joints - goals).norm(dim=-1) * goal_w).sum(-1) / goal_w.sum(-1).clamp(min=1e-12)  # (H,)
-        explained = (obs.weights[None] * (assign >= 0)).sum(-1) / obs.weights.sum().clamp(min=1e-30)  # (H,)
-        conf_joint = self._goal_confidence(goal_w)  # (H, G)
-        oj = sub.output_joint
-        conf = torch.where(oj >= 0, conf_joint[:, oj.clamp(min=0)], conf_joint.mean(-1, keepdim=True))
-        unobserved = self._feet_unobserved(goal_w)
-        return [FrameResult(state[h], fk.output_points[h], conf[h], True, float(residual[h]), float(explained[h]),
-                            False, Blobs(*(getattr(blobs, f.name)[h] for f in dataclasses.fields(Blobs))),
-                            fk.bone_frames[h], (fk.joints[h, sub.feet], ~unobserved[h]))
-                for h in range(state.shape[0])]
+            st = track_step(self.subject.stack, batch, self._step_state(state, state, 0.0), self._step_config,
+                            False, max_rot, predicted=False, hold=False)
+            state = st.angles
+        return self._results(st)
 
     def _invalid(self) -> FrameResult:
         sub = self.subject
@@ -1415,7 +1307,23 @@ class MarkerlessTracker:
                 return self._invalid()
         if self.angles is not None and self.lost >= self.config.lost_frames:
             return self._reacquire(obs)
-        res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        return self.accept(obs, self._track(obs, learn_colour=True,
+                                            max_rot=math.radians(self.config.max_root_rotation_deg)))
+
+    def routine(self, obs: VoxelObservation) -> VoxelObservation | None:
+        """``obs`` as the plain per-frame step takes it (merged per ``em_cell_m``) where this frame needs nothing
+        more of this tracker: it is started, not lost, not racing a start, and someone is there. Else None: the
+        frame goes through :meth:`step`. A driver that runs the plain step itself (several sequences in lockstep,
+        :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to :meth:`accept`."""
+        if (self._race is not None or self.subject is None or self.angles is None
+                or self.lost >= self.config.lost_frames or not self._has_person(obs)):
+            return None
+        return obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs
+
+    def accept(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
+        """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine` gave it): a diverging frame counts
+        towards re-acquisition (which it starts after ``lost_frames``), an accepted one moves the pose, the colour
+        model, the held feet and the functional hips on (and may search for a lost arm)."""
         if self._diverging(res):
             self.lost += 1
             if self.lost >= self.config.lost_frames:

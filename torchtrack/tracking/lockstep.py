@@ -1,0 +1,74 @@
+"""Several sequences tracked in lockstep: one batched per-frame step for all that are tracking as usual.
+
+Each sequence keeps its own :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its subject, pose, colour
+model, held feet, counters). Per frame, the trackers whose frame needs only the plain step
+(:meth:`~MarkerlessTracker.routine`: started, not lost, not racing a start, someone there) advance together in one
+:func:`~torchtrack.tracking.step.track_step` over their stacked subjects and padded voxels, and each takes in its
+row (:meth:`~MarkerlessTracker.accept`); the others (a start, a re-acquisition, a start race, nobody there, an
+unreadable frame) take their own :meth:`~MarkerlessTracker.step`, as alone. Each sequence's track is the one it
+gets alone, up to floating-point rounding (tests/test_lockstep.py).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+
+import torch
+
+from torchtrack.checks import InputError
+from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker
+from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.step import StepState, SubjectStack, VoxelBatch, track_step
+
+#: Subject stacks kept for the sets of subjects recently stepped together (a set changes when a sequence starts,
+#: is lost, races or ends).
+_STACKS_KEPT = 8
+
+
+class Lockstep:
+    """Trackers of several sequences, stepped together (see the module docstring). They must share one
+    :class:`~torchtrack.tracking.markerless.TrackerConfig` (the batched step runs one)."""
+
+    def __init__(self, trackers: Sequence[MarkerlessTracker]) -> None:
+        if not trackers:
+            raise InputError("Lockstep: no trackers given")
+        config = trackers[0].config
+        if any(t.config != config for t in trackers[1:]):
+            raise InputError("Lockstep: the trackers' settings differ; sequences tracked in lockstep share one "
+                             "tracker config")
+        self.trackers = list(trackers)
+        self._stacks: dict[tuple, SubjectStack] = {}
+
+    def _stack(self, trackers: list[MarkerlessTracker]) -> SubjectStack:
+        key = tuple(t.subject for t in trackers)  # the subjects themselves: an id could be reused after they go
+        if key not in self._stacks:
+            if len(self._stacks) >= _STACKS_KEPT:
+                self._stacks.clear()
+            self._stacks[key] = SubjectStack(list(key))
+        return self._stacks[key]
+
+    def step(self, frames: Mapping[int, VoxelObservation | None]) -> dict[int, FrameResult]:
+        """One frame of the sequences in ``frames``: tracker ``i``'s observation, or None for a frame it cannot
+        observe (:meth:`~MarkerlessTracker.skip`); sequences not in ``frames`` (ended) are left as they are.
+        Returns each one's result."""
+        out: dict[int, FrameResult] = {}
+        plain: list[tuple[int, VoxelObservation]] = []
+        for i, obs in frames.items():
+            tracker = self.trackers[i]
+            ready = None if obs is None else tracker.routine(obs)
+            if ready is not None:
+                plain.append((i, ready))
+            else:
+                out[i] = tracker.skip() if obs is None else tracker.step(obs)
+        if plain:
+            trackers = [self.trackers[i] for i, _ in plain]
+            first = trackers[0]
+            states = [t._step_state(t.angles[None], t.previous[None], t.prediction_velocity) for t in trackers]
+            state = StepState(*(torch.cat([getattr(s, f) for s in states]) for f in StepState.__dataclass_fields__))
+            batch = VoxelBatch.of([obs for _, obs in plain], first.config.ghost_max_cameras)
+            stepped = track_step(self._stack(trackers), batch, state, first._step_config, True,
+                                 math.radians(first.config.max_root_rotation_deg))
+            for (i, obs), tracker, res in zip(plain, trackers, first._results(stepped)):
+                out[i] = tracker.accept(obs, res)
+        return dict(sorted(out.items()))
