@@ -3,8 +3,9 @@
 Cases (issue targets on the 2-core CPU):
 * hull: 4 cameras 320x240, colour hull to 1.5 cm (target >= 30 fps; Caillette & Howard ran 15 fps on one PC);
 * bayes: 8 cameras 640x480, Bayesian grid 64^3;
-* throughput of several sequences tracked at once (--sequences, observation batched over them), the figure
-  to take on a GPU.
+* ``--lockstep [B ...]``: the tracker's throughput on B different synthetic sequences tracked in lockstep (one
+  batched step per frame for all of them, :mod:`torchtrack.tracking.lockstep`), frames/s summed over the B
+  sequences for each B (default 1, 4, 16; a GPU's figure: add 64), observations made beforehand.
 
 Renders the sequences once under --work (synthetic walk), then tracks them with the defaults of
 configs/markerless.yaml apart from the observation settings named here, and prints ms per frame by stage.
@@ -102,15 +103,12 @@ def _setup(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int
 
 
 def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int | None, frames: int,
-          device: torch.device, config: dict, sequences: int = 1) -> dict[str, float]:
+          device: torch.device, config: dict) -> dict[str, float]:
     """Track the first ``frames`` frames of ``seq`` at ``scale``; ms per tracked frame by stage (frame 0, the
-    initialisation, timed apart). With ``sequences`` > 1, that many copies of the sequence are tracked in
-    lockstep, one tracker each, the observation batched over them (the Bayesian grid takes the batch in one
-    pass): throughput of a batch of sequences, as on a GPU serving several recordings."""
+    initialisation, timed apart)."""
     folder, observer = _setup(seq, scale, model, voxel, grid_n, device, config)
     W, H = (int(v) for v in observer.rig.image_size_wh[0].tolist())
-    trackers = [MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
-                for _ in range(sequences)]
+    tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     t = {"read": 0.0, "observe": 0.0, "track": 0.0}
     n, t_init = 0, 0.0
@@ -121,12 +119,10 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
         if fb is None:
             break
         b = time.perf_counter()
-        S = len(trackers)
-        observations = observer(fb.images.expand(S, *fb.images.shape[1:]), fb.valid.expand(S, -1))
+        obs = observer(fb.images, fb.valid)[0]
         sync()
         c = time.perf_counter()
-        for tracker, obs in zip(trackers, observations):
-            tracker.step(obs)
+        tracker.step(obs)
         sync()
         d = time.perf_counter()
         if n:
@@ -137,9 +133,59 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
             t_init = d - c
         n += 1
     m = max(n - 1, 1)
-    S = len(trackers)
-    return {**{f"{k}_ms": 1e3 * v / (m * S) for k, v in t.items()}, "init_s": t_init,
-            "fps": m * S / sum(t.values())}
+    return {**{f"{k}_ms": 1e3 * v / m for k, v in t.items()}, "init_s": t_init, "fps": m / sum(t.values())}
+
+
+def lockstep_observations(work: Path, count: int, device: torch.device, config: dict) -> list[list]:
+    """``count`` different synthetic sequences (4 cameras 320x240, 30 fps: a 0.5 s starfish, then 3 s of one of
+    the procedural motions, subjects 1.60-1.90 m tall), rendered once under ``work``, and their observations
+    (the Bayesian grid, 3 cm)."""
+    from torchtrack.synth.motion import MOTIONS
+
+    out = []
+    for i in range(count):
+        motion, height = MOTIONS[i % len(MOTIONS)], 1.60 + 0.30 * ((7 * i) % 16) / 15
+        seq = work / f"lockstep_{i:02d}_{motion}_{round(100 * height)}cm"
+        cfg = SynthConfig(motion=motion, duration_s=3.0, starfish_s=0.5, subject_height_m=height,
+                          background_frames=10, seed=i, rig=RigConfig(num_cameras=4, width=320, height=240))
+        if not is_current(seq, cfg):
+            write_sequence(cfg, seq, progress=False)
+        folder, observer = _setup(seq, 1.0, "bayes", 0.03, None, device, config)
+        out.append([o for b in observe_batches(folder, observer, 0, folder.num_frames, batch=4, device=device)
+                    for o in b.observations])
+    return out
+
+
+def bench_lockstep(observations: list[list], sizes: list[int], device: torch.device, config: dict,
+                   timed_from: int) -> None:
+    """Track the first B of ``observations``' sequences in lockstep (:class:`Lockstep`) for each B in ``sizes``;
+    print frames/s summed over the B sequences over the frames from ``timed_from`` on (after the starts and their
+    races, which each tracker runs on its own), and the share of them the batched step took."""
+    from torchtrack.tracking.lockstep import Lockstep
+
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
+    T = min(len(o) for o in observations)
+    base = None
+    for B in sizes:
+        trackers = [MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+                    for _ in range(B)]
+        for t in trackers:
+            t.set_frame_rate(30.0)
+        lockstep = Lockstep(trackers)
+        plain = 0
+        for k in range(T):
+            if k == timed_from:
+                sync()
+                t0 = time.perf_counter()
+            frames = {i: observations[i % len(observations)][k] for i in range(B)}
+            if k >= timed_from:
+                plain += sum(t.routine(o) is not None for t, o in zip(trackers, frames.values()))
+            lockstep.step(frames)
+        sync()
+        fps = B * (T - timed_from) / (time.perf_counter() - t0)
+        base = fps if base is None else base
+        print(f"B = {B:3d}: {fps:7.1f} frames/s summed ({fps / base:.1f}x B = {sizes[0]}); "
+              f"{plain / (B * (T - timed_from)):.0%} of the frames in the batched step", flush=True)
 
 
 def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:
@@ -163,8 +209,9 @@ def main() -> None:
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--work", type=Path, default=Path("out/bench_track"))
-    ap.add_argument("--sequences", type=int, default=4,
-                    help="also time this many sequences tracked in lockstep (observation batched); 1: skip")
+    ap.add_argument("--lockstep", type=int, nargs="*", default=None, metavar="B",
+                    help="time instead the tracker's step on B different synthetic sequences in lockstep, for each B "
+                         "given (default 1 4 16; GPU: add 64): frames/s summed over the B sequences")
     ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
                     help="tracking configs to time")
     ap.add_argument("--demo", action="store_true",
@@ -188,6 +235,14 @@ def main() -> None:
     logging.basicConfig(level=logging.WARNING)
     torch.set_grad_enabled(False)
     device = torch.device(args.device)
+    if args.lockstep is not None:
+        sizes = args.lockstep or [1, 4, 16]
+        print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads; the tracker's step on "
+              f"sequences in lockstep (observations made beforehand)", flush=True)
+        config = load_config("markerless.yaml")
+        observations = lockstep_observations(args.work, min(max(sizes), 16), device, config)
+        bench_lockstep(observations, sizes, device, config, timed_from=45)
+        return
     cases = [("hull 4 cams 320x240, 1.5 cm", (4, 320, 240), 1.0, "hull", 0.015, None, 30.0),
              ("hull 4 cams 320x240, 3 cm", (4, 320, 240), 1.0, "hull", 0.03, None, None),
              ("bayes 8 cams 640x480, 64^3", (8, 640, 480), 1.0, "bayes", None, 64, None),
@@ -209,15 +264,6 @@ def main() -> None:
         start = f" + {r['worker_start_s']:.1f}s worker start" if mode == "worker" else ""
         print(f"{name:40s} {cname:22s} {mode:7s} {first:6.1f}ms {r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms "
               f"{r['fps']:6.1f}  {r['init_s']:.1f}s{start}{verdict}", flush=True)
-    if args.sequences > 1:  # batched throughput: the tracker's default processing, several sequences at once
-        print(f"\n{args.sequences} sequences tracked in lockstep (per tracked frame; fps summed over sequences)")
-        seq = sequence(args.work, 8, 640, 480, 2.0)
-        for model in ("bayes", "hull"):
-            r = bench(seq, 0.5, model, 0.03, None, args.frames, device, load_config("markerless.yaml"),
-                      sequences=args.sequences)
-            print(f"{model + ' 8 cams at 320x240, 3 cm':40s} {'markerless.yaml':22s} {'in turn':7s} "
-                  f"{r['read_ms']:6.1f}ms "
-                  f"{r['observe_ms']:6.1f}ms {r['track_ms']:6.1f}ms {r['fps']:6.1f}", flush=True)
 
 
 if __name__ == "__main__":

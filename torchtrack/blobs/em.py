@@ -135,7 +135,32 @@ def mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torc
     return (y.square_() @ groups).view(*x.shape[:-1], K)
 
 
-def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig
+def quadric_distance2(x: torch.Tensor, centres: torch.Tensor, A: torch.Tensor) -> torch.Tensor:
+    """x (..., 3), quadrics ``A (K, 3, 3)`` (symmetric) about ``centres (K, 3)`` -> (..., K) ``(x - c)^T A (x - c)``;
+    or B sets at once: x (B, ..., 3), centres (B, K, 3), A (B, K, 3, 3) -> (B, ..., K).
+
+    One matrix product of the points' quadratic monomials with each quadric's coefficients (``A``, ``-2 A c`` and
+    ``c^T A c``): an output of K per point instead of :func:`mahalanobis2`'s 3 K whitened coordinates. About the
+    centres' mean, so that float32 keeps the difference of the terms for points near them (for the colours of
+    E-step, where each voxel has one per view, the most of its work).
+    """
+    batched = centres.dim() == 3
+    if not batched:
+        x, centres, A = x[None], centres[None], A[None]
+    B, K = centres.shape[:2]
+    mid = centres.mean(1, keepdim=True)  # (B, 1, 3)
+    c = centres - mid
+    p = (x.reshape(B, -1, 3) - mid).unbind(-1)  # 3 x (B, M)
+    b = (A @ c[..., None])[..., 0]  # (B, K, 3)
+    mono = torch.stack([p[0] * p[0], p[1] * p[1], p[2] * p[2], 2 * p[0] * p[1], 2 * p[0] * p[2], 2 * p[1] * p[2],
+                        -2 * p[0], -2 * p[1], -2 * p[2], torch.ones_like(p[0])], -1)  # (B, M, 10)
+    quad = torch.stack([A[..., 0, 0], A[..., 1, 1], A[..., 2, 2], A[..., 0, 1], A[..., 0, 2], A[..., 1, 2],
+                        b[..., 0], b[..., 1], b[..., 2], (c * b).sum(-1)], -1)  # (B, K, 10)
+    out = torch.bmm(mono, quad.mT)  # (B, M, K)
+    return out.view(*x.shape[:-1], K)[0] if not batched else out.view(*x.shape[:-1], K)
+
+
+def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig, views: bool = True
            ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Assign every voxel to its blob (eq. 2-3).
 
@@ -143,6 +168,7 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         points: (N, 3) voxel centres. colours: (N, C, 3) per-view colours (NaN: unseen) or None. Or B voxel sets
             at once, each against its own blobs: points (B, N, 3), colours (B, N, C, 3), ``blobs`` (B, K, ...); a
             NaN point (padding) is no blob's.
+        views: find each voxel's view (False: ``view`` all -1, for an M-step that learns no colour).
 
     Returns:
         assign ([B,] N) int64 blob index, -1 for voxels outside the gate; view ([B,] N) int64 the view whose colour
@@ -159,14 +185,18 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
         # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
         # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
         far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
-        d_col = mahalanobis2(far, blobs.colour_mean, blobs.colour_cov)  # ([B,] N, C, K)
-        d_col_min, best_view = d_col.min(dim=-2)  # ([B,] N, K)
+        A = torch.cholesky_inverse(torch.linalg.cholesky(blobs.colour_cov))
+        d_col = quadric_distance2(far, blobs.colour_mean, A)  # ([B,] N, C, K)
+        if views:
+            d_col_min, best_view = d_col.min(dim=-2)  # ([B,] N, K)
+        else:
+            d_col_min = d_col.amin(dim=-2)
         seen = seen_views.any(dim=-1, keepdim=True) & blobs.colour_known.unsqueeze(-2)  # ([B,] N, K)
         cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
     cost = torch.where(d_pos <= config.gate_mahalanobis2, cost, torch.inf)  # only blobs within the gate compete
     least, assign = cost.min(dim=-1)
     assign = torch.where(torch.isfinite(least), assign, -1)
-    if seen_views is not None:
+    if seen_views is not None and views:
         v = seen_views.to(torch.uint8).argmax(dim=-1)  # the first view that sees the voxel
         if best_view is not None:  # blobs with a colour model: the view whose colour fits it best
             a = assign.clamp(min=0)
@@ -279,9 +309,10 @@ def fit_blobs(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, 
         if isinstance(learn_colour, torch.Tensor):  # (B,) -> per blob
             learn_colour = learn_colour.to(torch.bool).repeat_interleave(K)
     for it in range(config.iterations):
-        assign, view, _ = e_step(points, colours, blobs, config)
         last = it == config.iterations - 1
         learn = learn_colour if last else False
+        assign, view, _ = e_step(points, colours, blobs, config,
+                                 views=isinstance(learn, torch.Tensor) or bool(learn))
         if batched:
             joined = torch.where(assign >= 0, assign + offset, -1).reshape(-1)
             blobs = _reshape_blobs(m_step(pts, w, sz, col, joined, view.reshape(-1), flat(blobs), prior_flat, config,
