@@ -180,7 +180,9 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
             frames = {i: observations[i % len(observations)][k] for i in range(B)}
             if k >= timed_from:
                 plain += sum(t.routine(o) is not None for t, o in zip(trackers, frames.values()))
-            lockstep.step(frames)
+            _, errors = lockstep.step(frames)
+            if errors:
+                raise next(iter(errors.values()))
         sync()
         fps = B * (T - timed_from) / (time.perf_counter() - t0)
         base = fps if base is None else base

@@ -74,7 +74,9 @@ def test_sequences_in_lockstep_are_tracked_as_each_alone(device, monkeypatch):
     lockstep = Lockstep(trackers)
     got: list[list] = [[] for _ in seqs]
     for k in range(max(len(s) for s in seqs)):
-        for i, res in lockstep.step({i: s[k] for i, s in enumerate(seqs) if k < len(s)}).items():
+        results, errors = lockstep.step({i: s[k] for i, s in enumerate(seqs) if k < len(s)})
+        assert not errors
+        for i, res in results.items():
             got[i].append(res)
     for i, seq in enumerate(seqs):
         assert len(got[i]) == len(seq)

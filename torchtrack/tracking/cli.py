@@ -56,10 +56,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "(docs/formats.md) and TensorBoard logs in OUT/tb. The tracker starts at the first frame that "
                     "shows one whole person, in any pose (or give --init-pose). Options marked 'default from --config' "
                     "override that setting of the tracking config.")
-    p.add_argument("seq", type=Path, metavar="SEQ",
-                   help="sequence folder (calibration.toml, video/ or frames/, background/)")
+    p.add_argument("seq", type=Path, nargs="+", metavar="SEQ",
+                   help="sequence folder (calibration.toml, video/ or frames/, background/); several are tracked "
+                        "together in lockstep, --batch-size at a time, each into DIR/<its folder's name>")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
-                   help="output folder: new, empty, or an earlier track's (with --overwrite)")
+                   help="output folder: new, empty, or an earlier track's (with --overwrite); with several SEQ, "
+                        "the folder of their output folders")
+    p.add_argument("--batch-size", type=int, default=16, metavar="B",
+                   help="with several SEQ: how many are tracked at a time in lockstep, one batched per-frame step for "
+                        "all; each is tracked as alone (default: %(default)s)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace an earlier track in DIR (its poses.npz and TensorBoard logs; other files are "
                         "never replaced: such a DIR is refused) (default: refuse)")
@@ -123,6 +128,9 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.io.poses import save_poses
     from torchtrack.tracking.pipeline import NothingTracked, track
 
+    if len(args.seq) > 1:
+        return _run_many(args)
+    args.seq = args.seq[0]
     replaces = check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
     try:
         with replacing(args.out, TRACK_DIR):  # an error or Ctrl-C inside puts an earlier output back
@@ -144,6 +152,70 @@ def run(args: argparse.Namespace) -> int:
         print(f"torchtrack track: error: {exc}; no poses.npz written; {kept}", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
     print(_summary(args.out, result))
+    return 0
+
+
+def _run_many(args: argparse.Namespace) -> int:
+    """Several sequences, ``--batch-size`` at a time in lockstep, each into ``OUT/<name>`` (checked before any work);
+    one that fails is reported with its name and leaves its folder as it was, the others are written."""
+    from torchtrack.checks import InputError
+    from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
+    from torchtrack.io.poses import save_poses
+    from torchtrack.tracking.pipeline import track_many
+
+    if args.batch_size < 1:
+        raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
+    names = [Path(s).resolve().name for s in args.seq]
+    seen: dict[str, Path] = {}
+    for name, seq in zip(names, args.seq):
+        if name in seen:
+            raise InputError(f"two sequences are named {name!r} ({seen[name]} and {seq}); their outputs would both "
+                             f"go to {args.out / name}: track them into different --out folders")
+        seen[name] = seq
+    if args.out.exists() and not args.out.is_dir():
+        raise InputError(f"--out {args.out}: is a file; with several sequences it is the folder of their outputs")
+    outs = [args.out / name for name in names]
+    for out in outs:
+        check_output(out, TRACK_DIR, args.overwrite)
+    for s in ("init_pose", "background_from_track"):
+        if getattr(args, s) is not None:
+            raise InputError(f"--{s.replace('_', '-')} names one sequence's file: track that sequence alone")
+    outputs = [replacing(out, TRACK_DIR) for out in outs]  # an error puts a sequence's earlier output back
+    for cm in outputs:
+        cm.__enter__()
+    results = []
+    try:
+        results = track_many(
+            list(args.seq), batch_size=args.batch_size, log_dirs=[out / "tb" for out in outs], threads=args.threads,
+            config=args.config, model=args.model, voxel_m=args.voxel, scale=args.scale, height_m=args.height,
+            start=args.start, stop=args.stop, batch=args.batch, device=args.device,
+            fill_static_subject=args.fill_static_subject, refine_passes=args.refine_passes,
+            refit_passes=args.refit_passes, smooth_hz=args.smooth_hz, log_every=args.log_every)
+    except BaseException as exc:  # Ctrl-C, or an error of the batch as a whole: every folder as it was
+        for cm in outputs:
+            cm.__exit__(type(exc), exc, exc.__traceback__)
+        if isinstance(exc, KeyboardInterrupt):
+            print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
+            return 130
+        raise
+    failed = 0
+    for seq, out, cm, result in zip(args.seq, outs, outputs, results):
+        if isinstance(result, Exception):
+            failed += 1
+            cm.__exit__(type(result), result, result.__traceback__)
+            print(f"torchtrack track: {seq}: failed: {result}; no poses.npz written", file=sys.stderr)
+            continue
+        try:
+            save_poses(result.poses, out / "poses.npz")
+        except BaseException as exc:
+            cm.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        cm.__exit__(None, None, None)
+        print(_summary(out, result))
+    if failed:
+        print(f"torchtrack track: {failed} of {len(results)} sequences failed (above); the others were written",
+              file=sys.stderr)
+        return 1
     return 0
 
 

@@ -48,19 +48,26 @@ class Lockstep:
             self._stacks[key] = SubjectStack(list(key))
         return self._stacks[key]
 
-    def step(self, frames: Mapping[int, VoxelObservation | None]) -> dict[int, FrameResult]:
+    def step(self, frames: Mapping[int, VoxelObservation | None]
+             ) -> tuple[dict[int, FrameResult], dict[int, Exception]]:
         """One frame of the sequences in ``frames``: tracker ``i``'s observation, or None for a frame it cannot
         observe (:meth:`~MarkerlessTracker.skip`); sequences not in ``frames`` (ended) are left as they are.
-        Returns each one's result."""
+        Returns each one's result, and the errors of those whose own step failed (the others go on; an error of
+        the batched step itself is raised)."""
         out: dict[int, FrameResult] = {}
+        errors: dict[int, Exception] = {}
         plain: list[tuple[int, VoxelObservation]] = []
         for i, obs in frames.items():
             tracker = self.trackers[i]
-            ready = None if obs is None else tracker.routine(obs)
+            try:
+                ready = None if obs is None else tracker.routine(obs)
+                if ready is None:
+                    out[i] = tracker.skip() if obs is None else tracker.step(obs)
+            except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
+                errors[i] = exc
+                continue
             if ready is not None:
                 plain.append((i, ready))
-            else:
-                out[i] = tracker.skip() if obs is None else tracker.step(obs)
         if plain:
             trackers = [self.trackers[i] for i, _ in plain]
             first = trackers[0]
@@ -70,5 +77,8 @@ class Lockstep:
             stepped = track_step(self._stack(trackers), batch, state, first._step_config, True,
                                  math.radians(first.config.max_root_rotation_deg))
             for (i, obs), tracker, res in zip(plain, trackers, first._results(stepped)):
-                out[i] = tracker.accept(obs, res)
-        return dict(sorted(out.items()))
+                try:
+                    out[i] = tracker.accept(obs, res)
+                except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
+                    errors[i] = exc
+        return dict(sorted(out.items())), errors

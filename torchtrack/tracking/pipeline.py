@@ -278,6 +278,46 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
                       background, log_dir, log_every, progress, on_pass, on_refit, t0)
 
 
+def track_many(seqs: list[str | Path | Any], *, batch_size: int = 16, log_dirs: list[str | Path | None] | None = None,
+               threads: int | None = 1, progress: bool = True, **options: Any) -> list[TrackResult | Exception]:
+    """Track several sequence folders, each as :func:`track` tracks it alone (its own background, start,
+    refinement, body refit and smoothing, with the same ``options``), ``batch_size`` of them at a time in lockstep:
+    each sequence's pipeline runs in a thread of its own, and their track passes run together, one batched
+    per-frame step for all (:func:`~torchtrack.tracking.run.lockstep_passes`). Sequences of different rigs, image
+    sizes and frame rates may go together. A sequence that fails (unreadable, no calibration, nobody tracked)
+    comes out as its error while the others finish.
+
+    Args:
+        seqs: the sequence folders. batch_size: how many are tracked in lockstep at a time (>= 1).
+        log_dirs: per sequence, its TensorBoard folder or None. threads: intra-op threads while tracking (None:
+            as they are). progress: one progress bar per batch. options: :func:`track`'s other arguments (its
+            ``workers`` are 0: the frames are read and observed in each sequence's thread).
+
+    Returns:
+        per sequence, its :class:`TrackResult` or the exception it failed with.
+    """
+    import torch
+
+    from torchtrack.tracking.run import lockstep_passes
+
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise InputError(f"the batch size must be a whole number >= 1, got {batch_size!r}")
+    log_dirs = [None] * len(seqs) if log_dirs is None else list(log_dirs)
+    if len(log_dirs) != len(seqs):
+        raise InputError(f"track_many: {len(seqs)} sequences but {len(log_dirs)} log folders")
+    for bad in ("workers", "log_dir", "on_pass", "on_refit"):
+        if bad in options:
+            raise InputError(f"track_many: {bad} is not an option here (see log_dirs; frames are observed in each "
+                             "sequence's thread)")
+    out: list[TrackResult | Exception] = []
+    with torch.no_grad(), intra_op_threads(threads):
+        for lo in range(0, len(seqs), batch_size):
+            jobs = [lambda s=s, d=d: track(s, log_dir=d, workers=0, threads=None, progress=False, **options)
+                    for s, d in zip(seqs[lo:lo + batch_size], log_dirs[lo:lo + batch_size])]
+            out.extend(lockstep_passes(jobs, progress))
+    return out
+
+
 def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device, workers,
            fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track, background, log_dir,
            log_every, progress, on_pass, on_refit, t0) -> TrackResult:

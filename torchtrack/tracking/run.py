@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextvars
 import logging
+import threading
 import time
+from collections.abc import Iterator
 from contextlib import closing
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -13,7 +17,7 @@ from torchtrack.checks import InputError
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder, min_readable_cameras
 from torchtrack.tracking.markerless import MarkerlessTracker
-from torchtrack.tracking.observation import Observer
+from torchtrack.tracking.observation import Observer, VoxelObservation
 from torchtrack.tracking.stream import observe_batches
 
 log = logging.getLogger(__name__)
@@ -30,6 +34,9 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     :func:`~torchtrack.io.sequence.min_readable_cameras` are; with fewer it is not tracked and comes out
     ``valid = False``, as does a frame with nobody in the volume. Cameras left out are named in one warning per
     camera and in ``extra['cameras_valid']``. Errors of the tracker name the frame.
+
+    Inside :func:`lockstep_passes` (several sequences' pipelines, each in a thread of its own), the pass is not run
+    here but handed to the lockstep driver, which tracks it together with the other sequences' passes.
 
     Args:
         folder: the sequence. observer: the observation model at the processing size (its rig's size is the
@@ -49,88 +56,259 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
     """
     from tqdm import tqdm
 
-    rig = observer.rig
-    stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
-    if stop <= start:
-        raise InputError(f"{folder.root}: no frames in [{start}, {stop}) ({folder.num_frames} frames)")
-    tracker.set_frame_rate(folder.fps)
-    names = tracker.generic.output_names
-    T, D = stop - start, tracker.generic.num_dofs
-    joints3d = np.full((T, len(names), 3), np.nan, np.float32)
-    angles = np.full((T, D), np.nan, np.float32)
-    valid = np.zeros(T, bool)
-    confidence = np.zeros((T, len(names)), np.float32)
-    residual = np.full(T, np.nan, np.float32)
-    explained = np.zeros(T, np.float32)
-    reinit = np.zeros(T, bool)
-    version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
-    cameras_valid = np.zeros((T, len(rig.names)), bool)
-    need = min_readable_cameras(len(rig.names))
-
-    def record(k: int, res) -> None:
-        joints3d[k] = res.output_points.cpu().numpy()
-        angles[k] = res.angles.cpu().numpy()
-        valid[k] = res.valid
-        confidence[k] = res.confidence.cpu().numpy() if res.valid else 0.0
-        residual[k] = res.residual_m
-        explained[k] = res.explained
-        reinit[k] = res.reinitialised
-
-    t_start = time.perf_counter()
-    keep = log_every if logger is not None else 0
-    stream = observe_batches(folder, observer, start, stop, batch, device, keep, workers,
-                             cell_m=tracker.config.em_cell_m)
+    scheduler = _SCHEDULER.get()
+    if scheduler is not None:
+        return scheduler.run(_Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, 0))
+    one = _Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, workers)
     # closing: a tracking error (its traceback holds this frame) must not keep the worker and thread share
-    with tqdm(total=T, unit="frame", desc=desc, disable=not progress) as bar, closing(stream):
+    with tqdm(total=one.num_frames, unit="frame", desc=desc, disable=not progress) as bar, closing(one):
+        for frame in one.frames():
+            t1 = time.perf_counter()
+            res = one.guard(frame, lambda: tracker.skip() if frame.obs is None else tracker.step(frame.obs))
+            one.record(frame, res, time.perf_counter() - t1)
+            bar.update(1)
+            bar.set_postfix(valid=f"{one.valid[:frame.k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
+    return one.finish()
+
+
+class _Frame(NamedTuple):
+    """One frame of a pass: its index in the pass and in the sequence, its observation (None: too few readable
+    cameras, not tracked), its images where kept, and its share of the time its batch took to come."""
+
+    k: int
+    t: int
+    obs: VoxelObservation | None
+    observed: VoxelObservation
+    images: torch.Tensor | None
+    wait_s: float
+    observe_s: float
+
+
+class _Pass:
+    """One track of frames ``[start, stop)`` of a sequence: its frames as they are read and observed, the results
+    recorded, and the poses at the end (:func:`track_sequence`'s work, driven alone or in lockstep)."""
+
+    def __init__(self, folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int,
+                 stop: int | None, batch: int, device, logger, log_every: int, workers: int) -> None:
+        self.folder, self.observer, self.tracker, self.logger = folder, observer, tracker, logger
+        self.start = start
+        self.stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
+        if self.stop <= start:
+            raise InputError(f"{folder.root}: no frames in [{start}, {self.stop}) ({folder.num_frames} frames)")
+        tracker.set_frame_rate(folder.fps)
+        self.names = tracker.generic.output_names
+        T, D, C = self.stop - start, tracker.generic.num_dofs, len(observer.rig.names)
+        self.joints3d = np.full((T, len(self.names), 3), np.nan, np.float32)
+        self.angles = np.full((T, D), np.nan, np.float32)
+        self.valid = np.zeros(T, bool)
+        self.confidence = np.zeros((T, len(self.names)), np.float32)
+        self.residual = np.full(T, np.nan, np.float32)
+        self.explained = np.zeros(T, np.float32)
+        self.reinit = np.zeros(T, bool)
+        self.version = np.zeros(T, np.int64)  # the tracker's body_version each frame was tracked in
+        self.cameras_valid = np.zeros((T, C), bool)
+        self.need = min_readable_cameras(C)
+        self.t_start = time.perf_counter()
+        keep = log_every if logger is not None else 0
+        self.stream = observe_batches(folder, observer, start, self.stop, batch, device, keep, workers,
+                                      cell_m=tracker.config.em_cell_m)
+
+    @property
+    def num_frames(self) -> int:
+        return self.stop - self.start
+
+    def close(self) -> None:
+        self.stream.close()
+
+    def frames(self) -> Iterator[_Frame]:
+        """The pass's frames in order, read and observed a batch at a time."""
         while True:
             t0 = time.perf_counter()
-            fb = next(stream, None)
+            fb = next(self.stream, None)
             if fb is None:
-                break
-            observations = fb.observations
-            t_obs = fb.seconds / len(observations)
-            # per frame, its share of the time the batch took to come (reading and observing it, or waiting
-            # for the worker that did) plus its own tracking: the wall-clock rate
-            t_wait = (time.perf_counter() - t0) / len(observations)
-            for i, obs in enumerate(observations):
-                t1 = time.perf_counter()
+                return
+            n = len(fb.observations)
+            # per frame, its share of the time the batch took to come (reading and observing it, or waiting for
+            # the worker that did): with its own tracking, the wall-clock rate
+            wait = (time.perf_counter() - t0) / n
+            for i, obs in enumerate(fb.observations):
                 t = int(fb.frame_index[i])
-                k = t - start
-                version[k] = tracker.body_version
-                cameras_valid[k] = fb.valid[i].cpu().numpy()
-                if cameras_valid[k].sum() < need:  # too few readable cameras to carve the body: not tracked
-                    res = tracker.skip()
-                else:
-                    try:
-                        res = tracker.step(obs)
-                    except InputError as exc:
-                        raise InputError(f"{folder.root}, frame {t}: {exc}") from None
-                    except Exception as exc:  # numerical or device errors: say where
-                        exc.add_note(f"while tracking {folder.root}, frame {t}")
-                        raise
-                record(k, res)
-                revised = tracker.take_revised()  # a start race won by the start turned round: its frames
-                for j, (r, v) in enumerate(revised):
-                    record(k - len(revised) + 1 + j, r)
-                    version[k - len(revised) + 1 + j] = v
-                dt = t_wait + time.perf_counter() - t1
-                if logger is not None:
-                    _log_frame(logger, t, obs, res, fb.images[i], rig, dt, t_obs)
-                bar.update(1)
-                bar.set_postfix(valid=f"{valid[:k + 1].mean():.0%}", res_mm=f"{1e3 * res.residual_m:.0f}")
-    restate(tracker, angles, joints3d, version)
-    _report_cameras(folder, list(rig.names), cameras_valid, start, need)
-    _report_start(folder, tracker, reinit, start)
-    elapsed = time.perf_counter() - t_start
-    extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
-             "observation_model": np.asarray(observer.model), "ik_residual_m": residual, "explained": explained,
-             "reinitialised": reinit, "camera_names": np.asarray(list(rig.names)), "cameras_valid": cameras_valid}
-    if tracker.subject is not None:  # the subject's body, for a later --init-pose (de Bem's reusable start)
-        extra["body_urdf"] = np.asarray(tracker.subject.skeleton.urdf_text)
-    poses = Poses(fps=folder.fps, frame_index=np.arange(start, stop, dtype=np.int64), joint_names=list(names),
-                  joints3d=joints3d, dof_names=list(tracker.generic.dof_names), angles=angles, valid=valid,
-                  confidence=confidence, extra=extra)
-    return poses, elapsed
+                k = t - self.start
+                self.cameras_valid[k] = fb.valid[i].cpu().numpy()
+                self.version[k] = self.tracker.body_version
+                enough = self.cameras_valid[k].sum() >= self.need  # too few readable cameras to carve the body
+                yield _Frame(k, t, obs if enough else None, obs, fb.images[i], wait, fb.seconds / n)
+
+    def guard(self, frame: _Frame, step):  # noqa: ANN001, ANN201
+        """``step()``'s result, its errors naming the sequence and the frame (:meth:`named`)."""
+        try:
+            return step()
+        except Exception as exc:
+            raise self.named(frame, exc) from None
+
+    def named(self, frame: _Frame, exc: Exception) -> Exception:
+        """``exc`` raised while tracking ``frame``, saying where: an input error's message names the sequence and
+        the frame; other (numerical, device) errors get a note."""
+        if isinstance(exc, InputError):
+            return InputError(f"{self.folder.root}, frame {frame.t}: {exc}")
+        exc.add_note(f"while tracking {self.folder.root}, frame {frame.t}")
+        return exc
+
+    def _put(self, k: int, res) -> None:  # noqa: ANN001
+        self.joints3d[k] = res.output_points.cpu().numpy()
+        self.angles[k] = res.angles.cpu().numpy()
+        self.valid[k] = res.valid
+        self.confidence[k] = res.confidence.cpu().numpy() if res.valid else 0.0
+        self.residual[k] = res.residual_m
+        self.explained[k] = res.explained
+        self.reinit[k] = res.reinitialised
+
+    def record(self, frame: _Frame, res, seconds: float) -> None:  # noqa: ANN001
+        """Store ``frame``'s result (and the frames a start race revised); log it."""
+        k = frame.k
+        self._put(k, res)
+        revised = self.tracker.take_revised()  # a start race won by the start turned round: its frames
+        for j, (r, v) in enumerate(revised):
+            self._put(k - len(revised) + 1 + j, r)
+            self.version[k - len(revised) + 1 + j] = v
+        if self.logger is not None:
+            _log_frame(self.logger, frame.t, frame.observed, res, frame.images, self.observer.rig,
+                       frame.wait_s + seconds, frame.observe_s)
+
+    def finish(self) -> tuple[Poses, float]:
+        """The pass's poses (re-stated in the final body) and its seconds; the reports on cameras and start."""
+        tracker, rig = self.tracker, self.observer.rig
+        restate(tracker, self.angles, self.joints3d, self.version)
+        _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.start, self.need)
+        _report_start(self.folder, tracker, self.reinit, self.start)
+        elapsed = time.perf_counter() - self.t_start
+        extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
+                 "observation_model": np.asarray(self.observer.model), "ik_residual_m": self.residual,
+                 "explained": self.explained, "reinitialised": self.reinit,
+                 "camera_names": np.asarray(list(rig.names)), "cameras_valid": self.cameras_valid}
+        if tracker.subject is not None:  # the subject's body, for a later --init-pose (de Bem's reusable start)
+            extra["body_urdf"] = np.asarray(tracker.subject.skeleton.urdf_text)
+        poses = Poses(fps=self.folder.fps, frame_index=np.arange(self.start, self.stop, dtype=np.int64),
+                      joint_names=list(self.names), joints3d=self.joints3d, dof_names=list(tracker.generic.dof_names),
+                      angles=self.angles, valid=self.valid, confidence=self.confidence, extra=extra)
+        return poses, elapsed
+
+
+def track_lockstep(passes: list[_Pass], progress: bool = True) -> list[tuple[Poses, float] | BaseException]:
+    """Run several sequences' passes frame by frame in lockstep (:class:`~torchtrack.tracking.lockstep.Lockstep`:
+    one batched step for all that track as usual); a pass whose sequence fails (its reading, its observation, its
+    tracker's own step) ends with its error while the others go on. Each pass's poses and seconds, or its error."""
+    from tqdm import tqdm
+
+    from torchtrack.tracking.lockstep import Lockstep
+
+    out: list[tuple[Poses, float] | BaseException | None] = [None] * len(passes)
+    lockstep = Lockstep([p.tracker for p in passes])
+    streams = {i: p.frames() for i, p in enumerate(passes)}
+    total = sum(p.num_frames for p in passes)
+    with tqdm(total=total, unit="frame", desc=f"track {len(passes)} in lockstep", disable=not progress) as bar:
+        while streams:
+            frames: dict[int, _Frame] = {}
+            for i in list(streams):
+                try:
+                    frame = next(streams[i], None)
+                except Exception as exc:  # noqa: BLE001 - a sequence that cannot be read fails alone
+                    frame, out[i] = None, exc
+                if frame is None:
+                    del streams[i]
+                    passes[i].close()
+                    if out[i] is None:
+                        out[i] = passes[i].finish()
+                    continue
+                frames[i] = frame
+            if not frames:
+                break
+            t1 = time.perf_counter()
+            results, errors = lockstep.step({i: f.obs for i, f in frames.items()})
+            dt = (time.perf_counter() - t1) / len(frames)
+            for i, frame in frames.items():
+                if i in errors:  # this sequence fails alone, naming the frame
+                    out[i] = passes[i].named(frame, errors[i])
+                    del streams[i]
+                    passes[i].close()
+                    continue
+                passes[i].record(frame, results[i], dt)
+            bar.update(len(frames))
+    return out
+
+
+class _Scheduler:
+    """Collects the track passes of several sequences' pipelines, each running in a thread of its own, and runs
+    them in lockstep once every pipeline still going waits for one (:func:`lockstep_passes`)."""
+
+    def __init__(self, pipelines: int, progress: bool) -> None:
+        self.active, self.progress = pipelines, progress
+        self.pending: list[tuple[_Pass, list]] = []
+        self.cond = threading.Condition()
+
+    def run(self, one: _Pass) -> tuple[Poses, float]:
+        """Called from a pipeline's thread: hand the pass over and wait for its result."""
+        slot: list = []
+        with self.cond:
+            self.pending.append((one, slot))
+            self.cond.notify_all()
+            self.cond.wait_for(lambda: bool(slot))
+        result = slot[0]
+        if isinstance(result, BaseException):
+            raise result
+        return result
+
+    def done(self) -> None:
+        """Called from a pipeline's thread as it ends (finished or failed)."""
+        with self.cond:
+            self.active -= 1
+            self.cond.notify_all()
+
+    def serve(self) -> None:
+        """In the calling thread: run the passes in lockstep, round after round, until every pipeline ended."""
+        while True:
+            with self.cond:
+                self.cond.wait_for(lambda: self.active == 0 or len(self.pending) >= self.active)
+                if self.active == 0 and not self.pending:
+                    return
+                batch, self.pending = self.pending, []
+            try:
+                results = track_lockstep([p for p, _ in batch], self.progress)
+            except BaseException as exc:  # noqa: BLE001 - every pass of the round fails with it
+                results = [exc] * len(batch)
+            with self.cond:
+                for (_, slot), res in zip(batch, results):
+                    slot.append(res)
+                self.cond.notify_all()
+
+
+_SCHEDULER: contextvars.ContextVar[_Scheduler | None] = contextvars.ContextVar("torchtrack_lockstep", default=None)
+
+
+def lockstep_passes(jobs: list, progress: bool = True) -> list:
+    """Run ``jobs`` (callables, e.g. each sequence's whole pipeline), each in a thread of its own, with their
+    :func:`track_sequence` passes tracked together in lockstep: whenever every job still running waits for a pass,
+    those passes run as one (:func:`track_lockstep`). Each job's return value, or the exception it raised."""
+    scheduler = _Scheduler(len(jobs), progress)
+    out: list = [None] * len(jobs)
+
+    def work(i: int, job) -> None:  # noqa: ANN001
+        _SCHEDULER.set(scheduler)
+        try:
+            out[i] = job()
+        except BaseException as exc:  # noqa: BLE001 - kept as this job's outcome
+            out[i] = exc
+        finally:
+            scheduler.done()
+
+    threads = [threading.Thread(target=work, args=(i, job), daemon=True, name=f"torchtrack-seq-{i}")
+               for i, job in enumerate(jobs)]
+    for t in threads:
+        t.start()
+    scheduler.serve()
+    for t in threads:
+        t.join()
+    return out
 
 
 def _report_start(folder: SequenceFolder, tracker: MarkerlessTracker, reinit: np.ndarray, start: int) -> None:
