@@ -8,10 +8,11 @@ __version__ = "0.1.0"
 
 
 def __getattr__(name: str):
-    """``torchtrack.track``: :func:`torchtrack.tracking.pipeline.track`, imported on first use (it needs torch,
-    which ``import torchtrack`` does not load)."""
-    if name == "track":
-        from torchtrack.tracking.pipeline import track
+    """``torchtrack.track`` and ``torchtrack.track_many``: :func:`torchtrack.tracking.pipeline.track` and
+    :func:`~torchtrack.tracking.pipeline.track_many`, imported on first use (they need torch, which ``import
+    torchtrack`` does not load)."""
+    if name in ("track", "track_many"):
+        from torchtrack.tracking import pipeline
 
-        return track
+        return getattr(pipeline, name)
     raise AttributeError(f"module 'torchtrack' has no attribute {name!r}")

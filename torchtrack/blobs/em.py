@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields, replace
 from functools import partial
+from typing import NamedTuple
 
 import torch
 
@@ -160,8 +161,37 @@ def quadric_distance2(x: torch.Tensor, centres: torch.Tensor, A: torch.Tensor) -
     return out.view(*x.shape[:-1], K)[0] if not batched else out.view(*x.shape[:-1], K)
 
 
-def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig, views: bool = True
-           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+class ColourTerm(NamedTuple):
+    """The E-step's colour term of a frame's voxels against a colour model (:func:`colour_term`): which views see
+    each voxel ``seen_views ([B,] N, C)``, and where some blob's colour is known, each voxel's least colour distance
+    to each blob over the views that see it ``least ([B,] N, K)`` (0 where none sees it or the blob's colour is
+    unknown) and that view ``view ([B,] N, K)``; None without colours."""
+
+    seen_views: torch.Tensor | None
+    least: torch.Tensor | None
+    view: torch.Tensor | None
+
+
+def colour_term(colours: torch.Tensor | None, blobs: Blobs, config: EMConfig) -> ColourTerm:
+    """The colour half of :func:`e_step`'s distance (eq. 2), for voxels' ``colours ([B,] N, C, 3)`` and ``blobs``'
+    colour model. It depends on nothing EM changes within a frame (the colour model learns only after its last
+    E-step), so :func:`fit_blobs` computes it once."""
+    if colours is None:
+        return ColourTerm(None, None, None)
+    seen_views = torch.isfinite(colours).all(-1)  # ([B,] N, C)
+    if not (bool(blobs.colour_known.any()) and config.colour_weight > 0):
+        return ColourTerm(seen_views, None, None)
+    # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
+    # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
+    far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
+    A = torch.cholesky_inverse(torch.linalg.cholesky(blobs.colour_cov))
+    least, view = quadric_distance2(far, blobs.colour_mean, A).min(dim=-2)  # ([B,] N, K)
+    seen = seen_views.any(dim=-1, keepdim=True) & blobs.colour_known.unsqueeze(-2)  # ([B,] N, K)
+    return ColourTerm(seen_views, torch.where(seen, least, 0.0), view)
+
+
+def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, config: EMConfig, views: bool = True,
+           colour: ColourTerm | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Assign every voxel to its blob (eq. 2-3).
 
     Args:
@@ -169,39 +199,27 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
             at once, each against its own blobs: points (B, N, 3), colours (B, N, C, 3), ``blobs`` (B, K, ...); a
             NaN point (padding) is no blob's.
         views: find each voxel's view (False: ``view`` all -1, for an M-step that learns no colour).
+        colour: :func:`colour_term` of ``colours`` and ``blobs`` where the caller has it (default: computed).
 
     Returns:
         assign ([B,] N) int64 blob index, -1 for voxels outside the gate; view ([B,] N) int64 the view whose colour
         was used, or for a blob without a colour model yet the first view that sees the voxel (-1 if none);
         cost ([B,] N) the least distance.
     """
+    colour = colour_term(colours, blobs, config) if colour is None else colour
     d_pos = mahalanobis2(points, blobs.mean, blobs.cov)  # ([B,] N, K)
     d_pos = torch.where(blobs.active.unsqueeze(-2), d_pos, torch.inf)
     view = torch.full(points.shape[:-1], -1, dtype=torch.long, device=points.device)
-    cost = d_pos
-    best_view = None
-    seen_views = torch.isfinite(colours).all(-1) if colours is not None else None  # ([B,] N, C)
-    if colours is not None and bool(blobs.colour_known.any()) and config.colour_weight > 0:
-        # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
-        # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
-        far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
-        A = torch.cholesky_inverse(torch.linalg.cholesky(blobs.colour_cov))
-        d_col = quadric_distance2(far, blobs.colour_mean, A)  # ([B,] N, C, K)
-        if views:
-            d_col_min, best_view = d_col.min(dim=-2)  # ([B,] N, K)
-        else:
-            d_col_min = d_col.amin(dim=-2)
-        seen = seen_views.any(dim=-1, keepdim=True) & blobs.colour_known.unsqueeze(-2)  # ([B,] N, K)
-        cost = d_pos + config.colour_weight * torch.where(seen, d_col_min, 0.0)
+    cost = d_pos if colour.least is None else d_pos + config.colour_weight * colour.least
     cost = torch.where(d_pos <= config.gate_mahalanobis2, cost, torch.inf)  # only blobs within the gate compete
     least, assign = cost.min(dim=-1)
     assign = torch.where(torch.isfinite(least), assign, -1)
-    if seen_views is not None and views:
-        v = seen_views.to(torch.uint8).argmax(dim=-1)  # the first view that sees the voxel
-        if best_view is not None:  # blobs with a colour model: the view whose colour fits it best
+    if colour.seen_views is not None and views:
+        v = colour.seen_views.to(torch.uint8).argmax(dim=-1)  # the first view that sees the voxel
+        if colour.view is not None:  # blobs with a colour model: the view whose colour fits it best
             a = assign.clamp(min=0)
-            v = torch.where(blobs.colour_known.gather(-1, a), best_view.gather(-1, a[..., None])[..., 0], v)
-        view = torch.where((assign >= 0) & seen_views.any(dim=-1), v, -1)
+            v = torch.where(blobs.colour_known.gather(-1, a), colour.view.gather(-1, a[..., None])[..., 0], v)
+        view = torch.where((assign >= 0) & colour.seen_views.any(dim=-1), v, -1)
     return assign, view, least
 
 
@@ -308,11 +326,12 @@ def fit_blobs(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, 
         col = None if colours is None else colours.reshape(B * N, *colours.shape[2:])
         if isinstance(learn_colour, torch.Tensor):  # (B,) -> per blob
             learn_colour = learn_colour.to(torch.bool).repeat_interleave(K)
+    colour = colour_term(colours, prior, config)  # the colour model stays the prior's until the last M-step
     for it in range(config.iterations):
         last = it == config.iterations - 1
         learn = learn_colour if last else False
         assign, view, _ = e_step(points, colours, blobs, config,
-                                 views=isinstance(learn, torch.Tensor) or bool(learn))
+                                 views=isinstance(learn, torch.Tensor) or bool(learn), colour=colour)
         if batched:
             joined = torch.where(assign >= 0, assign + offset, -1).reshape(-1)
             blobs = _reshape_blobs(m_step(pts, w, sz, col, joined, view.reshape(-1), flat(blobs), prior_flat, config,

@@ -324,3 +324,29 @@ def track_step(sub: SubjectStack, obs: VoxelBatch, state: StepState, config: Ste
     observed = conf_joint[:, sub.feet] >= cfg.hold_min_confidence
     return Stepped(s, fk.output_points, conf, residual, explained, blobs, fk.bone_frames, fk.joints[:, sub.feet],
                    observed)
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """One tracked frame.
+
+    Attributes:
+        angles: (D,) state vector. output_points: (22, 3) the skeleton's output points (``output_names``).
+        confidence: (22,) 0..1 per output point. valid: whether the frame was tracked.
+        residual_m: mean goal-to-joint distance after IK. explained: fraction of voxel weight in blobs.
+        reinitialised: the tracker re-initialised on this frame. blobs: the fitted blobs (None if invalid).
+        bone_frames: (nb, 4, 4) of the solved pose.
+        feet: the solved pose's ankle and toe positions (2, 2, 3) and whether the observation gave them goals
+            (2, 2) bool, for the held feet (``TrackerConfig.hold_lost_feet``); None on invalid frames.
+    """
+
+    angles: torch.Tensor
+    output_points: torch.Tensor
+    confidence: torch.Tensor
+    valid: bool
+    residual_m: float
+    explained: float
+    reinitialised: bool
+    blobs: Blobs | None
+    bone_frames: torch.Tensor
+    feet: tuple[torch.Tensor, torch.Tensor] | None = None

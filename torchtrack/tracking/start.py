@@ -1,0 +1,520 @@
+"""The tracker's automatic start (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`'s part that finds the
+first pose): the search from any pose (:mod:`torchtrack.tracking.search`) finished by EM/IK, the starfish start
+(Caillette §4.2) with its checks, the subject's size and bones fitted to the first frame, and the start race (the
+start turned round tracked beside it until the body's motion tells which way it faces).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
+
+import torch
+
+from torchtrack.blobs.model import BlobModel, blob_volumes
+from torchtrack.checks import InputError
+from torchtrack.conventions import LANDMARKS
+from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.bone_fit import BONE_FIT_VOXEL_M, FIT_ROUNDS
+from torchtrack.tracking.step import FrameResult
+
+if TYPE_CHECKING:
+    from torchtrack.tracking.markerless import MarkerlessTracker
+
+log = logging.getLogger(__name__)
+
+#: The search's start is refused where more of the body than this lies out of the observed volume.
+START_MAX_OUTSIDE = 0.2
+#: A start frame whose voxels hold two separate people is refused (torchtrack tracks one person). A connected part
+#: of the voxels (:meth:`VoxelObservation.parts`) is a person when it is at least PERSON_MIN_HEIGHT_M tall (a deep
+#: squat still is) and holds at least PERSON_MIN_VOLUME of the smallest body the search looks for: floor shadows,
+#: a foot's stray voxels and a phantom column of an estimated background are lower or smaller.
+PERSON_MIN_HEIGHT_M = 1.0
+PERSON_MIN_VOLUME = 0.5
+#: Initialisation: the heading the toes point along (the first tried) gives way to another only if that fits the
+#: starfish frame better by more than this (m of the fit's cost, :meth:`MarkerlessTracker._fit_cost`). Where the
+#: toes are unclear the fits of a starfish and of its flip are often a tie, and a flip that wins by noise tracks the
+#: whole sequence backwards (docs/results.md, "Tracker settings").
+HEADING_MARGIN_M = 0.002
+#: A starfish's arms are raised: the initialisation refuses a fit whose upper arm hangs within this angle of
+#: straight down (the starfish pose has them 72 deg up; the synthetic starts' fits stay well above this:
+#: docs/results.md, "Tracker settings").
+STARFISH_MIN_ARM_RAISE_DEG = 45.0
+#: The starfish start tries the template's arms (``Skeleton.starfish_angles``' abduction, rad from hanging) and,
+#: where it differs from them by more than ``STARFISH_ARM_MARGIN``, the abduction the voxels' far ends show (their
+#: outermost ``STARFISH_HAND_SHARE`` along the arms' line: the hands): starfish are held with the arms anywhere
+#: from below to above the shoulders, and a fit from the template's may not reach an arm held far from it.
+STARFISH_ARM_ABDUCTION = 1.25
+STARFISH_ARM_MARGIN = 0.2
+STARFISH_HAND_SHARE = 0.02
+#: The starfish frame's voxels may hold at most this many times the volume of the body (its blobs' ellipsoids)
+#: scaled to their height: more is not one person (phantom volume; a background estimated from a video whose
+#: subject stands still, painted out with the room around them). The synthetic starts stay well under it and the
+#: Pose2Sim demo's first frame on the filled background well over it (docs/results.md, "Tracker settings").
+STARFISH_MAX_VOLUME_RATIO = 3.0
+#: The start race (``TrackerConfig.start_race_s``): the start turned round replaces the search's start only if its
+#: mean fit cost (:meth:`MarkerlessTracker._fit_cost`) over the race is lower, its mean two-way score
+#: (:func:`~torchtrack.tracking.search.score_states`, 0-1) not lower by more than this, and one of the two wins
+#: clearly: the score by more than this, or the cost by :data:`START_RACE_COST_RATIO`. On a 4-camera hull's ghosts
+#: the score alone preferred the turned round twin of a wrong start, which was wronger; on a walk from a starfish
+#: the two scored the same and only the fit cost (knees that bend one way) told them apart (docs/results.md,
+#: "The start race"). The starfish's fast path takes the same margin: a searched start replaces the starfish's only
+#: if it scores higher by more than this.
+START_RACE_MARGIN = 0.01
+#: The fit cost's clear win in the start race: the twin's mean cost below this fraction of the start's.
+START_RACE_COST_RATIO = 0.8
+#: The race's ``start_race_s`` counts from the first frame where the body has moved (a landmark of the start's
+#: track this far from where the start put it, relative to the pelvis), and only the frames from there decide it: a
+#: still body's silhouette is the same turned round, and over such frames the race would only compare how the two
+#: fits happened to settle, which turned a 4-camera squat's start round (docs/results.md, "The start race").
+START_RACE_MOVED_M = 0.1
+#: A race waits this long for the body to move, then is decided on all its frames.
+START_RACE_WAIT_S = 2.0
+#: What every refusal of the automatic initialisation tells the user to do.
+START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
+                "starfish start (tracker start: starfish), in the starfish pose. Or give an initial pose with "
+                "--init-pose START.npz: a poses.npz of this subject whose first valid frame is the pose (an earlier "
+                "run's output), or one fitted to 3D keypoints of the first frame by `torchtrack init-pose "
+                "KEYPOINTS.trc --out START.npz`")
+
+
+@dataclass(frozen=True)
+class StartCheck:
+    """What the automatic initialisation measured of its starfish fit (accepted or refused).
+
+    Attributes:
+        height_m: the subject's height from the voxels. volume_ratio: the voxels' volume over that of the body
+            (its blobs' ellipsoids) at that height (``STARFISH_MAX_VOLUME_RATIO``).
+        arm_raise_deg: (left, right) each fitted upper arm's angle from hanging straight down
+            (``STARFISH_MIN_ARM_RAISE_DEG``). arm_fill: (left, right) the larger fill of each arm's upper-arm and
+            forearm blobs (NaN for a blob config without them; ``em.min_fill``).
+        toe_ahead_m: how far the lowest voxels' centroid lies ahead of all the voxels' along the heading the toes
+            point to (>= 0; 3 cm or more settles the heading alone).
+        headings: (heading about +Z in rad, the fit's cost in m) of each heading tried, in the order tried (the
+            toes' first; ``HEADING_MARGIN_M``).
+    """
+
+    height_m: float
+    volume_ratio: float
+    arm_raise_deg: tuple[float, float]
+    arm_fill: tuple[float, float]
+    toe_ahead_m: float = math.nan
+    headings: tuple[tuple[float, float], ...] = ()
+
+
+@dataclass
+class _Race:
+    """A start race in progress: the twin tracker (started turned round), the frames left, each side's scores and
+    the twin's results with the body version each was tracked in."""
+
+    twin: MarkerlessTracker
+    frames_left: int
+    origin: torch.Tensor  # the start's output points relative to its pelvis, for START_RACE_MOVED_M
+    fits: list[tuple[float, float, float, float]] = field(default_factory=list)  # scores, then fit costs
+    results: list[tuple[FrameResult, int]] = field(default_factory=list)
+    moved_at: int | None = None  # the index in fits of the first frame where the body had moved
+
+
+class StartMixin:
+    """The start's methods of :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its state: see there)."""
+
+    def _starfish_top_ratio(self) -> float:
+        """Head-top height in the starfish pose over standing height (the spread legs lower the body)."""
+        g = self.generic
+        top = g.forward_frames(g.starfish_angles()[None])[0, g.frame_index(["head_top"])[0], 2, 3]
+        return float(top) / g.height()
+
+    def initialize(self, obs: VoxelObservation) -> FrameResult:
+        """Automatic initialisation from a starfish frame (see the module docstring).
+
+        Raises:
+            InputError: the voxels do not look like a person in the starfish pose (the tracker is then left
+            uninitialised, as before the call).
+        """
+        self.feet_seen = self.feet_still = None  # nothing held while the start is searched
+        self.hands_off = [0, 0]
+        try:
+            res = self._initialize(obs)
+        except InputError:
+            self._clear()
+            raise
+        self._remember_feet()
+        self._start_hips(learn=True)
+        if self.config.start == "search" and self.config.start_race_s > 0:
+            self._start_race(obs, res)
+        return res
+
+    def _race_frames(self, seconds: float | None = None) -> int:
+        seconds = self.config.start_race_s if seconds is None else seconds
+        return max(1, round(seconds * (self.frame_rate or self.config.velocity_fps or 30.0)))
+
+    @property
+    def racing(self) -> bool:
+        """A start race is in progress (``TrackerConfig.start_race_s``): :meth:`take_revised` may yet revise the
+        frames since the start."""
+        return self._race is not None
+
+    def _fork(self) -> MarkerlessTracker:
+        """A copy of this tracker's state that tracks on its own (the models and settings shared, read-only)."""
+        shared = (self.generic, self.config, self.blob_specs, self.subject)
+        return copy.deepcopy(self, memo={id(x): x for x in shared})
+
+    def _start_race(self, obs: VoxelObservation, res: FrameResult) -> None:
+        """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is."""
+        from torchtrack.tracking.search import turned_round
+
+        twin = self._fork()
+        twin._twin = True
+        twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
+        twin.colour = None
+        for _ in range(self.config.init_passes):
+            r = twin._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            twin.angles = twin.previous = r.angles
+        r = twin._learn_colour(obs)
+        twin._remember_feet()
+        wait = max(self._race_frames(), self._race_frames(START_RACE_WAIT_S))
+        self._race = _Race(twin, wait, res.output_points - res.output_points[:1])
+        self._race_step(obs, res, r, twin.body_version)
+
+    def _race_step(self, obs: VoxelObservation | None, res: FrameResult, twin_res: FrameResult, version: int
+                   ) -> None:
+        """One frame of the race: both scored on ``obs`` (None: not observed), the twin's result kept with the body
+        version it was tracked in; ``start_race_s`` counted from the frame where the body moved
+        (``START_RACE_MOVED_M``), and the race decided at its end on the frames from there."""
+        from torchtrack.tracking.search import score_states
+
+        race = self._race
+        race.results.append((twin_res, version))
+        if obs is not None and math.isfinite(res.residual_m) and math.isfinite(twin_res.residual_m):  # both fitted
+            both = torch.stack([res.angles, twin_res.angles]).to(self.subject.skeleton.lower)
+            score = score_states(obs, self.subject.skeleton, self.subject.blobs, both)[0]
+            race.fits.append((float(score[0]), float(score[1]), self._fit_cost(res), self._fit_cost(twin_res)))
+            if race.moved_at is None:
+                shift = (res.output_points - res.output_points[:1] - race.origin).norm(dim=-1).max()
+                if float(shift) > START_RACE_MOVED_M:
+                    race.moved_at = len(race.fits) - 1
+                    race.frames_left = self._race_frames()
+        race.frames_left -= 1
+        if race.frames_left > 0:
+            return
+        self._race = None
+        fits = race.fits[race.moved_at or 0:]
+        if not fits:  # nothing both fitted during the race: the search's start stays
+            return
+        own, other, own_cost, other_cost = (sum(col) / len(fits) for col in zip(*fits))
+        log.debug("start race over %d frames (decided on the last %d, the body moved on frame %s): the search's start "
+                  "scores %.3f, turned round %.3f; fit cost %.1f / %.1f mm", len(race.results), len(fits),
+                  race.moved_at, own, other, 1e3 * own_cost, 1e3 * other_cost)
+        if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
+                other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
+            revised = race.results
+            self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
+            self._race, self._revised, self._twin = None, revised, False
+
+    def take_revised(self) -> list[tuple[FrameResult, int]]:
+        """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
+        it was tracked in (:attr:`body_version`), and forgets them: a start race the start turned round won
+        (``TrackerConfig.start_race_s``). Empty otherwise."""
+        out, self._revised = self._revised, []
+        return out
+
+    def _initialize(self, obs: VoxelObservation) -> FrameResult:
+        if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
+            raise InputError("initialisation: the first frame has nobody in the tracking volume")
+        self.check_one_person(obs)
+        if self.config.start == "starfish":
+            res, height, body_m3, toe, tried = self._starfish_fit(obs)
+            return self._finish_start(obs, res, height, body_m3, toe, tried)
+        before = self._fork()  # the state before the start, for the starfish's fast path
+        res, height, body_m3, tried = self._search_fit(obs)
+        res = self._finish_start(obs, res, height, body_m3, math.nan, tried)
+        return self._starfish_fast_path(obs, res, before)
+
+    def _starfish_fast_path(self, obs: VoxelObservation, res: FrameResult, before: MarkerlessTracker
+                            ) -> FrameResult:
+        """A searched start (``res``, this tracker's state) against the starfish start from the same state
+        (``before``), where its checks take the frame for a starfish: the starfish's is kept unless the searched
+        one's finished pose scores higher on ``obs`` by more than ``START_RACE_MARGIN`` (the search's two-way score,
+        each with its own fitted body). The starfish's placement (arms' line, toes, the voxels' height) lands where
+        the search's sampled poses may not, e.g. arms raised above the shoulders on a body of unusual proportions;
+        and a starfish scores the same turned round, which its toes tell and the score does not (docs/results.md,
+        "The start search")."""
+        from torchtrack.tracking.search import score_states
+
+        starfish = before
+        starfish.config = replace(self.config, start="starfish")
+        try:
+            fit, height, body_m3, toe, tried = starfish._starfish_fit(obs)
+            alt = starfish._finish_start(obs, fit, height, body_m3, toe, tried)
+        except InputError as exc:  # not a starfish: the search's start stays
+            log.debug("start: the starfish's fast path does not take the frame (%s)", str(exc).split(". ")[0])
+            return res
+        own, other = (float(score_states(obs, t.subject.skeleton, t.subject.blobs, r.angles[None])[0][0])
+                      for t, r in ((self, res), (starfish, alt)))
+        log.debug("start: the search's start scores %.3f, the starfish's %.3f", own, other)
+        if other < own - START_RACE_MARGIN:
+            return res
+        config = self.config
+        self.__dict__.update(starfish.__dict__)  # this tracker goes on from the starfish's start
+        self.config = config
+        return alt
+
+    def _body_volume_range(self, device: torch.device) -> tuple[float, float]:
+        """The volume (m^3) of the template's blobs at the smallest and the largest size the start's search looks
+        for (the default :class:`~torchtrack.tracking.search.SearchConfig`'s, which the start uses)."""
+        from torchtrack.tracking.search import SearchConfig
+
+        self.generic.to(device)
+        body = float(blob_volumes(BlobModel(self.generic, *self.blob_specs)).sum())
+        lo, hi = SearchConfig().scale_range
+        return lo ** 3 * body, hi ** 3 * body
+
+    def check_one_person(self, obs: VoxelObservation) -> None:
+        """Refuse a start frame with two or more separate people in it (:data:`PERSON_MIN_HEIGHT_M`)."""
+        _, volume, span = obs.parts()
+        person = (span[:, 1] - span[:, 0] >= PERSON_MIN_HEIGHT_M) & (
+            volume >= PERSON_MIN_VOLUME * self._body_volume_range(obs.points.device)[0])
+        if int(person.sum()) > 1:
+            vols = ", ".join(f"{float(v):.3f}" for v in volume[person])
+            raise InputError(f"initialisation: the frame's voxels form {int(person.sum())} separate person-sized "
+                             f"parts ({vols} m^3, each at least {PERSON_MIN_HEIGHT_M:g} m tall): two people, or a "
+                             "person and an object the background does not hold; the tracker follows one person. "
+                             + START_ADVICE)
+
+    def _sole(self, obs: VoxelObservation) -> float:
+        """The soles' height: the lowest voxels' bottom (:meth:`VoxelObservation.height_span`)."""
+        return obs.height_span()[0]
+
+    def _search_fit(self, obs: VoxelObservation) -> tuple[FrameResult, float, float, tuple]:
+        """The search's best hypotheses (:func:`~torchtrack.tracking.search.search_pose`), each finished by
+        ``init_passes`` EM/IK passes; the least :meth:`_fit_cost` wins. Returns the fit, the subject's height,
+        the body's volume and ``(hypothesis, cost)`` of each tried."""
+        from torchtrack.tracking.search import SearchConfig, score_states, search_pose
+
+        dev = obs.points.device
+        largest = self._body_volume_range(dev)[1]
+        blobs = BlobModel(self.generic, *self.blob_specs)
+        if obs.volume_m3() > STARFISH_MAX_VOLUME_RATIO * largest:  # checked before the search: a refusal is cheap
+            raise InputError(f"initialisation: the frame's voxels hold {obs.volume_m3() / largest:.1f} times the "
+                             "volume of the largest body searched for: not one person (phantom volume, or a "
+                             "background that keeps parts of the room). " + START_ADVICE)
+        gen = torch.Generator(device=dev).manual_seed(self.config.search_seed)
+        found = search_pose(obs, self.generic, blobs, SearchConfig(real_poses=self.config.start_real_poses,
+                                                                prior_exclude=self.config.start_prior_exclude),
+                            gen, n=self.config.start_hypotheses)
+        if float(found.outside[0]) > START_MAX_OUTSIDE:
+            raise InputError(f"initialisation: {100 * float(found.outside[0]):.0f}% of the body found lies out of "
+                             "the capture volume: not started on a body partly out of it")
+        height = self.generic.height() * float(found.scale[0])
+        self._setup(height, dev)
+        self._set_floor(self._sole(obs))
+        fits, tried = [], []
+        for k in range(found.angles.shape[0]):
+            self.angles = self.previous = found.angles[k].to(obs.points.dtype)
+            self.colour, self.lost = None, 0
+            res = None
+            for _ in range(self.config.init_passes):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False)
+                self.angles = self.previous = res.angles
+            fits.append(res)
+        # the finished hypotheses compared as the search compares them (EM/IK's own cost cannot tell a body turned
+        # front to back from the right one: both fit the voxels' blobs)
+        angles = torch.stack([r.angles for r in fits])
+        score = score_states(obs, self.subject.skeleton, self.subject.blobs, angles)[0]
+        for k, res in enumerate(fits):
+            tried.append((float(k), float(score[k])))
+            log.debug("start search: hypothesis %d (search score %.3f): score %.3f after EM/IK, residual %.1f mm, "
+                      "explained %.2f", k, float(found.score[k]), float(score[k]), 1e3 * res.residual_m,
+                      res.explained)
+        res = fits[int(score.argmax())]
+        self.angles = self.previous = res.angles
+        return res, height, self.subject.body_volume_m3, tuple(tried)
+
+    def _starfish_fit(self, obs: VoxelObservation) -> tuple[FrameResult, float, float, float, tuple]:
+        """The starfish start's fit (Caillette §4.2, module docstring). Returns the fit, the subject's height, the
+        body's volume, how far the toes point ahead and ``(heading, cost)`` of each heading tried."""
+        pts, w = obs.points, obs.weights
+        # the soles may stand above z = 0 (a platform, a calibration with the floor lower): measure from them
+        sole, top = obs.height_span()
+        height = min(max((top - sole) / self._starfish_top_ratio(), 0.5), 2.5)
+        self._setup(height, pts.device)
+        body_m3 = self.subject.body_volume_m3
+        self._set_floor(sole)
+        skel = self.subject.skeleton
+        c = (w[:, None] * pts).sum(0) / w.sum()
+        d = pts[:, :2] - c[:2]
+        cov = (w[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / w.sum()
+        evals, evecs = torch.linalg.eigh(cov)
+        lateral = evecs[:, 1]  # the arms and legs spread left-right
+        facing = torch.stack([lateral[1], -lateral[0]])
+        low = pts[:, 2] < sole + 0.08 * height
+        feet = (w[low, None] * d[low]).sum(0) / w[low].sum() if bool(low.any()) else d.new_zeros(2)
+        if float(feet @ facing) < 0:
+            facing = -facing
+        along = d @ lateral
+        span = float(torch.quantile(along, 0.995) - torch.quantile(along, 0.005))
+        if span < 0.5 * height:  # a starfish spans about 0.9 of the height hand to hand, a standing body 0.3
+            raise InputError(
+                f"initialisation: the first frame with a person does not look like the starfish pose (arm span "
+                f"{span:.2f} m for a height of {height:.2f} m). " + START_ADVICE)
+        yaw = math.atan2(float(facing[1]), float(facing[0]))
+        best = None
+        # the horizontal spread's main axis is the arms' line and the toes tell front from back (they point
+        # 5-8 cm ahead of the body's centre); the fit decides only what these leave open (it cannot tell a
+        # flipped starfish from the right one reliably, as the hull's ghosts fit either)
+        toe = float(feet @ facing)  # >= 0 by the choice of facing
+        candidates = [yaw] if toe > 0.03 else [yaw, yaw + math.pi]
+        if float(evals[1]) < 1.3 * float(evals[0]):  # no clear arms' line: try the quarter turns as well
+            candidates += [h + 0.5 * math.pi for h in candidates]
+        # the arms as raised as the voxels' far ends show, where that differs from the template's starfish
+        arms = [STARFISH_ARM_ABDUCTION]
+        measured = self._starfish_arm_abduction(pts, w, along, sole)
+        if abs(measured - STARFISH_ARM_ABDUCTION) > STARFISH_ARM_MARGIN:
+            arms.append(measured)
+        tried = []  # (heading, cost) of each candidate
+        for candidate, arm in ((c, arm) for c in candidates for arm in arms):
+            a = skel.starfish_angles(arm_abduction=arm).to(pts)
+            a[skel.dof_names.index("root_tz")] += max(sole, 0.0)
+            a[skel.dof_names.index("root_tx")] = c[0]
+            a[skel.dof_names.index("root_ty")] = c[1]
+            a[skel.dof_names.index("root_rz")] = candidate
+            self.angles = self.previous = a
+            self.colour, self.lost = None, 0
+            res = None
+            for _ in range(self.config.init_passes):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False)
+                self.angles = self.previous = res.angles
+            cost = self._fit_cost(res)
+            tried.append((float(candidate), float(cost)))
+            log.debug("initialisation: heading %.2f rad: residual %.1f mm, explained %.2f", candidate,
+                      1e3 * res.residual_m, res.explained)
+            # the toes' heading (the first) is kept unless another fits clearly better
+            margin = HEADING_MARGIN_M if best is not None and best[2] and candidate != candidates[0] else 0.0
+            if best is None or cost < best[0] - margin:
+                best = (cost, res, candidate == candidates[0] and toe > 0.0)
+        res = best[1]
+        self.angles = self.previous = res.angles
+        return res, height, body_m3, toe, tuple(tried)
+
+    def _starfish_arm_abduction(self, pts: torch.Tensor, w: torch.Tensor, along: torch.Tensor, sole: float) -> float:
+        """The arms' abduction (rad from hanging, both sides' mean) that puts the hands where the voxels' far ends
+        along the arms' line lie (their outermost ``STARFISH_HAND_SHARE``), seen from the shoulders of the body
+        scaled to the voxels (:attr:`subject`)."""
+        skel = self.subject.skeleton
+        lm = skel.forward(skel.starfish_angles()[None].to(skel.lower)).landmarks[0]  # facing +X, soles at z = 0
+        shoulder = lm[LANDMARKS.index("l_shoulder")]
+        reach, drop = [], []
+        for side in (1.0, -1.0):
+            x = side * along
+            far = x >= torch.quantile(x, 1.0 - STARFISH_HAND_SHARE)
+            wf = w[far] / w[far].sum()
+            reach.append(float((wf * x[far]).sum()) - abs(float(shoulder[1])))
+            drop.append(float(shoulder[2]) - (float((wf * pts[far, 2]).sum()) - sole))
+        angle = sum(math.atan2(r, d) for r, d in zip(reach, drop)) / 2
+        return min(max(angle, 0.0), math.pi)
+
+    def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
+                      tried: tuple) -> FrameResult:
+        """From a start's fit: the bone fit, the checks (the starfish's raised arms only for its start), the
+        colours learnt."""
+        pts = obs.points
+        # the bone fit's rounds explain ghosts away: so does the fit they must improve on
+        for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):
+            res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+            self.angles = self.previous = res.angles
+        # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
+        # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
+        # undone and ends the fit (a guard against feedback between the fit and the pose, which let the hull's
+        # torso grow round after round from a start too tall; going on past a worse round and keeping the best
+        # was worse: docs/results.md, "Tried and dropped")
+        best_fit = (self._fit_cost(res), self.subject.skeleton, res)
+        fit_obs = obs.split(BONE_FIT_VOXEL_M)  # the bone fit's voxels (BONE_FIT_VOXEL_M)
+        start_body = self.subject.skeleton  # scaled to the voxels' height: the fit's ridge pulls towards it
+        for _ in range(FIT_ROUNDS if self.config.fit_bone_lengths else 3):
+            if self.config.fit_bone_lengths:
+                skel_fit, change = self._fit_bone_lengths(fit_obs, res, start_body)
+            else:
+                s = self._scale_from_blobs(res)
+                # within 10% of the voxels' height: the blobs refine it, they must not run away on bad voxels
+                new_h = min(max(self.height_m * s, 0.9 * height, 0.5), 1.1 * height, 2.5)
+                skel_fit, change = self.generic.scaled_to_height(new_h), abs(new_h / self.height_m - 1)
+            if change < 0.005:
+                break
+            angles = res.angles.clone()
+            self._use(skel_fit.to(pts.device))
+            self.angles = self.previous = angles
+            for _ in range(max(2, self.config.init_passes // 3)):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = res.angles
+            cost = self._fit_cost(res)
+            log.debug("bone fit round: fit cost %.2f mm, best before %.2f mm", 1e3 * cost, 1e3 * best_fit[0])
+            if cost > best_fit[0]:
+                _, skel_best, res = best_fit
+                self._use(skel_best)
+                self.angles = self.previous = res.angles
+                break
+            best_fit = (cost, self.subject.skeleton, res)
+        self.colour = None
+        # against the body scaled to the voxels' height, not the fitted one (the bone fit may grow into phantoms)
+        raise_deg, fill = self._arms(res)
+        check = self.start_check = StartCheck(height, obs.volume_m3() / body_m3, raise_deg, fill, toe, tuple(tried))
+        if check.volume_ratio > STARFISH_MAX_VOLUME_RATIO:
+            raise InputError(
+                f"initialisation: the first frame's voxels hold {check.volume_ratio:.1f} times the volume of a body "
+                f"as tall as they are ({height:.2f} m; at most {STARFISH_MAX_VOLUME_RATIO:g} times): not one person "
+                "in the starfish pose (phantom volume, or a background that keeps parts of the room or a subject "
+                "who stands still). " + START_ADVICE)
+        # an arm is missing when its blobs found no voxels where the starfish puts it, or the fit found it hanging
+        missing = [side for side, deg, f in zip(("left", "right"), raise_deg, fill)
+                   if deg < STARFISH_MIN_ARM_RAISE_DEG or f < self.config.em.min_fill  # NaN fill: not judged
+                   ] if self.config.start == "starfish" else []
+        if missing:
+            raise InputError(
+                f"initialisation: the first frame does not look like the starfish pose: the {' and '.join(missing)} "
+                f"arm{'s are' if len(missing) > 1 else ' is'} not raised where the starfish puts "
+                f"{'them' if len(missing) > 1 else 'it'} (no voxels there, or the fit found "
+                f"{'them' if len(missing) > 1 else 'it'} hanging). "
+                + START_ADVICE)
+        if res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained:
+            self.subject = None
+            pose = " in the starfish pose" if self.config.start == "starfish" else ""
+            raise InputError(
+                f"initialisation: the first frame does not fit a person{pose} (goal residual "
+                f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
+                + START_ADVICE)
+        return self._learn_colour(obs)
+
+    def _learn_colour(self, obs: VoxelObservation) -> FrameResult:
+        """The colour model learnt afresh on ``obs`` from the current pose (a start's or a re-acquisition's): the
+        frame tracked with the colours free, returned as a re-initialised frame."""
+        self.colour = None
+        res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        self.angles = self.previous = res.angles
+        self.colour = res.blobs
+        return replace(res, reinitialised=True)
+
+    def _arms(self, res: FrameResult) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(left, right) upper-arm angles from hanging (deg) and arm blob fills of a starfish fit
+        (:class:`StartCheck`). The raised arms tell the starfish from someone standing: trunk and legs alone fit
+        a standing body too, and the voxels of something beside the body (a ghost of an estimated background)
+        can make it as wide as a starfish."""
+        names, P = self.subject.blobs.names, res.output_points
+        out_names = list(self.subject.skeleton.output_names)
+        raise_deg, fill = [], []
+        for side in ("l", "r"):
+            upper = P[out_names.index(f"{side}_elbow")] - P[out_names.index(f"{side}_shoulder")]
+            raise_deg.append(math.degrees(math.acos(max(-1.0, min(1.0, -float(upper[2] / upper.norm()))))))
+            k = [names.index(f"{side}_{b}") for b in ("upperarm", "forearm") if f"{side}_{b}" in names]
+            fill.append(float(res.blobs.fill[k].max()) if k else math.nan)
+        return (raise_deg[0], raise_deg[1]), (fill[0], fill[1])
+
+    def _scale_from_blobs(self, res: FrameResult) -> float:
+        """Least-squares scale of the fitted blob means about their centroid relative to the model's blobs."""
+        model_mean, _ = self.subject.blobs.gaussians(res.bone_frames[None])
+        m, f = model_mean[0], res.blobs.mean
+        w = (res.blobs.active.to(m.dtype) * res.blobs.fill.clamp(0, 1))[:, None]
+        cm, cf = (w * m).sum(0) / w.sum(), (w * f).sum(0) / w.sum()
+        return float((w * (f - cf) * (m - cm)).sum() / (w * (m - cm) ** 2).sum().clamp(min=1e-12))
