@@ -95,3 +95,16 @@ def test_lockstep_refuses_trackers_of_different_settings():
         Lockstep([MarkerlessTracker(skel), MarkerlessTracker(skel, TrackerConfig(refinements=2))])
     with pytest.raises(InputError, match="no trackers"):
         Lockstep([])
+
+
+def test_the_per_frame_core_reads_no_files_and_logs_nothing():
+    """The per-frame core (the step, EM, goals, IK, the trackers and their lockstep) imports no reader, logger,
+    renderer or observation model: drivers hand it its frames."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import torchtrack.tracking.lockstep, torchtrack.tracking.markerless; "
+            "print(' '.join(m for m in sys.modules if m.startswith(('torchtrack.io', 'torchtrack.logging', "
+            "'torchtrack.synth', 'torchtrack.occupancy'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "", out.stdout

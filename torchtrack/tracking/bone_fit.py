@@ -16,7 +16,7 @@ from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import ShapeFrame, ShapeModel, fit_shape, fit_shape_frames
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.model import Skeleton
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.step import FrameResult
 
 #: Bones whose lengths are fitted together at initialisation (left and right tied).

@@ -18,7 +18,7 @@ import torch
 
 from torchtrack.checks import InputError
 from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.step import StepState, SubjectStack, VoxelBatch, track_step
 
 #: Subject stacks kept for the sets of subjects recently stepped together (a set changes when a sequence starts,

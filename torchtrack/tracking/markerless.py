@@ -57,7 +57,7 @@ from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.hips import HipsMixin, with_hips_raised
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.start import (HEADING_MARGIN_M, START_MAX_OUTSIDE, STARFISH_MAX_VOLUME_RATIO,
                                        STARFISH_MIN_ARM_RAISE_DEG, StartCheck, StartMixin, _Race)
 from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, VoxelBatch,

@@ -34,7 +34,7 @@ from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
-from torchtrack.tracking.observation import ViewSilhouettes, VoxelObservation
+from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
 __all__ = ["SearchConfig", "SearchResult", "mirrored", "pose_prior", "real_pose_prior", "score_states", "search_pose",
            "turned_round", "two_way_score"]

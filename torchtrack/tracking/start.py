@@ -17,7 +17,7 @@ import torch
 from torchtrack.blobs.model import BlobModel, blob_volumes
 from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.bone_fit import BONE_FIT_VOXEL_M, FIT_ROUNDS
 from torchtrack.tracking.step import FrameResult
 

@@ -33,7 +33,7 @@ from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, S
 from torchtrack.skeleton.stack import SkeletonStack
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact
-from torchtrack.tracking.observation import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation
 
 #: A blob with more than this share of its predicted ellipsoid out of the observed volume's sides or top gives no
 #: goals (:meth:`VoxelObservation.outside`): its voxels are only the part inside, whose mean and axis pull the
