@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
@@ -93,13 +94,9 @@ class SkeletonStack(nn.Module):
         F = self.frame_dof.shape[0]
         theta = torch.where(self.frame_dof >= 0, angles[:, self.frame_dof.clamp(min=0)], 0.0)  # (B, F)
         axis = self.skeleton.axes_local.to(dev, dt)[self.frame_dof.clamp(min=0)]  # (F, 3)
-        # the joint's motion: a rotation about its axis (Rodrigues) or a shift along it
-        K = torch.zeros(F, 3, 3, dtype=dt, device=dev)
-        K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-        K = K - K.mT
-        s, c = torch.sin(theta)[..., None, None], torch.cos(theta)[..., None, None]
-        eye = torch.eye(3, dtype=dt, device=dev)
-        R = torch.where(self.revolute[:, None, None], eye + s * K + (1 - c) * (K @ K), eye)  # (B, F, 3, 3)
+        # the joint's motion: a rotation about its axis or a shift along it
+        rot = axis_angle_to_rotation_matrix((theta[..., None] * axis).reshape(-1, 3)).view(B, F, 3, 3)
+        R = torch.where(self.revolute[:, None, None], rot, torch.eye(3, dtype=dt, device=dev))  # (B, F, 3, 3)
         t = torch.where(self.prismatic[:, None], theta[..., None] * axis, 0.0)  # (B, F, 3)
         motion = torch.zeros(B, F, 4, 4, dtype=dt, device=dev)
         motion[..., :3, :3], motion[..., :3, 3], motion[..., 3, 3] = R, t, 1.0

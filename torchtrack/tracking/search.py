@@ -30,6 +30,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from torchtrack.blobs.em import quadric_distance2
 from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
@@ -302,24 +303,12 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
 def ellipsoid_distance2(points: torch.Tensor, centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor
                         ) -> torch.Tensor:
     """(N, 3) points, ellipsoids (H, K) -> (N, H, K) ``|diag(1/a) R^T (p - c)|^2``, the squared normalised distance
-    of every point from every ellipsoid's centre (<= 1 inside it).
-
-    As one matrix product of the points' quadratic monomials with each ellipsoid's quadric (its matrix
-    ``A = R diag(1/a^2) R^T``, ``-2 A c`` and ``c^T A c``), about the points' mean so that float32 keeps the
-    difference of its terms: the plain form's (H, K, N, 3) offsets, each turned by its own rotation, cost ten times
-    as much and were nine tenths of the start search's time.
-    """
+    of every point from every ellipsoid's centre (<= 1 inside it): each ellipsoid's quadric ``A = R diag(1/a^2)
+    R^T`` in :func:`~torchtrack.blobs.em.quadric_distance2`'s one matrix product (the plain form's (H, K, N, 3)
+    offsets, each turned by its own rotation, cost ten times as much and were nine tenths of the search's time)."""
     N, (H, K) = points.shape[0], centres.shape[:2]
-    mid = points.mean(0)
-    p, c = points - mid, centres - mid
     A = (R / semi_axes[..., None, :].square()) @ R.transpose(-1, -2)  # (H, K, 3, 3)
-    b = (A @ c[..., None])[..., 0]  # (H, K, 3)
-    x, y, z = p.unbind(-1)
-    mono = torch.stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z, -2 * x, -2 * y, -2 * z,
-                        torch.ones_like(x)], -1)  # (N, 10)
-    quad = torch.stack([A[..., 0, 0], A[..., 1, 1], A[..., 2, 2], A[..., 0, 1], A[..., 0, 2], A[..., 1, 2],
-                        b[..., 0], b[..., 1], b[..., 2], (c * b).sum(-1)], -1)  # (H, K, 10)
-    return (mono @ quad.reshape(H * K, 10).T).reshape(N, H, K)
+    return quadric_distance2(points, centres.reshape(H * K, 3), A.reshape(H * K, 3, 3)).view(N, H, K)
 
 
 def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, vox: _Voxels,

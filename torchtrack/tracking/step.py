@@ -25,6 +25,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
+from torch.nn.utils.rnn import pad_sequence
 
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes
@@ -33,7 +35,7 @@ from torchtrack.skeleton.model import JOINT_FRAMES, LANDMARK_FRAMES, FKResult, S
 from torchtrack.skeleton.stack import SkeletonStack
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import GoalModel, feet_index, floor_contact
-from torchtrack.tracking.voxels import VoxelObservation
+from torchtrack.tracking.voxels import VoxelObservation, share_outside
 
 #: A blob with more than this share of its predicted ellipsoid out of the observed volume's sides or top gives no
 #: goals (:meth:`VoxelObservation.outside`): its voxels are only the part inside, whose mean and axis pull the
@@ -157,24 +159,21 @@ class VoxelBatch:
     def of(cls, observations: Sequence[VoxelObservation], ghost_max_cameras: int) -> VoxelBatch:
         """Pad ``observations`` (one frame each) into a batch."""
         ref = observations[0].points
-        N = max(o.num_voxels for o in observations)
         C = max(o.colours.shape[1] for o in observations)
-        B = len(observations)
-        points = ref.new_full((B, N, 3), math.nan)
-        sizes, weights = ref.new_zeros(B, N), ref.new_zeros(B, N)
-        colours = ref.new_full((B, N, C, 3), math.nan)
-        valid = torch.zeros(B, C, dtype=torch.bool, device=ref.device)
-        centres = ref.new_zeros(B, C, 3)
-        lower, upper = ref.new_full((B, 3), -math.inf), ref.new_full((B, 3), math.inf)
-        for b, o in enumerate(observations):  # copies into the padded tensors, no arithmetic
-            n, c = o.num_voxels, o.colours.shape[1]
-            points[b, :n], sizes[b, :n], weights[b, :n] = o.points, o.sizes.to(ref), o.weights
-            colours[b, :n, :c] = o.colours
-            valid[b, :c] = o.cameras_valid.to(ref.device)
-            if o.camera_centres is not None:
-                centres[b, :c] = o.camera_centres.to(ref)
-            if o.volume_m is not None:
-                lower[b], upper[b] = ref.new_tensor(o.volume_m[0]), ref.new_tensor(o.volume_m[1])
+
+        def pad(rows: list[torch.Tensor], value: float) -> torch.Tensor:
+            return pad_sequence(rows, batch_first=True, padding_value=value)
+
+        points = pad([o.points for o in observations], math.nan)
+        sizes = pad([o.sizes.to(ref) for o in observations], 0.0)
+        weights = pad([o.weights for o in observations], 0.0)
+        colours = pad([F.pad(o.colours, (0, 0, 0, C - o.colours.shape[1]), value=math.nan) for o in observations],
+                      math.nan)  # cameras, then voxels
+        valid = pad([o.cameras_valid.to(ref.device) for o in observations], False)
+        centres = pad([ref.new_zeros(o.colours.shape[1], 3) if o.camera_centres is None else o.camera_centres.to(ref)
+                       for o in observations], 0.0)
+        box = [((-math.inf,) * 3, (math.inf,) * 3) if o.volume_m is None else o.volume_m for o in observations]
+        lower, upper = ref.new_tensor([b[0] for b in box]), ref.new_tensor([b[1] for b in box])
         ghosts = tuple(o.camera_centres is not None and o.camera_centres.shape[0] <= ghost_max_cameras
                        for o in observations)
         return cls(points, sizes, weights, colours, valid, centres, ghosts, lower, upper)
@@ -186,13 +185,8 @@ class VoxelBatch:
                                       self.camera_centres, self.ghosts, self.lower, self.upper)))
 
     def outside(self, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-        """(B, K) each blob's share out of its frame's volume (:meth:`VoxelObservation.outside`, batched)."""
-        from torchtrack.blobs.model import SURFACE_MAHALANOBIS2
-
-        half = (SURFACE_MAHALANOBIS2 * torch.diagonal(cov, dim1=-2, dim2=-1)).clamp(min=1e-12).sqrt()  # (B, K, 3)
-        lo, up = self.lower.to(mean)[:, None], self.upper.to(mean)[:, None]
-        d = torch.cat([((mean - lo) / half)[..., :2], (up - mean) / half], -1).clamp(-1.0, 1.0)  # (B, K, 5)
-        return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
+        """(B, K) each blob's share out of its frame's volume (:func:`~torchtrack.tracking.voxels.share_outside`)."""
+        return share_outside(mean, cov, self.lower.to(mean)[:, None], self.upper.to(mean)[:, None])
 
 
 @dataclass(frozen=True)

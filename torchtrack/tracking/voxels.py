@@ -91,20 +91,12 @@ class VoxelObservation:
         return float((self.sizes.double() ** 3).sum())
 
     def outside(self, mean: torch.Tensor, cov: torch.Tensor) -> torch.Tensor:
-        """(K,) the share of each blob's solid ellipsoid (``mean (K, 3)``, ``cov (K, 3, 3)`` of a uniform
-        ellipsoid) that lies out of the volume's sides or top (the floor is no cut: nothing stands below it);
-        zeros when the volume is unknown.
-
-        A plane at signed distance ``d`` (in units of the ellipsoid's half width along its normal, positive
-        towards the centre) cuts off the share ``(1 - d)^2 (2 + d) / 4`` of it (a ball's cap under the affine
-        map); the caps of the five planes are summed (their overlaps at the box's edges counted twice)."""
-        K = mean.shape[0]
+        """(K,) the share of each blob's solid ellipsoid (``mean (K, 3)``, ``cov (K, 3, 3)``) out of the volume's
+        sides or top (:func:`share_outside`); zeros when the volume is unknown."""
         if self.volume_m is None:
-            return mean.new_zeros(K)
+            return mean.new_zeros(mean.shape[0])
         lower, upper = (mean.new_tensor(c) for c in self.volume_m)
-        half = (SURFACE_MAHALANOBIS2 * torch.diagonal(cov, dim1=-2, dim2=-1)).clamp(min=1e-12).sqrt()  # (K, 3)
-        d = torch.cat([((mean - lower) / half)[:, :2], (upper - mean) / half], -1).clamp(-1.0, 1.0)  # (K, 5)
-        return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
+        return share_outside(mean, cov, lower, upper)
 
     def parts(self, cell_m: float = 0.06) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The occupied volume's connected parts: each voxel marks the cells of a ``cell_m`` lattice its box
@@ -204,3 +196,16 @@ class VoxelObservation:
         colours = torch.where(cwt[..., None] > 0, csum / cwt.clamp(min=1e-30)[..., None], torch.nan)
         return VoxelObservation(pts, vol ** (1.0 / 3.0), W, colours, self.cameras_valid, cell_m, self.num_observed,
                                 self.camera_centres, self.volume_m, self.silhouettes)
+
+
+def share_outside(mean: torch.Tensor, cov: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor) -> torch.Tensor:
+    """(..., K) the share of each solid ellipsoid (``mean (..., K, 3)``, ``cov (..., K, 3, 3)`` of a uniform
+    ellipsoid) that lies out of the box ``lower``, ``upper`` (``(3,)`` or ``(..., 1, 3)``; +-inf: unbounded) through
+    its sides or top (the floor is no cut: nothing stands below it).
+
+    A plane at signed distance ``d`` (in units of the ellipsoid's half width along its normal, positive towards the
+    centre) cuts off the share ``(1 - d)^2 (2 + d) / 4`` of it (a ball's cap under the affine map); the caps of the
+    five planes are summed (their overlaps at the box's edges counted twice)."""
+    half = (SURFACE_MAHALANOBIS2 * torch.diagonal(cov, dim1=-2, dim2=-1)).clamp(min=1e-12).sqrt()  # (..., K, 3)
+    d = torch.cat([((mean - lower) / half)[..., :2], (upper - mean) / half], -1).clamp(-1.0, 1.0)  # (..., K, 5)
+    return ((1 - d) ** 2 * (2 + d) / 4).sum(-1).clamp(max=1.0)
