@@ -17,7 +17,7 @@ import time
 import torch
 
 from torchtrack.blobs import BlobModel
-from torchtrack.occupancy.hull import HullConfig, hierarchical_hull
+from torchtrack.occupancy.hull import HierarchicalHull, HullConfig
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 from torchtrack.synth.sequence import RigConfig, make_ring_rig
@@ -85,10 +85,10 @@ def main() -> None:
         rig = rig.to(args.device)
         maps = [(m.to(args.device), c.to(args.device)) for m, c in maps]
         for voxel in (0.015, 0.02):
-            cfg = HullConfig(lower_m=ZONE[0], upper_m=ZONE[1], finest_voxel_m=voxel)
+            hull_of = HierarchicalHull(rig, HullConfig(lower_m=ZONE[0], upper_m=ZONE[1], finest_voxel_m=voxel))
             for name, (mahal2, colour) in zip(("starfish", "walk"), maps):
                 def run():
-                    hull = hierarchical_hull(rig, mahal2, colour, cfg)
+                    hull = hull_of(mahal2, colour)
                     if args.device != "cpu":
                         torch.cuda.synchronize()
                     return hull

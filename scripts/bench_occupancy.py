@@ -262,7 +262,7 @@ def bayes_stages(scene: Scene, n: int, runs: int, device: torch.device) -> None:
 
 def bench_hull(scenes: dict[tuple[str, int], Scene], runs: int, device: torch.device) -> None:
     try:
-        from torchtrack.occupancy.hull import HullConfig, hierarchical_hull, hull_from_images
+        from torchtrack.occupancy.hull import HierarchicalHull, HullConfig
     except ImportError as exc:
         print(f"\n[{device}] hierarchical hull: skipped, torchtrack.occupancy.hull is not importable ({exc})")
         return
@@ -276,18 +276,19 @@ def bench_hull(scenes: dict[tuple[str, int], Scene], runs: int, device: torch.de
         cfg = HullConfig(lower_m=BOX_LOWER_M, upper_m=BOX_UPPER_M, finest_voxel_m=finest_m,
                          footprint_early_out=footprint)
         B = scene.images.shape[0]
-        first, first_s = timed_once(lambda: hull_from_images(scene.rig, scene.background, scene.images[0], cfg),
-                                    device)  # builds the level-0 table of the rig
+        first, first_s = timed_once(lambda: HierarchicalHull(scene.rig, cfg).from_images(scene.background,
+                                                                                          scene.images[0]), device)
+        hull_of = HierarchicalHull(scene.rig, cfg)  # the plan (first call: built with it)
         mahal2 = scene.background.mahalanobis2(scene.images)  # (B, C, H, W)
         yuv = scene.background.normalise(scene.images)  # (B, C, 3, H, W)
         frames, hull_frames = itertools.cycle(range(B)), itertools.cycle(range(B))
 
         def full() -> object:
-            return hull_from_images(scene.rig, scene.background, scene.images[next(frames)], cfg)
+            return hull_of.from_images(scene.background, scene.images[next(frames)])
 
         def hull_only() -> object:
             i = next(hull_frames)
-            return hierarchical_hull(scene.rig, mahal2[i], yuv[i], cfg)
+            return hull_of(mahal2[i], yuv[i])
 
         times = interleaved_times({"full": full, "hull": hull_only}, runs, device)
         t, t_hull = float(np.median(times["full"])), float(np.median(times["hull"]))

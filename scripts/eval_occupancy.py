@@ -26,7 +26,7 @@ from torchtrack.cameras import load_calibration
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.checks import InputError, with_overrides
 from torchtrack.occupancy import BayesConfig, BayesianGrid, GridSpec, SilhouetteCarving
-from torchtrack.occupancy.hull import HullConfig, hull_from_images
+from torchtrack.occupancy.hull import HierarchicalHull, HullConfig
 from torchtrack.occupancy.metrics import false_components, inside_ellipsoids, iou
 from torchtrack.synth.scene import SceneConfig
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
@@ -61,8 +61,8 @@ def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: Sequence[str]
     gt = np.load(seq / "gt.npz")
     centres_v = spec.centres()
     models = {"bayes": BayesianGrid(rig, spec, bg, bayes), "silhouette": SilhouetteCarving(rig, spec, bg)}
-    hull_cfg = with_overrides(HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1], finest_voxel_m=voxel),
-                              hull_overrides, "--hull")
+    hull = HierarchicalHull(rig, with_overrides(HullConfig(lower_m=VOLUME[0], upper_m=VOLUME[1],
+                                                           finest_voxel_m=voxel), hull_overrides, "--hull"))
     res: dict[str, tuple[list[float], list]] = {k: ([], []) for k in (*models, "hull")}
     idx = np.linspace(0, folder.num_frames - 1, frames).round().astype(int)
     for t in idx:
@@ -70,7 +70,7 @@ def evaluate(seq: Path, voxel: float, frames: int, hull_overrides: Sequence[str]
         truth = inside_ellipsoids(centres_v, torch.from_numpy(gt["blob_centres"][t]),
                                   torch.from_numpy(gt["blob_R_world"][t]), torch.from_numpy(gt["blob_semi_axes"]))
         preds = {k: m(images).occupied()[0] for k, m in models.items()}
-        vox = hull_from_images(rig, bg, images[0], hull_cfg)
+        vox = hull.from_images(bg, images[0])
         preds["hull"] = vox.to_dense(spec.lower_m, spec.voxel_size_m, spec.shape).reshape(-1)
         for k, pred in preds.items():
             res[k][0].append(iou(pred, truth))

@@ -9,6 +9,7 @@ Silhouette oracle: squared Mahalanobis distance 100 inside the renderer's exact 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import numpy as np
@@ -19,7 +20,9 @@ import torch.nn.functional as F
 from torchtrack.cameras.rig import CameraRig
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.occupancy import hull as hull_module
-from torchtrack.occupancy.hull import HullConfig, SparseVoxels, hierarchical_hull, hull_from_images
+from torchtrack.occupancy.hull import (HierarchicalHull, HullConfig, SparseVoxels, hierarchical_hull,
+                                      hull_from_images)
+from torchtrack.occupancy.hull_plan import HullPlan
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 from torchtrack.synth.sequence import RigConfig, make_ring_rig
 
@@ -256,7 +259,7 @@ def test_sample_pattern_matches_exact_projection(k1):
     rig = make_ring_rig(RigConfig(num_cameras=3, width=320, height=240, k1=k1)).float()
     exact_rig = rig.subset([0, 1, 2]).double()
     config = dataclasses.replace(ZONE, lower_m=(-0.6, -0.6, 0.2), upper_m=(0.6, 0.6, 1.8))
-    plan = hull_module._plan_for(rig, config)
+    plan = HullPlan(rig, config)
     gen = torch.Generator().manual_seed(0)
     signs = torch.tensor([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float64)
     for level in range(1, plan.L + 1):
@@ -331,7 +334,7 @@ def small_plan(finest_voxel_m: float):
     rig = make_ring_rig(RigConfig(num_cameras=2, width=64, height=48, target_m=(0.4, 0.4, 0.4))).float()
     config = HullConfig(lower_m=(0.0, 0.0, 0.0), upper_m=(0.8, 0.8, 0.8), start_resolution=8,
                         finest_voxel_m=finest_voxel_m)
-    return hull_module._plan_for(rig, config)
+    return HullPlan(rig, config)
 
 
 def test_unknown_takes_neighbour_majority_hand_built():
@@ -343,8 +346,8 @@ def test_unknown_takes_neighbour_majority_hand_built():
     def at(*p):
         return (p[0] * 8 + p[1]) * 8 + p[2]
 
-    def set_neighbours(centre, values):  # values in the order of hull_module._NEIGHBOURS
-        for off, v in zip(hull_module._NEIGHBOURS.tolist(), values):
+    def set_neighbours(centre, values):  # values in the order of the plan's neighbours
+        for off, v in zip(plan.neighbours.tolist(), values):
             label[at(*(c + o for c, o in zip(centre, off)))] = v
 
     set_neighbours((4, 4, 4), [1] * 14 + [-1] * 12)  # 14 fg, 12 bg -> fg
@@ -416,9 +419,9 @@ def test_unknown_votes_match_a_plain_loop(seed):
         n = 8 * 2 ** level
         for i in (label == 0).nonzero()[:, 0].tolist():
             total = 0
-            for off in hull_module._NEIGHBOURS.tolist():
+            for off in itertools.product((-1, 0, 1), repeat=3):  # the 26 neighbours and the voxel itself
                 q = tuple(a + b for a, b in zip(ijk[i].tolist(), off))
-                if not all(0 <= x < n for x in q):
+                if off == (0, 0, 0) or not all(0 <= x < n for x in q):
                     continue
                 if q in cand:
                     total += {-1: -1, 0: 0, 1: 1, 2: 0}[cand[q]]
@@ -460,7 +463,7 @@ def test_min_views_with_all_foreground_maps(scene4):
     rig = scene4["rig"]
     config = dataclasses.replace(ZONE, lower_m=(-3.0, -3.0, 0.0), upper_m=(3.0, 3.0, 2.4))
     mahal2 = torch.full_like(scene4["mahal2"], 100.0)
-    plan = hull_module._plan_for(rig, config)
+    plan = HullPlan(rig, config)
     signs = torch.tensor([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=torch.float64)
     centres = torch.tensor(plan.lower, dtype=torch.float64) + (plan.ijk0 + 0.5) * plan.e0
     _, valid = rig.subset(range(4)).double().project(centres[:, None] + signs * plan.e0 / 4)  # (C, V0, 8)
@@ -529,6 +532,22 @@ def test_device_and_dtype(scene4, device):
     assert hull.centres.device.type == device.type
     a, b = ref.to_dense(), hull.to_dense().cpu()
     assert iou(a, b) > 0.99
+
+
+def test_module_holds_its_plan_as_buffers(scene4, device):
+    """A HierarchicalHull built on the CPU and moved by ``.to(device)`` carries its plan (buffers, float64 kept)
+    and gives the hull built from a rig on that device; the plan is not saved in a state dict."""
+    hull_of = HierarchicalHull(scene4["rig"], ZONE)
+    assert {"plan.model", "plan.idx0", "plan.sees0", "plan.model_ok"} <= {n for n, _ in hull_of.named_buffers()}
+    assert hull_of.state_dict() == {}
+    hull_of(scene4["mahal2"], scene4["images"])  # fills the plan's casts on the CPU
+    moved = hull_of.to(device)
+    assert moved.plan.model.device.type == device.type and moved.plan.model.dtype == torch.float64
+    assert all(t.device.type == device.type for t in moved.plan._cast.values())  # no stale cast
+    got = moved(scene4["mahal2"].to(device), scene4["images"].to(device))
+    ref = hierarchical_hull(scene4["rig"].to(device), scene4["mahal2"].to(device), scene4["images"].to(device), ZONE)
+    (c1, col1), (c0, col0) = (tuple(x.cpu() for x in sorted_voxels(h)) for h in (got, ref))
+    assert torch.equal(c1, c0) and torch.equal(col1, col0)
 
 
 def test_to_dense_by_hand():

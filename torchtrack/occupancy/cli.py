@@ -86,8 +86,8 @@ def _run(args: argparse.Namespace) -> int:
     from torchtrack.io.outputs import OBSERVE_DIR, replacing
     from torchtrack.io.sequence import SequenceFolder
     from torchtrack.logging import RunLogger
-    from torchtrack.occupancy import (BayesConfig, BayesianGrid, HullConfig, SilhouetteCarving, capture_views,
-                                      grid_from_rig, hull_from_images)
+    from torchtrack.occupancy import (BayesConfig, BayesianGrid, HierarchicalHull, HullConfig, SilhouetteCarving,
+                                      capture_views, grid_from_rig)
 
     device = torch.device(args.device)
     if device.type == "cuda" and not torch.cuda.is_available():
@@ -122,8 +122,8 @@ def _run(args: argparse.Namespace) -> int:
     elif args.model == "silhouette":
         model = SilhouetteCarving(rig, spec, bg, min_views=args.min_views).to(device)
     else:
-        hull_cfg = HullConfig(lower_m=spec.lower_m, upper_m=spec.upper_m, finest_voxel_m=args.voxel,
-                              min_views=args.min_views)
+        model = HierarchicalHull(rig, HullConfig(lower_m=spec.lower_m, upper_m=spec.upper_m,
+                                                 finest_voxel_m=args.voxel, min_views=args.min_views))
     centres_all = spec.centres(device=device)
     stop = folder.num_frames if args.stop is None else min(args.stop, folder.num_frames)
     frames_out, centres_out, sizes_out = [], [], []
@@ -132,7 +132,7 @@ def _run(args: argparse.Namespace) -> int:
         for batch in folder.iter_batches(args.batch, args.start, stop, device=device, size_wh=(W, H)):
             t0 = time.perf_counter()
             if args.model == "hull":
-                results = [hull_from_images(rig, bg, img, hull_cfg) for img in batch.images]
+                results = [model.from_images(bg, img) for img in batch.images]
                 per_frame = [(v.centres, v.sizes) for v in results]
             else:
                 occ = model(batch.images).occupied()  # (B, V)

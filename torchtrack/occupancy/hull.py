@@ -9,11 +9,11 @@ Conventions (world Z up, metres; OpenCV cameras, pixel centres at integer coordi
   voxels of 12 cm, then 6, 3, 1.5 cm, a 136^3 finest grid).
 * Sample pattern: a voxel of edge ``e`` is read at the 8 points ``centre + (+-e/4)^3`` (its children's centres),
   each at its nearest pixel. A view *sees* a voxel when all 8 samples fall inside its image, in front of it, with
-  finite values (NaN pixels, e.g. a dead camera frame, count as unseen). Level 0 is projected exactly (table
-  cached per rig). Below, the paper's pre-computed pattern: per level-0 voxel and camera, a quadratic fitted to
-  the exact (distorted) projections of ``centre + {-3/8 e0, 0, 3/8 e0}^3`` is re-centred on each parent and its
-  cross terms dropped, so a parent's 64 child samples are ``uv_p + f_x(dx) + f_y(dy) + f_z(dz)`` (per-axis
-  quadratics). Error against the exact projection: mean 0.02 px, max 0.11 px at level 1 (12 cm voxels, 3.5 m
+  finite values (NaN pixels, e.g. a dead camera frame, count as unseen). Level 0 is projected exactly (the plan,
+  :class:`~torchtrack.occupancy.hull_plan.HullPlan`, built once per rig and zone). Below, the paper's pre-computed
+  pattern: per level-0 voxel and camera, a quadratic fitted to the exact (distorted) projections of
+  ``centre + {-3/8 e0, 0, 3/8 e0}^3`` is re-centred on each parent and its cross terms dropped, so a parent's 64
+  child samples are ``uv_p + f_x(dx) + f_y(dy) + f_z(dz)`` (per-axis quadratics). Error against the exact projection: mean 0.02 px, max 0.11 px at level 1 (12 cm voxels, 3.5 m
   away), 4x less per level below; the nearest pixel changes only within that distance of a pixel border.
 * Sample values: squared Mahalanobis distances to the background (YUV, 3 channels; the background model's
   per-pixel foreground test is ``d2 > FOREGROUND_MAHALANOBIS2 = 16``), clipped at ``clip_mahalanobis2``; per view
@@ -39,19 +39,16 @@ Conventions (world Z up, metres; OpenCV cameras, pixel centres at integer coordi
 from __future__ import annotations
 
 import math
-import warnings
-import weakref
 from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from torchtrack.cameras import distortion
-from torchtrack.cameras.rig import MIN_DEPTH
 from torchtrack.checks import InputError, check_shape
+from torchtrack.occupancy.hull_plan import HullPlan
 
-__all__ = ["HullConfig", "SparseVoxels", "hierarchical_hull", "hull_from_images"]
+__all__ = ["HierarchicalHull", "HullConfig", "SparseVoxels", "hierarchical_hull", "hull_from_images"]
 
 #: Largest number of samples (cameras x voxels x 8) evaluated at once; bigger levels are processed in chunks.
 _CHUNK_SAMPLES = 1 << 22
@@ -206,108 +203,6 @@ class SparseVoxels:
         return out
 
 
-# ---------------------------------------------------------------------------------------------- the plan
-
-
-class _Plan:
-    """What is fixed for one rig, zone and device (cached by :func:`_plan_for`).
-
-    Attributes:
-        lower, lower_t (3,) float64, e0, n0, L, C, H, W: the grids and images.
-        idx0: (C, 8, V0) int32 flat level-0 sample indices in the row-offset layout ``(v + c H) W + u`` (one flat
-            map of all cameras; 0 where unseen); sees0 (C, V0) bool; ijk0 (V0, 3) int64.
-        model: (V0, C * 2 * 13) float64 per level-0 voxel, camera and pixel coordinate: value, gradient (3) and
-            Hessian (3 x 3) w.r.t. the world offset (m) of the quadratic fitted (least squares) to the exact
-            projections of ``centre + {-h, 0, h}^3``, ``h = 3/8 e0``. model_ok: (C, V0) all 27 in front and
-            inside the distortion model's range.
-
-    Sample tables are (C, 8, V), the voxel index innermost, so ops and the 8-sample reductions run on long rows.
-    """
-
-    def __init__(self, rig: nn.Module, config: HullConfig) -> None:
-        if config.lower_m is None:
-            raise InputError("HullConfig.lower_m / upper_m (the zone of interest) must be set")
-        if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
-            raise InputError(f"hierarchical_hull needs cameras of one image size, got {rig.image_size_wh.tolist()}")
-        lo = config.lower_m
-        self.L, self.e0, self.n0 = config.level0()
-        self.n0_t = torch.tensor(self.n0, device=rig.K.device)
-        self.C = rig.num_cameras
-        self.W, self.H = (int(v) for v in rig.image_size_wh[0].tolist())
-        if self.C * self.H * self.W >= 2 ** 31:
-            raise InputError("hierarchical_hull: more than 2^31 pixels over all cameras")
-        dev = self.device = rig.K.device
-        self.lower, self.lower_t = list(lo), torch.tensor(lo, dtype=torch.float64, device=dev)
-        self.tau = torch.tensor(_TAU, dtype=torch.float64, device=dev)[:, None]  # (4, 1)
-        self.size_wh = torch.tensor([self.W, self.H], device=dev)[None, :, None, None]  # (1, 2, 1, 1)
-        self.shift = torch.stack([torch.full((self.C,), 0.5, device=dev),
-                                  torch.arange(self.C, device=dev) * self.H + 0.5], -1)[:, :, None]  # (C, 2, 1)
-        self.child = torch.tensor([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], device=dev)[:, None]
-        self.neighbours = _NEIGHBOURS.to(dev)
-        axes = [torch.arange(n, device=dev) for n in self.n0]
-        self.ijk0 = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # (V0, 3)
-        self.pixel0 = torch.arange(self.C, device=dev)[:, None, None] * (self.H * self.W)  # (C, 1, 1)
-        self._cast: dict[tuple[str, torch.dtype], Tensor] = {}
-        with torch.no_grad():
-            self._level0(rig)
-            self._model(rig)
-            self.footprint = _footprint_windows(self)  # per level, odd max-filter width (px); 1: none
-
-    def edge(self, level: int) -> float:
-        return self.e0 / 2 ** level
-
-    def as_(self, name: str, dtype: torch.dtype) -> Tensor:
-        """Attribute ``name`` cast to ``dtype`` (cached)."""
-        if (name, dtype) not in self._cast:
-            self._cast[name, dtype] = getattr(self, name).to(dtype)
-        return self._cast[name, dtype]
-
-    def _level0(self, rig: nn.Module) -> None:
-        """Exact sample pixels of every level-0 voxel (``CameraRig.project``, nearest pixel)."""
-        sign = torch.tensor([-0.25, 0.25], dtype=torch.float64, device=self.device)
-        pattern = torch.stack(torch.meshgrid(sign, sign, sign, indexing="ij"), -1).reshape(8, 1, 3)
-        uv, valid = rig.project((self.lower_t + (self.ijk0 + 0.5 + pattern) * self.e0).to(rig.K.dtype))
-        px = torch.floor(uv + 0.5).long()  # (C, 8, V0, 2)
-        idx = (px[..., 1] + torch.arange(self.C, device=self.device)[:, None, None] * self.H) * self.W + px[..., 0]
-        self.idx0 = torch.where(valid, idx, torch.zeros_like(idx)).to(torch.int32)  # (C, 8, V0)
-        self.sees0 = valid.all(1)  # (C, V0)
-        for c in range(self.C):
-            if not bool(valid[c].any()):
-                warnings.warn(f"hierarchical_hull: camera {rig.names[c]!r} sees none of the zone {self.lower} - "
-                              f"{[l + n * self.e0 for l, n in zip(self.lower, self.n0)]}; it is skipped",
-                              UserWarning, stacklevel=5)
-
-    def _model(self, rig: nn.Module) -> None:
-        """Quadratic projection model of every level-0 voxel (see the class docstring)."""
-        C, V0, h = self.C, self.ijk0.shape[0], 0.375 * self.e0
-        r = torch.tensor([-h, 0.0, h], dtype=torch.float64, device=self.device)
-        offs = torch.stack(torch.meshgrid(r, r, r, indexing="ij"), -1).reshape(27, 3)
-        pts = offs[:, None] + self.lower_t + (self.ijk0 + 0.5) * self.e0  # (27, V0, 3)
-        uv, ok = _project_unclipped(rig, pts.reshape(-1, 3).to(rig.K.dtype))  # (C, 27 V0, 2), (C, 27 V0)
-        x, y, z = offs.T
-        basis = torch.stack([torch.ones_like(x), x, y, z, x * x / 2, x * y / 2, x * z / 2, x * y / 2, y * y / 2,
-                             y * z / 2, x * z / 2, y * z / 2, z * z / 2], -1)  # (27, 13) for value, grad, Hessian
-        coef = torch.linalg.pinv(basis) @ uv.double().reshape(C, 27, V0, 2).permute(1, 0, 3, 2).reshape(27, -1)
-        self.model = coef.reshape(13, C * 2, V0).permute(2, 1, 0).reshape(V0, C * 26).contiguous()
-        self.model_ok = ok.reshape(C, 27, V0).all(1)  # (C, V0)
-
-
-def _footprint_windows(plan: _Plan) -> list[int]:
-    """Per level, the odd width (px) of the max filter of ``HullConfig.footprint_early_out``: the projected
-    width of a child (edge ``e / 2``) at the median level-0 voxel of the camera that sees the zone largest; 1 (no
-    filter) where that is under 2 px, and at the finest level (no early-out there)."""
-    grad = plan.model.reshape(-1, plan.C, 2, 13)[..., 1:4]  # (V0, C, uv, 3) pixels per metre along x, y, z
-    width = grad.abs().sum(-1).amax(-1)  # (V0, C): projected width (px) of a 1 m cube, the wider image axis
-    ok = (plan.model_ok & plan.sees0).T  # (V0, C)
-    per_camera = [float(width[ok[:, c], c].median()) for c in range(plan.C) if bool(ok[:, c].any())]
-    px_per_m = max(per_camera, default=0.0)
-    windows = []
-    for level in range(plan.L + 1):
-        radius = int(px_per_m * plan.edge(level) / 4) if level < plan.L else 0  # half a child's width
-        windows.append(2 * radius + 1)
-    return windows
-
-
 def _max_filter(x: Tensor, width: int, dim: int) -> Tensor:
     """Centred running maximum of odd ``width`` along ``dim`` (outside the tensor counts as the lowest value of
     the dtype; NaN spreads),
@@ -327,46 +222,12 @@ def _max_filter(x: Tensor, width: int, dim: int) -> Tensor:
     return y
 
 
-def _project_unclipped(rig: nn.Module, pts: Tensor) -> tuple[Tensor, Tensor]:
-    """(N, 3) world points -> distorted pixels (C, N, 2) and ok (C, N): in front and inside the radius where the
-    distortion model is monotonic; unlike ``CameraRig.project``, not clipped to the image."""
-    cam = rig.world_to_camera(pts)  # (C, N, 3)
-    z = cam[..., 2]
-    ok = z > MIN_DEPTH
-    xy = cam[..., :2] / torch.where(ok, z, torch.ones_like(z))[..., None]  # (C, N, 2)
-    ok &= (xy * xy).sum(-1) < distortion.fold_radius_sq(rig.dist, rig.fisheye_mask)[:, None]
-    xy_d = distortion.distort(xy, rig.dist.to(xy.dtype), rig.fisheye_mask)  # (C, N, 2)
-    K = rig.K.to(xy.dtype)
-    return xy_d * torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, None, :] + K[:, None, :2, 2], ok
-
-
-_PLANS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def _plan_for(rig: nn.Module, config: HullConfig) -> _Plan:
-    """The cached plan of ``rig`` and the zone (rebuilt when the rig's buffers are replaced or changed in place)."""
-    buffers = (rig.K, rig.R_cam_world, rig.t_cam_world, rig.dist, rig.image_size_wh, rig.fisheye_mask)
-    state = tuple((b.data_ptr(), b._version, b.device, b.dtype) for b in buffers)
-    key = (config.lower_m, config.upper_m, config.start_resolution, config.finest_voxel_m)
-    plans = _PLANS.setdefault(rig, {})
-    if plans.get(key, (None,))[0] != state:
-        while len(plans) >= 4:  # a few zones per rig
-            plans.pop(next(iter(plans)))
-        plans[key] = (state, _Plan(rig, config))
-    return plans[key][1]
-
-
 # -------------------------------------------------------------------------------------- sampling a level
 
-#: Per axis, the children's sample offsets from the parent centre in parent edges, index ``2 s + c`` for sample s
-#: of child c: child 0 (centre -1/4) samples at -3/8 and -1/8, child 1 (centre +1/4) at +1/8 and +3/8.
-_TAU = (-0.375, 0.125, -0.125, 0.375)
-_NEIGHBOURS = torch.tensor([[a, b, c] for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
-                            if (a, b, c) != (0, 0, 0)])  # (26, 3)
 _BG, _UNKNOWN, _FG, _EDGE = -1, 0, 1, 2
 
 
-def _children_samples(plan: _Plan, level: int, parents: Tensor, dtype: torch.dtype,
+def _children_samples(plan: HullPlan, level: int, parents: Tensor, dtype: torch.dtype,
                       centres: bool = False) -> tuple[Tensor, ...]:
     """Sample pixels of the 8 children of every parent, from the quadratic of the parent's level-0 ancestor
     re-centred on the parent (exact for a quadratic) without its cross terms.
@@ -452,7 +313,7 @@ def _classify(m: Tensor, s: Tensor, sees: Tensor, config: HullConfig, min_views:
     return label.masked_fill_(background | (sees.sum(0) < min_views), _BG)
 
 
-def _resolve_unknown(plan: _Plan, level: int, ijk: Tensor, label: Tensor,
+def _resolve_unknown(plan: HullPlan, level: int, ijk: Tensor, label: Tensor,
                      kept: list[tuple[int, Tensor, object]]) -> Tensor:
     """Unknown voxels (label 0) take the majority of their 26 decided same-level neighbours; tie -> foreground.
 
@@ -517,32 +378,67 @@ def _colours(colour: Tensor, idx: Tensor, d: Tensor, sees: Tensor, t_low: float,
 # ------------------------------------------------------------------------------------------- the hull
 
 
-def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: HullConfig) -> SparseVoxels:
-    """Hierarchical visual hull of one frame (see the module docstring for the pattern and the rules).
+class HierarchicalHull(nn.Module):
+    """The hierarchical visual hull of one rig and zone, frame by frame (see the module docstring).
+
+    The plan (:class:`~torchtrack.occupancy.hull_plan.HullPlan`: level 0 projected exactly, the projection model
+    of the levels below) is built once here from the rig as it is now, and held as buffers: ``.to(device)`` moves
+    it; a rig changed later needs a new module.
 
     Args:
-        rig: ``CameraRig`` of C cameras, all of image size W x H (the plan of rig and zone is cached).
-        mahal2: (C, H, W) squared Mahalanobis distance of every pixel to its background (NaN: no data).
-        colour: (C, 3, H, W) colour image stored per voxel (any colour space; YUV in :func:`hull_from_images`).
-        config: zone (required), resolution and thresholds.
-
-    Returns:
-        :class:`SparseVoxels` of the kept voxels (possibly none), centres and sizes in ``mahal2.dtype``.
+        rig: ``CameraRig`` of C cameras, all of image size W x H. config: zone (required), resolution, thresholds.
 
     Raises:
-        ShapeError: shapes do not fit the rig. InputError: no zone, mixed image sizes, devices, min_views > C.
+        InputError: no zone, mixed image sizes, min_views > C.
     """
-    plan = _plan_for(rig, config)
+
+    def __init__(self, rig: nn.Module, config: HullConfig) -> None:
+        super().__init__()
+        self.config = config
+        self.plan = HullPlan(rig, config)
+        self.min_views = min(2, self.plan.C) if config.min_views is None else config.min_views
+        if self.min_views > self.plan.C:
+            raise InputError(f"HullConfig.min_views = {self.min_views} exceeds the {self.plan.C} cameras")
+
+    def forward(self, mahal2: Tensor, colour: Tensor) -> SparseVoxels:
+        """One frame's hull.
+
+        Args:
+            mahal2: (C, H, W) squared Mahalanobis distance of every pixel to its background (NaN: no data).
+            colour: (C, 3, H, W) colour image stored per voxel (any colour space; YUV in :meth:`from_images`).
+
+        Returns:
+            :class:`SparseVoxels` of the kept voxels (possibly none), centres and sizes in ``mahal2.dtype``.
+
+        Raises:
+            ShapeError: shapes do not fit the rig. InputError: not floating point or not on the plan's device.
+        """
+        return _hull(self.plan, self.config, self.min_views, mahal2, colour)
+
+    def from_images(self, background: nn.Module, images: Tensor) -> SparseVoxels:
+        """One frame's hull from RGB images ``(C, 3, H, W)`` in [0, 1] against a
+        :class:`~torchtrack.background.BackgroundModel` (its ``mahalanobis2_yuv`` and ``normalise``); the voxel
+        colours are the model's gain-normalised YUV."""
+        check_shape(images, (self.plan.C, 3, self.plan.H, self.plan.W), "images")
+        yuv = background.normalise(images[None])[0]  # (C, 3, H, W), YUV and gain computed once
+        return self(background.mahalanobis2_yuv(yuv), yuv)
+
+
+def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: HullConfig) -> SparseVoxels:
+    """The hull of one frame: ``HierarchicalHull(rig, config)(mahal2, colour)``. The plan is built on each call;
+    for many frames of one rig keep a :class:`HierarchicalHull`."""
+    return HierarchicalHull(rig, config)(mahal2, colour)
+
+
+def _hull(plan: HullPlan, config: HullConfig, min_views: int, mahal2: Tensor, colour: Tensor) -> SparseVoxels:
+    """:meth:`HierarchicalHull.forward`."""
     C, H, W = plan.C, plan.H, plan.W
     check_shape(mahal2, (C, H, W), "mahal2")
     check_shape(colour, (C, 3, H, W), "colour")
     for name, x in (("mahal2", mahal2), ("colour", colour)):
         if not x.is_floating_point() or x.device != plan.device:
-            raise InputError(f"{name}: expected a floating point tensor on {plan.device} (the rig's device), got "
+            raise InputError(f"{name}: expected a floating point tensor on {plan.device} (the plan's device), got "
                              f"{x.dtype} on {x.device}")
-    min_views = min(2, C) if config.min_views is None else config.min_views
-    if min_views > C:
-        raise InputError(f"HullConfig.min_views = {min_views} exceeds the {C} cameras")
     flat, dtype = mahal2.reshape(-1), mahal2.dtype
     footprint = {}  # window -> (C H W,) uint8 foreground mask max-filtered over it (row-offset layout, as flat)
     if config.footprint_early_out:
@@ -593,7 +489,7 @@ def hierarchical_hull(rig: nn.Module, mahal2: Tensor, colour: Tensor, config: Hu
     return _assemble(plan, kept, dtype, colour, config.t_low)
 
 
-def _assemble(plan: _Plan, kept: list[tuple[int, Tensor, tuple[Tensor, ...]]], dtype: torch.dtype, colour: Tensor,
+def _assemble(plan: HullPlan, kept: list[tuple[int, Tensor, tuple[Tensor, ...]]], dtype: torch.dtype, colour: Tensor,
               t_low: float) -> SparseVoxels:
     """The kept voxels of all levels as :class:`SparseVoxels`, their colours from their samples in one pass."""
     dev, C = plan.device, plan.C
@@ -612,10 +508,6 @@ def _assemble(plan: _Plan, kept: list[tuple[int, Tensor, tuple[Tensor, ...]]], d
 
 
 def hull_from_images(rig: nn.Module, background: nn.Module, images: Tensor, config: HullConfig) -> SparseVoxels:
-    """:func:`hierarchical_hull` of one frame of RGB images ``(C, 3, H, W)`` in [0, 1] against a
-    :class:`~torchtrack.background.BackgroundModel` (its ``mahalanobis2`` and ``normalise``); the voxel colours
-    are the model's gain-normalised YUV."""
-    C, W, H = rig.num_cameras, *(int(v) for v in rig.image_size_wh[0].tolist())
-    check_shape(images, (C, 3, H, W), "images")
-    yuv = background.normalise(images[None])[0]  # (C, 3, H, W), YUV and gain computed once
-    return hierarchical_hull(rig, background.mahalanobis2_yuv(yuv), yuv, config)
+    """The hull of one frame of RGB images: ``HierarchicalHull(rig, config).from_images(background, images)``
+    (the plan built on each call)."""
+    return HierarchicalHull(rig, config).from_images(background, images)

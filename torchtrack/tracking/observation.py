@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from torchtrack.checks import InputError
-from torchtrack.occupancy import BayesConfig, BayesianGrid, HullConfig, capture_views, grid_from_rig, hull_from_images
+from torchtrack.occupancy import BayesConfig, BayesianGrid, HierarchicalHull, HullConfig, capture_views, grid_from_rig
 from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
 #: What the tracker's data types are re-exported for: callers that import them from here.
@@ -83,6 +83,7 @@ class Observer(nn.Module):
             fields = {**base.__dict__, "lower_m": spec.lower_m, "upper_m": spec.upper_m,
                       "finest_voxel_m": voxel_size_m, "min_views": min_views}
             self.hull_config = HullConfig(**fields)
+            self.hull = HierarchicalHull(rig, self.hull_config)
 
     def forward(self, images: torch.Tensor, cameras_valid: torch.Tensor | None = None) -> list[VoxelObservation]:
         """(B, C, 3, H, W) RGB frames (NaN: unreadable) -> B observations."""
@@ -92,7 +93,7 @@ class Observer(nn.Module):
             out = []
             cams = self.rig.centers()  # the cameras' centres, from the rig as it is now
             for b in range(images.shape[0]):
-                v = hull_from_images(self.rig, self.background, images[b], self.hull_config)
+                v = self.hull.from_images(self.background, images[b])
                 w = v.sizes ** 3
                 out.append(VoxelObservation(v.centres, v.sizes, w, v.colours.to(v.centres.dtype), cameras_valid[b],
                                             camera_centres=cams.to(v.centres.dtype),
