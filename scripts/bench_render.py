@@ -17,7 +17,7 @@ import time
 import torch
 
 from torchtrack.cameras.rig import CameraRig
-from torchtrack.synth.render import ray_ellipsoid_intersect, ray_ellipsoid_pair_hits, nearest_hits
+from torchtrack.ellipsoids import nearest_hits, ray_ellipsoid_intersect, ray_ellipsoid_pair_hits
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -72,3 +73,31 @@ def voxelised_observation(skel, blobs, angles, voxel=0.03, shift=(0.0, 0.0, 0.0)
     sizes = torch.full((pts.shape[0],), voxel, dtype=torch.float64)
     return VoxelObservation(pts.float(), sizes.float(), (sizes ** 3).float(), colours.float(),
                             torch.ones(cameras, dtype=torch.bool))
+
+
+# ---------------------------------------------------------------------------------- ellipsoid bodies
+
+
+def random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
+    """(n, 3, 3) random rotations (QR of Gaussian matrices, sign-fixed)."""
+    q, r = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
+    q = q * torch.sign(torch.diagonal(r, dim1=1, dim2=2))[:, None, :]
+    return q * torch.det(q)[:, None, None]
+
+
+def small_body(dtype=torch.float64):
+    """Six ellipsoids roughly shaped like a person standing at the origin: centres, R, semi-axes, colours."""
+    gen = torch.Generator().manual_seed(3)
+    centers = torch.tensor([[0, 0, 1.0], [0, 0, 1.35], [0, 0, 1.65], [0.05, 0.25, 1.2],
+                            [0, -0.1, 0.5], [0.02, 0.12, 0.5]], dtype=torch.float64)
+    semi = torch.tensor([[0.12, 0.18, 0.14], [0.13, 0.2, 0.16], [0.1, 0.09, 0.12], [0.05, 0.05, 0.25],
+                         [0.07, 0.07, 0.4], [0.07, 0.07, 0.4]], dtype=torch.float64)
+    R = random_rotations(6, gen)
+    R[[4, 5]] = torch.eye(3, dtype=torch.float64)
+    colours = torch.rand(6, 3, generator=gen, dtype=torch.float64) * 0.6 + 0.2
+    return centers.to(dtype), R.to(dtype), semi.to(dtype), colours.to(dtype)
+
+
+def quadric_matrix(c: np.ndarray, R: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """A with (p - c)^T A (p - c) <= 1 inside."""
+    return R @ np.diag(1.0 / a**2) @ R.T

@@ -1,8 +1,8 @@
-"""Tests of the ellipsoid ray caster (torchtrack.synth.render) and the scene renderer (torchtrack.synth.scene).
+"""Tests of the scene renderer (torchtrack.synth.scene) and its shading (torchtrack.synth.render); the ray casting
+is tested in test_ellipsoids.py.
 
-References are independent of the code under test: closed-form hit distances, point-in-ellipsoid marching,
-the projected conic of each ellipsoid (dual quadric) and, with lens distortion, OpenCV's projectPoints of dense
-surface samples.
+References are independent of the code under test: the projected conic of each ellipsoid (dual quadric) and, with
+lens distortion, OpenCV's projectPoints of dense surface samples.
 """
 
 from __future__ import annotations
@@ -16,19 +16,13 @@ import torch
 
 from torchtrack.cameras.rig import CameraRig
 from torchtrack.checks import InputError, ShapeError
-from torchtrack.synth.render import (
-    nearest_hits, ray_box_intersect, ray_ellipsoid_intersect, ray_ellipsoid_pair_hits, shade, unit_sphere_hits,
-)
+from torchtrack.ellipsoids import ray_ellipsoid_intersect
+from torchtrack.synth.render import shade
 from torchtrack.synth.scene import SceneConfig, SceneRenderer, illumination_gain
 
+from conftest import quadric_matrix, small_body
+
 # ----------------------------------------------------------------------------------------------- helpers
-
-
-def random_rotations(n: int, gen: torch.Generator) -> torch.Tensor:
-    """(n, 3, 3) random rotations (QR of Gaussian matrices, sign-fixed)."""
-    q, r = torch.linalg.qr(torch.randn(n, 3, 3, generator=gen, dtype=torch.float64))
-    q = q * torch.sign(torch.diagonal(r, dim1=1, dim2=2))[:, None, :]
-    return q * torch.det(q)[:, None, None]
 
 
 def look_at(center, target) -> tuple[torch.Tensor, torch.Tensor]:
@@ -51,24 +45,6 @@ def ring_rig(C=4, W=80, H=60, f=70.0, radius=3.0, height=1.8, dist=None, sizes=N
                      for w, h in sizes])
     return CameraRig([f"c{i}" for i in range(C)], K.double(), torch.stack(Rs), torch.stack(ts),
                      torch.tensor(sizes), dist).to(device)
-
-
-def small_body(dtype=torch.float64):
-    """Six ellipsoids roughly shaped like a person standing at the origin: centres, R, semi-axes, colours."""
-    gen = torch.Generator().manual_seed(3)
-    centers = torch.tensor([[0, 0, 1.0], [0, 0, 1.35], [0, 0, 1.65], [0.05, 0.25, 1.2],
-                            [0, -0.1, 0.5], [0.02, 0.12, 0.5]], dtype=torch.float64)
-    semi = torch.tensor([[0.12, 0.18, 0.14], [0.13, 0.2, 0.16], [0.1, 0.09, 0.12], [0.05, 0.05, 0.25],
-                         [0.07, 0.07, 0.4], [0.07, 0.07, 0.4]], dtype=torch.float64)
-    R = random_rotations(6, gen)
-    R[[4, 5]] = torch.eye(3, dtype=torch.float64)
-    colours = torch.rand(6, 3, generator=gen, dtype=torch.float64) * 0.6 + 0.2
-    return centers.to(dtype), R.to(dtype), semi.to(dtype), colours.to(dtype)
-
-
-def quadric_matrix(c: np.ndarray, R: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """A with (p - c)^T A (p - c) <= 1 inside."""
-    return R @ np.diag(1.0 / a**2) @ R.T
 
 
 def conic_inside_mask(rig: CameraRig, cam: int, c, R, a) -> np.ndarray:
@@ -115,166 +91,6 @@ def boundary_band(mask: np.ndarray, width: int = 1) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- ray casting
-
-
-def test_sphere_closed_form(device):
-    """Rays parallel to z towards a sphere of radius 2 at the origin, from z = -5: t = 5 - sqrt(4 - h^2)."""
-    h = torch.tensor([0.0, 0.5, 1.0, 1.9, 2.1, 3.0], dtype=torch.float64, device=device)
-    origins = torch.stack([h, torch.zeros_like(h), torch.full_like(h, -5.0)], -1)  # (N, 3)
-    dirs = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64, device=device).expand_as(origins)
-    centers = torch.zeros(1, 3, dtype=torch.float64, device=device)
-    R = torch.eye(3, dtype=torch.float64, device=device)[None]
-    semi = torch.full((1, 3), 2.0, dtype=torch.float64, device=device)
-    t, part, normal = ray_ellipsoid_intersect(origins, dirs, centers, R, semi)
-    hits = h < 2
-    expected = 5 - torch.sqrt((4 - h[hits] ** 2))
-    torch.testing.assert_close(t[hits], expected)
-    assert torch.isinf(t[~hits]).all() and (part[~hits] == -1).all() and (part[hits] == 0).all()
-    torch.testing.assert_close(normal[hits], (origins[hits] + t[hits, None] * dirs[hits]) / 2)
-    assert (normal[~hits] == 0).all()
-
-
-def test_rotated_ellipsoid_closed_form(device):
-    """A ray along each ellipsoid axis from outside hits at distance - semi-axis; from inside, exits at +semi."""
-    gen = torch.Generator().manual_seed(0)
-    R = random_rotations(1, gen).to(device)
-    semi = torch.tensor([[3.0, 1.0, 2.0]], dtype=torch.float64, device=device)
-    center = torch.tensor([[1.0, -2.0, 0.5]], dtype=torch.float64, device=device)
-    axes = R[0].T  # (3, 3) rows = axes in world
-    origins = center + 10 * axes  # 10 m out along each axis
-    t, part, normal = ray_ellipsoid_intersect(origins, -axes, center, R, semi)
-    torch.testing.assert_close(t, 10 - semi[0])
-    torch.testing.assert_close(normal, axes)  # outward normal at the axis tip
-    # Inside: the far root, with the outward normal (pointing along the ray).
-    t_in, part_in, normal_in = ray_ellipsoid_intersect(center.expand(3, 3), axes, center, R, semi)
-    torch.testing.assert_close(t_in, semi[0])
-    torch.testing.assert_close(normal_in, axes)
-    assert (part_in == 0).all()
-    # Pointing away from an ellipsoid behind the origin: no hit.
-    t_away, part_away, _ = ray_ellipsoid_intersect(origins, axes, center, R, semi)
-    assert torch.isinf(t_away).all() and (part_away == -1).all()
-
-
-def test_unit_sphere_far_origin_is_accurate():
-    """The |d|^2 - |o x d|^2 discriminant keeps float32 hits exact for origins far from small ellipsoids."""
-    o = torch.tensor([[0.0, 0.0, -1.0e3]], dtype=torch.float32)
-    d = torch.tensor([[0.999e-3, 0.0, 1.0]], dtype=torch.float32)  # passes 0.999 units off the centre
-    t = unit_sphere_hits(o, d)
-    t_ref = unit_sphere_hits(o.double(), d.double())
-    assert torch.isfinite(t).all()
-    torch.testing.assert_close(t.double(), t_ref, rtol=1e-5, atol=0)
-
-
-def march_reference(o, d, centers, Rs, semis, t_max=12.0, steps=24000):
-    """Nearest inside sample along each ray, by testing (p - c)^T A (p - c) <= 1 at dense samples (numpy)."""
-    ts = np.linspace(0, t_max, steps + 1)[1:]
-    As = [quadric_matrix(c, R, a) for c, R, a in zip(centers, Rs, semis)]
-    t_ref = np.full(len(o), np.inf)
-    part_ref = np.full(len(o), -1)
-    first = np.full((len(o), len(As)), np.inf)
-    for i in range(len(o)):
-        p = o[i] + ts[:, None] * d[i]  # (S, 3)
-        for k, (c, A) in enumerate(zip(centers, As)):
-            q = p - c
-            inside = np.einsum("si,ij,sj->s", q, A, q) <= 1
-            if inside.any():
-                first[i, k] = ts[np.argmax(inside)]
-        if np.isfinite(first[i]).any():
-            part_ref[i] = int(np.argmin(first[i]))
-            t_ref[i] = first[i, part_ref[i]]
-    return t_ref, part_ref, first, ts[1] - ts[0]
-
-
-def test_random_ellipsoids_against_marching(device):
-    gen = torch.Generator().manual_seed(1)
-    K, N = 5, 120
-    centers = torch.rand(K, 3, generator=gen, dtype=torch.float64) * 4 - 2
-    R = random_rotations(K, gen)
-    semi = torch.rand(K, 3, generator=gen, dtype=torch.float64) * 0.8 + 0.2
-    origins = torch.randn(N, 3, generator=gen, dtype=torch.float64) * 0.3 + torch.tensor([0.0, 0.0, -5.0])
-    targets = centers[torch.randint(K, (N,), generator=gen)] + torch.randn(N, 3, generator=gen,
-                                                                             dtype=torch.float64) * 0.6
-    dirs = torch.nn.functional.normalize(targets - origins, dim=-1)
-    t, part, _ = ray_ellipsoid_intersect(*(x.to(device) for x in (origins, dirs, centers, R, semi)), chunk_size=50)
-    t, part = t.cpu().numpy(), part.cpu().numpy()
-    t_ref, part_ref, first, step = march_reference(*(x.numpy() for x in (origins, dirs, centers, R, semi)))
-    both = np.isfinite(t_ref)
-    assert both.sum() > N // 3 and (~both).sum() > 5  # the rays exercise hits and misses
-    assert np.isfinite(t[both]).all()
-    np.testing.assert_array_less(t[both] - step - 1e-9, t_ref[both])
-    np.testing.assert_array_less(t_ref[both], t[both] + 1e-9 + step)
-    # Same part, unless two parts are entered within a step of each other.
-    second = np.sort(first[both], axis=1)[:, 1]
-    clear = second - t_ref[both] > 2 * step
-    assert (part[both][clear] == part_ref[both][clear]).all()
-    # Misses of the marching: either analytic misses or a chord shorter than a step (check it finely).
-    for i in np.nonzero(~both & np.isfinite(t))[0]:
-        p = origins[i].numpy() + np.linspace(t[i], t[i] + step, 2001)[:, None] * dirs[i].numpy()
-        q = p - centers[part[i]].numpy()
-        A = quadric_matrix(centers[part[i]].numpy(), R[part[i]].numpy(), semi[part[i]].numpy())
-        assert (np.einsum("si,ij,sj->s", q, A, q) <= 1 + 1e-9).any()
-
-
-def test_dense_equals_culled_and_batched(device):
-    """Bounding-sphere culling, chunking and leading dims change nothing: compare with all (ray, part) pairs."""
-    gen = torch.Generator().manual_seed(2)
-    K, N = 7, 400
-    centers = (torch.rand(K, 3, generator=gen) * 4 - 2).to(device)
-    R = random_rotations(K, gen).float().to(device)
-    semi = (torch.rand(K, 3, generator=gen) * 0.5 + 0.1).to(device)
-    origins = (torch.randn(2, N, 3, generator=gen) * 3).to(device)
-    dirs = torch.randn(2, N, 3, generator=gen).to(device)
-    t, part, normal = ray_ellipsoid_intersect(origins, dirs, centers, R, semi, chunk_size=97)
-    assert t.shape == (2, N) and part.shape == (2, N) and normal.shape == (2, N, 3) and part.dtype == torch.int64
-    ray = torch.arange(2 * N, device=device).repeat_interleave(K)
-    k = torch.arange(K, device=device).repeat(2 * N)
-    t_pair = ray_ellipsoid_pair_hits(origins.reshape(-1, 3)[ray], dirs.reshape(-1, 3)[ray], k, centers, R, semi)
-    t_dense, part_dense = nearest_hits(t_pair, ray, k, 2 * N)
-    torch.testing.assert_close(t.reshape(-1), t_dense)
-    assert torch.equal(part.reshape(-1), part_dense)
-    t1, part1, normal1 = ray_ellipsoid_intersect(origins[1], dirs[1], centers, R, semi)
-    torch.testing.assert_close(t1, t[1])
-    torch.testing.assert_close(normal1, normal[1])
-    assert (part != -1).sum() > 20
-
-
-def test_normals_are_quadric_gradients():
-    gen = torch.Generator().manual_seed(4)
-    centers, R, semi, _ = small_body()
-    o = torch.tensor([[3.0, 0.3, 1.2]], dtype=torch.float64).expand(50, 3)
-    d = torch.nn.functional.normalize(centers[torch.randint(6, (50,), generator=gen)] - o
-                                      + 0.05 * torch.randn(50, 3, generator=gen, dtype=torch.float64), dim=-1)
-    t, part, normal = ray_ellipsoid_intersect(o, d, centers, R, semi)
-    hit = part >= 0
-    p = (o + t[:, None] * d)[hit]
-    for pi, ki, ni in zip(p.numpy(), part[hit].numpy(), normal[hit].numpy()):
-        A = quadric_matrix(centers[ki].numpy(), R[ki].numpy(), semi[ki].numpy())
-        g = 2 * A @ (pi - centers[ki].numpy())  # gradient of (p - c)^T A (p - c)
-        np.testing.assert_allclose(ni, g / np.linalg.norm(g), atol=1e-9)
-        np.testing.assert_allclose((pi - centers[ki].numpy()) @ A @ (pi - centers[ki].numpy()), 1.0, atol=1e-9)
-
-
-def test_intersect_bad_input():
-    c, R, a = torch.zeros(2, 3), torch.eye(3).expand(2, 3, 3), torch.ones(2, 3)
-    with pytest.raises(ShapeError, match="R_world_ellipsoid"):
-        ray_ellipsoid_intersect(torch.zeros(4, 3), torch.ones(4, 3), c, R[:1], a)
-    with pytest.raises(ShapeError, match="dirs"):
-        ray_ellipsoid_intersect(torch.zeros(4, 3), torch.ones(4, 2), c, R, a)
-    with pytest.raises(InputError, match="semi_axes"):
-        ray_ellipsoid_intersect(torch.zeros(4, 3), torch.ones(4, 3), c, R, torch.tensor([[1.0, 1, 1], [1, 0, 1]]))
-
-
-def test_box_closed_form(device):
-    """A box rotated 90 degrees about z (so its x half-size 0.5 lies along world y), hit along each axis."""
-    R = torch.tensor([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]], device=device)  # columns: box axes in world
-    half = torch.tensor([0.5, 0.2, 1.0], device=device)
-    center = torch.tensor([1.0, 2.0, 3.0], device=device)
-    origins = center + torch.tensor([[5.0, 0, 0], [0, -5, 0], [0, 0, 5], [5, 5, 0], [0, 0, 0]], device=device)
-    dirs = torch.tensor([[-1.0, 0, 0], [0, 1, 0], [0, 0, -2], [-1, 0, 0], [1, 0, 0]], device=device)
-    t, normal = ray_box_intersect(origins, dirs, center, R, half)
-    torch.testing.assert_close(t[:3], torch.tensor([5 - 0.2, 5 - 0.5, (5 - 1.0) / 2], device=device))
-    torch.testing.assert_close(normal[:3], -dirs[:3] / dirs[:3].norm(dim=-1, keepdim=True))
-    assert torch.isinf(t[3:]).all()  # passes beside it; starts inside
 
 
 def test_shade():

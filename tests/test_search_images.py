@@ -1,5 +1,5 @@
 """The start search's image terms (torchtrack.tracking.search.image_terms) against silhouettes rendered by ray
-casting (torchtrack.synth.render.ray_ellipsoid_intersect through the lens model), not by the projection they test."""
+casting (torchtrack.ellipsoids.ray_ellipsoid_intersect through the lens model), not by the projection they test."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import torchtrack.tracking.search as search
 from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.skeleton import Skeleton
-from torchtrack.synth.render import ray_ellipsoid_intersect
+from torchtrack.ellipsoids import ray_ellipsoid_intersect
 from torchtrack.synth.sequence import RigConfig, make_ring_rig
 from torchtrack.tracking.observation import ViewSilhouettes
 from torchtrack.tracking.search import INSIDE_GROW, _Views, image_terms

@@ -23,9 +23,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
-from torchtrack.synth.render import (
-    check_ellipsoids, ellipsoid_world_to_unit, ray_box_intersect, shade, unit_sphere_hits,
-)
+from torchtrack.ellipsoids import check_ellipsoids, ellipsoid_world_to_unit, ray_box_intersect, unit_sphere_hits
+from torchtrack.synth.render import shade
 
 __all__ = ["SceneConfig", "SceneRenderer", "illumination_gain"]
 

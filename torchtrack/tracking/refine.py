@@ -46,6 +46,7 @@ from torchtrack.background.model import MIN_SEQUENCE_FRAMES
 from torchtrack.blobs import BlobModel
 from torchtrack.cameras import CameraRig
 from torchtrack.checks import InputError, ShapeError, check_shape, config_section
+from torchtrack.ellipsoids import rays_meet_ellipsoids
 from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
@@ -154,60 +155,6 @@ def track_change_m(poses: Poses, before: Poses) -> float:
     if not both.any():
         return float("nan")
     return float(np.linalg.norm(poses.landmarks()[both] - before.landmarks()[both], axis=-1).mean())
-
-
-def rays_meet_ellipsoids(origins: torch.Tensor, dirs: torch.Tensor, centres: torch.Tensor, R: torch.Tensor,
-                         semi_axes: torch.Tensor) -> torch.Tensor:
-    """Whether each camera's rays meet any of each frame's ellipsoids ahead of the camera.
-
-    All rays of a camera leave its centre, so for the ray ``o + t d`` and the ellipsoid ``(x - c)^T A (x - c) = 1``
-    (``A = R diag(1/a^2) R^T``, ``m = o - c``, ``g = m^T A m - 1 > 0`` for a camera outside it) the two roots in
-    ``t`` are real where ``d^T ((A m)(A m)^T / g - A) d >= 0`` and positive where ``d . A m < 0``: a quadratic and
-    a linear form in ``d`` whose coefficients are the camera's and ellipsoid's, one matrix product of the rays'
-    monomials per camera and frame; only for the rays within the cone of the sphere around the frame's ellipsoids
-    (most of an image misses the body). Solving every ray's quadratic for its nearest hit, as a renderer must
-    (:func:`~torchtrack.synth.render.ray_ellipsoid_intersect`), took a fifth of each background refinement pass.
-    A camera inside an ellipsoid sees it everywhere.
-
-    Args:
-        origins: (C, 3) camera centres. dirs: (C, P, 3) unit ray directions. centres: (T, K, 3), R: (T, K, 3, 3)
-            (columns: the axes), semi_axes: (K, 3) or (T, K, 3): T frames' K ellipsoids.
-
-    Returns:
-        (T, C, P) bool.
-    """
-    T, K, _ = centres.shape
-    C, P, _ = dirs.shape
-    semi_axes = semi_axes.expand(T, K, 3)
-    A = (R / semi_axes[..., None, :].square()) @ R.transpose(-1, -2)  # (T, K, 3, 3)
-    m = origins[:, None, None] - centres[None]  # (C, T, K, 3)
-    Am = (A[None] @ m[..., None])[..., 0]  # (C, T, K, 3)
-    g = (m * Am).sum(-1) - 1.0  # (C, T, K), > 0: the camera outside
-    B = Am[..., :, None] * Am[..., None, :] / g.clamp(min=1e-12)[..., None, None] - A[None]  # (C, T, K, 3, 3)
-    quad = torch.stack([B[..., 0, 0], B[..., 1, 1], B[..., 2, 2], 2 * B[..., 0, 1], 2 * B[..., 0, 2],
-                        2 * B[..., 1, 2]], -1)  # (C, T, K, 6)
-    # the cone of each frame's bounding sphere (about the ellipsoids' mean, through their farthest reach) seen from
-    # each camera, a little wider for the rounding: rays outside it miss every ellipsoid
-    middle = centres.mean(1)  # (T, 3)
-    radius = ((centres - middle[:, None]).norm(dim=-1) + semi_axes.amax(-1)).amax(-1) * 1.01 + 1e-3  # (T,)
-    to_mid = middle[None] - origins[:, None]  # (C, T, 3)
-    dist = to_mid.norm(dim=-1)  # (C, T)
-    cos_cone = (1 - (radius[None] / dist).clamp(max=1).square()).sqrt()  # (C, T); 0: the camera inside the sphere
-    near = dirs @ (to_mid / dist[..., None]).transpose(1, 2) >= cos_cone[:, None]  # (C, P, T)
-    out = torch.zeros((T, C, P), dtype=torch.bool, device=dirs.device)
-    for c in range(C):
-        for t in range(T):
-            if bool((g[c, t] <= 0).any()):
-                out[t, c] = True
-                continue
-            idx = near[c, :, t].nonzero()[:, 0]
-            if idx.numel() == 0:
-                continue
-            x, y, z = dirs[c, idx].unbind(-1)
-            mono = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z], -1)  # (n, 6)
-            hit = (mono @ quad[c, t].T >= 0) & (dirs[c, idx] @ Am[c, t].T < 0)  # (n, K)
-            out[t, c, idx] = hit.any(-1)
-    return out
 
 
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
