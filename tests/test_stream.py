@@ -1,5 +1,6 @@
 """Frames observed in a worker process (torchtrack.tracking.stream): the same observations, images and poses as
-in this process, errors handed over as they are, thread shares restored; video sources that pickle."""
+in this process, errors handed over as they are, thread shares restored; one worker for several passes; video
+sources that pickle; the folder's cache of decoded frames."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from torchtrack.background import BackgroundModel
 from torchtrack.checks import InputError
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.tracking.observation import Observer
-from torchtrack.tracking.stream import observe_batches
+from torchtrack.tracking.stream import ObservationWorker, observe_batches
 
 from conftest import small_walk
 
@@ -148,3 +149,66 @@ def test_tracking_with_a_worker_gives_the_same_poses(seq):
     assert runs[0].valid.all() and np.array_equal(runs[0].valid, runs[1].valid)
     # same observations; the tracker's float sums may round differently at another thread count
     np.testing.assert_allclose(runs[1].joints3d, runs[0].joints3d, atol=1e-3)
+
+
+def _same(a: list, b: list) -> None:
+    assert [x.frame_index.tolist() for x in a] == [x.frame_index.tolist() for x in b]
+    for x, y in zip(a, b):
+        for ox, oy in zip(x.observations, y.observations):
+            assert torch.equal(ox.points, oy.points)
+            torch.testing.assert_close(oy.colours, ox.colours, rtol=1e-5, atol=1e-6, equal_nan=True)
+
+
+def test_one_worker_serves_several_passes_one_left_early_or_failing(seq):
+    """A worker kept for several passes gives each what this process does, with another observer each pass (the
+    refinement's new background), after a pass left early and after one that failed, and stops when closed."""
+    folder, bayes = _observer(seq, "bayes")
+    _, hull = _observer(seq, "hull")
+    threads = torch.get_num_threads()
+    with ObservationWorker() as worker:
+        for observer in (bayes, hull, bayes):
+            here = list(observe_batches(folder, observer, 0, folder.num_frames, batch=2))
+            _same(here, list(observe_batches(folder, observer, 0, folder.num_frames, batch=2, workers=worker)))
+            left = observe_batches(folder, observer, 0, folder.num_frames, batch=1, workers=worker)
+            next(left)
+            left.close()  # the rest of that pass is dropped, not handed to the next
+            assert torch.get_num_threads() == threads
+        with pytest.raises(InputError, match=r"frame range \[0, 99\) outside"):
+            list(observe_batches(folder, hull, 0, 99, workers=worker))
+        _same(list(observe_batches(folder, hull, 1, 4)), list(observe_batches(folder, hull, 1, 4, workers=worker)))
+        assert worker.alive and _live_workers() == 1
+    assert not worker.alive and _live_workers() == 0
+    with pytest.raises(InputError, match="has stopped"):
+        next(observe_batches(folder, hull, 0, 2, workers=worker))
+
+
+def test_cached_frames_are_the_decoded_ones_and_not_decoded_again(seq, monkeypatch):
+    import torchtrack.io.sequence as sequence
+
+    fresh = SequenceFolder(seq)
+    folder = SequenceFolder(seq)
+    one = fresh.read_frames([2], size_wh=(160, 120)).images.numel()  # bytes of one frame in uint8
+    folder.cache_frames(5 * one)
+    decoded = []
+    real = sequence._read_available
+    monkeypatch.setattr(sequence, "_read_available", lambda src, idx: decoded.append(list(idx)) or real(src, idx))
+    first = torch.cat([b.images for b in folder.iter_batches(3, 0, 6, size_wh=(160, 120))])
+    C = folder.num_cameras
+    assert folder.cached_bytes == 5 * one and len(decoded) == 2 * C  # two batches, every camera
+    decoded.clear()
+    again = torch.cat([b.images for b in folder.iter_batches(2, 0, 6, size_wh=(160, 120))])
+    assert decoded == [[5]] * C  # the 6th frame did not fit the cache
+    some = folder.read_frames([1, 3], size_wh=(160, 120)).images
+    _, sampled = folder.sample_frames(3, 0, 5, size_wh=(160, 120))  # frames 0, 2, 4
+    full = folder.read_frames([2]).images  # another size: decoded
+    assert decoded == [[5]] * C + [[2]] * C
+    decoded.clear()
+    ref = torch.cat([b.images for b in fresh.iter_batches(6, 0, 6, size_wh=(160, 120))])
+    assert torch.equal(first, ref) and torch.equal(again, ref) and torch.equal(some, ref[[1, 3]])
+    assert torch.equal(sampled, ref[[0, 2, 4]].half())
+    assert torch.equal(full, fresh.read_frames([2]).images)
+    assert pickle.loads(pickle.dumps(folder)).cached_bytes == 0  # a worker gets the sources, not the frames
+    folder.cache_frames(0)
+    assert folder.cached_bytes == 0
+    with pytest.raises(InputError, match="max_bytes must be >= 0"):
+        folder.cache_frames(-1)

@@ -242,6 +242,19 @@ def _read_available(src: VideoSource, indices: list[int]) -> tuple[np.ndarray, n
     return frames, valid
 
 
+class _FrameCache:
+    """Decoded frames by (index, size): (C, H, W, 3) uint8 and (C,) bool each, filled until ``max_bytes``."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes, self.bytes = max_bytes, 0
+        self.frames: dict[tuple[int, tuple[int, int] | None], tuple[np.ndarray, np.ndarray]] = {}
+
+    def put(self, key: tuple[int, tuple[int, int] | None], frame: np.ndarray, valid: np.ndarray) -> None:
+        if self.bytes + frame.nbytes <= self.max_bytes:
+            self.frames[key] = (frame.copy(), valid.copy())  # not a view that keeps a whole batch alive
+            self.bytes += frame.nbytes
+
+
 class SequenceFolder:
     """A sequence folder: calibration, per-camera frame sources, optional background, meta and npz files.
 
@@ -258,6 +271,9 @@ class SequenceFolder:
         num_frames, fps, gt_path / markers2d_path (None when absent), reported (a set of keys of the problems
         already warned about, so that a run's several passes over the frames warn once).
 
+    A run that reads the frames several times (background refinement, body refit) can keep them decoded:
+    :meth:`cache_frames`.
+
     Raises:
         InputError: missing calibration or camera frames, unreadable files, sizes that do not fit the calibration.
     """
@@ -266,6 +282,7 @@ class SequenceFolder:
                  max_pad_px: int = MAX_PAD_PX) -> None:
         self.root = Path(root)
         self.reported: set[str] = set()
+        self._cache: _FrameCache | None = None
         if not self.root.is_dir():
             raise InputError(f"sequence folder not found: {self.root}")
         if rig is None:
@@ -375,6 +392,22 @@ class SequenceFolder:
 
     # ---- reading
 
+    def cache_frames(self, max_bytes: int) -> None:
+        """Keep the frames read from now on, decoded and resized (uint8, at each size asked for), for later reads,
+        up to ``max_bytes`` in all (frames beyond it are decoded each time); 0 drops the cache. Frames are the
+        same bytes either way: a video is decoded deterministically. Not carried when the folder is pickled."""
+        if max_bytes < 0:
+            raise InputError(f"cache_frames: max_bytes must be >= 0, got {max_bytes}")
+        self._cache = _FrameCache(int(max_bytes)) if max_bytes else None
+
+    @property
+    def cached_bytes(self) -> int:
+        """The bytes of decoded frames held by :meth:`cache_frames` (0: none)."""
+        return 0 if self._cache is None else self._cache.bytes
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_cache": None}  # a worker process gets the sources, not the frames
+
     def __len__(self) -> int:
         return self.num_frames
 
@@ -400,6 +433,26 @@ class SequenceFolder:
 
     def _read_block(self, sources: list[VideoSource], indices: list[int],
                     size_wh: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:
+        """Decode ``indices`` (B,) from every camera: (B, C, H, W, 3) uint8 at the output size, (B, C) bool;
+        the sequence's frames through the cache where there is one."""
+        cache = self._cache if sources is self.sources else None
+        if cache is None:
+            return self._decode_block(sources, indices, size_wh)
+        missing = [i for i in indices if (i, size_wh) not in cache.frames]
+        if missing:
+            buf, valid = self._decode_block(sources, missing, size_wh)
+            for k, i in enumerate(missing):
+                cache.put((i, size_wh), buf[k], valid[k])
+            if len(missing) == len(indices):
+                return buf, valid
+            got = dict(zip(missing, zip(buf, valid)))
+        else:
+            got = {}
+        rows = [got.get(i) or cache.frames[i, size_wh] for i in indices]
+        return np.stack([r[0] for r in rows]), np.stack([r[1] for r in rows])
+
+    def _decode_block(self, sources: list[VideoSource], indices: list[int],
+                      size_wh: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray]:
         """Decode ``indices`` (B,) from every camera: (B, C, H, W, 3) uint8 at the output size, (B, C) bool."""
         import cv2
 

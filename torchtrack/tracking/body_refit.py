@@ -37,6 +37,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
+from torchtrack.tracking.stream import ObservationWorker
 
 __all__ = ["BodyRefitConfig", "mean_ik_residual_m", "refit_frames", "refit_body_on_track", "track_with_body_refit"]
 
@@ -140,8 +141,8 @@ def track_with_body_refit(
         folder: SequenceFolder, make_observer: Callable[[], Observer], tracker: MarkerlessTracker, poses: Poses,
         config: BodyRefitConfig, start: int = 0, stop: int | None = None, batch: int = 4,
         device: torch.device | str | None = None, log_dir: str | Path | None = None, log_every: int = 10,
-        progress: bool = True, on_pass: Callable[[int, Poses, bool], None] | None = None, workers: int = 0
-) -> tuple[Poses, float]:
+        progress: bool = True, on_pass: Callable[[int, Poses, bool], None] | None = None,
+        workers: int | ObservationWorker = 0) -> tuple[Poses, float]:
     """After a track ``poses`` of ``[start, stop)`` by ``tracker`` (its subject still the one the track ended
     with), up to ``config.passes`` times: refit the body on the kept track (:func:`refit_body_on_track`), track
     again from the kept track's first valid pose with it, and keep the new track if it fits better (see the

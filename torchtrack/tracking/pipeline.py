@@ -233,7 +233,7 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
           background_from_track: Poses | str | Path | None = None, background: Any = None, threads: int | None = 1,
           log_dir: str | Path | None = None, log_every: int = 10, progress: bool = True,
           on_pass: Callable[[int, Poses], None] | None = None,
-          on_refit: Callable[[int, Poses, bool], None] | None = None) -> TrackResult:
+          on_refit: Callable[[int, Poses, bool], None] | None = None, frame_cache_mb: float = 1024) -> TrackResult:
     """Track the sequence folder ``seq`` as `torchtrack track` does (module docstring).
 
     Args:
@@ -262,6 +262,9 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
         on_pass: called with each background refinement pass's number (0 the first track) and its poses, and
             again with the kept pass tracked once more. on_refit: called with each body refit's number (1 the
             first), its poses and whether it was kept. Both for reports; the poses are not smoothed.
+        frame_cache_mb: the decoded frames (at the processing size) kept for the passes after the first, in MB,
+            in the worker or in this process (0: decoded each pass; the real Pose2Sim demo at ``scale`` 0.25 needs
+            157 MB).
 
     Returns:
         the :class:`TrackResult`.
@@ -275,7 +278,7 @@ def track(seq: str | Path | Any, *, config: str | Path | dict[str, Any] = DEFAUL
     with torch.no_grad(), intra_op_threads(threads):
         return _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device,
                       workers, fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track,
-                      background, log_dir, log_every, progress, on_pass, on_refit, t0)
+                      background, log_dir, log_every, progress, on_pass, on_refit, frame_cache_mb, t0)
 
 
 def track_many(seqs: list[str | Path | Any], *, batch_size: int = 16, log_dirs: list[str | Path | None] | None = None,
@@ -291,7 +294,8 @@ def track_many(seqs: list[str | Path | Any], *, batch_size: int = 16, log_dirs: 
         seqs: the sequence folders. batch_size: how many are tracked in lockstep at a time (>= 1).
         log_dirs: per sequence, its TensorBoard folder or None. threads: intra-op threads while tracking (None:
             as they are). progress: one progress bar per batch. options: :func:`track`'s other arguments (its
-            ``workers`` are 0: the frames are read and observed in each sequence's thread).
+            ``workers`` are 0: the frames are read and observed in each sequence's thread; ``frame_cache_mb`` is
+            shared by the sequences tracked at a time).
 
     Returns:
         per sequence, its :class:`TrackResult` or the exception it failed with.
@@ -310,6 +314,7 @@ def track_many(seqs: list[str | Path | Any], *, batch_size: int = 16, log_dirs: 
             raise InputError(f"track_many: {bad} is not an option here (see log_dirs; frames are observed in each "
                              "sequence's thread)")
     out: list[TrackResult | Exception] = []
+    options["frame_cache_mb"] = options.get("frame_cache_mb", 1024) / min(batch_size, max(len(seqs), 1))
     with torch.no_grad(), intra_op_threads(threads):
         for lo in range(0, len(seqs), batch_size):
             jobs = [lambda s=s, d=d: track(s, log_dir=d, workers=0, threads=None, progress=False, **options)
@@ -320,7 +325,7 @@ def track_many(seqs: list[str | Path | Any], *, batch_size: int = 16, log_dirs: 
 
 def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop, batch, device, workers,
            fill_static_subject, refine_passes, refit_passes, smooth_hz, background_from_track, background, log_dir,
-           log_every, progress, on_pass, on_refit, t0) -> TrackResult:
+           log_every, progress, on_pass, on_refit, frame_cache_mb, t0) -> TrackResult:
     import torch
 
     from torchtrack.background import BackgroundConfig, BackgroundModel
@@ -334,6 +339,7 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     from torchtrack.tracking.refine import RefineConfig, background_from_track as refined_from_track
     from torchtrack.tracking.refine import track_with_background_refinement
     from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
+    from torchtrack.tracking.stream import ObservationWorker
 
     cfg = config if isinstance(config, dict) else load_config(config)
     source = cfg.get("source", "the tracking config")
@@ -410,7 +416,14 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         if refit_passes is None:
             bcfg = bcfg.for_start(body_given=True)
 
+    if not frame_cache_mb >= 0:
+        raise InputError(f"frame_cache_mb must be >= 0, got {frame_cache_mb}")
+    cache_bytes = int(frame_cache_mb * 2 ** 20)
     with contextlib.ExitStack() as stack:
+        if workers and device.type == "cpu":  # one worker, and the frames decoded once, for all the passes
+            workers = stack.enter_context(ObservationWorker(cache_bytes=cache_bytes))
+        elif rcfg.passes or bcfg.passes:
+            folder.cache_frames(cache_bytes)
         tb = stack.enter_context(RunLogger(log_dir)) if log_dir is not None else None
         if tb is not None and found is not None:
             _log_keypoint_start(tb, folder, found, (W, H))

@@ -55,6 +55,7 @@ from torchtrack.tracking.body_refit import mean_ik_residual_m
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
+from torchtrack.tracking.stream import ObservationWorker
 
 __all__ = ["RefineConfig", "background_from_track", "body_masks", "clearance_px", "clear_frame_masks",
            "refined_background", "track_body", "track_change_m", "track_with_background_refinement",
@@ -367,7 +368,7 @@ def track_with_background_refinement(
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
         stop: int | None = None, batch: int = 4, device: torch.device | str | None = None, logger=None,
         log_every: int = 10, progress: bool = True,
-        on_pass: Callable[[int, Poses], None] | None = None, workers: int = 0
+        on_pass: Callable[[int, Poses], None] | None = None, workers: int | ObservationWorker = 0
 ) -> tuple[Poses, float, BackgroundModel]:
     """Track, then up to ``config.passes`` times re-estimate the background from the track and track again; with
     ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting settled one, with ``keep: last`` and

@@ -18,7 +18,7 @@ from torchtrack.io.poses import Poses
 from torchtrack.io.sequence import SequenceFolder, min_readable_cameras
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer, VoxelObservation
-from torchtrack.tracking.stream import observe_batches
+from torchtrack.tracking.stream import ObservationWorker, observe_batches
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ log = logging.getLogger(__name__)
 def track_sequence(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int = 0,
                    stop: int | None = None, batch: int = 4, device: torch.device | str | None = None,
                    logger=None, log_every: int = 10, progress: bool = True, desc: str = "track",
-                   workers: int = 0) -> tuple[Poses, float]:
+                   workers: int | ObservationWorker = 0) -> tuple[Poses, float]:
     """Track frames ``[start, stop)`` of ``folder``.
 
     A frame is tracked from the cameras whose frame is readable (a camera that ends early or stops decoding is
@@ -45,9 +45,9 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
             ``log_every`` frames, every camera's image with the pose drawn and the voxels with the skeleton (the
             voxels EM fitted: merged per cell with the tracker's ``em_cell_m``).
         desc: the progress bar's label.
-        workers: 1 reads and observes the frames in a worker process, ahead of the tracker (CPU; it starts in
-            2-3 s, and a calling script needs an ``if __name__ == "__main__":`` guard; see
-            :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
+        workers: an :class:`~torchtrack.tracking.stream.ObservationWorker` reads and observes the frames ahead of
+            the tracker (CPU); 1 in a worker started for this track (2-3 s; a calling script needs an ``if __name__
+            == "__main__":`` guard; see :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
 
     Returns:
         the poses (docs/formats.md; ``extra`` holds ``subject_height_m``, ``observation_model``,
@@ -89,7 +89,8 @@ class _Pass:
     recorded, and the poses at the end (:func:`track_sequence`'s work, driven alone or in lockstep)."""
 
     def __init__(self, folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int,
-                 stop: int | None, batch: int, device, logger, log_every: int, workers: int) -> None:
+                 stop: int | None, batch: int, device, logger, log_every: int,
+                 workers: int | ObservationWorker) -> None:
         self.folder, self.observer, self.tracker, self.logger = folder, observer, tracker, logger
         self.start = start
         self.stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
