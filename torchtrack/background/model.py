@@ -500,6 +500,7 @@ class MovingSequence:
             y_ref = est.median_mad(grid, dead, None, dtype, spread=False)[0][:, 0]  # (C, h, w)
             gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
         self.gains = gains
+        self._masked: tuple[torch.Tensor, ...] | None = None  # the last subject masks and their statistics
         med, spread, count = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
         std = est.floor_and_relax(spread, *relax)
         self.plain = (med, std, count)  # pass 1: what subject masks that never cover a pixel leave it
@@ -536,8 +537,17 @@ class MovingSequence:
         # frames as the frames'. Every pixel, also those the masks never cover (pass 1's median of all frames):
         # the masks override pass 3's fill and pass 2's guesses
         touched = subject_masks.any(0)  # (C, H, W)
+        # only the pixels whose masks over the frames changed since the last call are computed again (the
+        # refinement's later passes move the track a little: most of the masks stay)
+        todo = touched if self._masked is None else touched & (subject_masks != self._masked[0]).any(0)
         med3, spread3, count = est.median_mad(self.frames, self.dead, self.gains, self.dtype,
-                                              foreground=subject_masks, pixels=touched)
+                                              foreground=subject_masks, pixels=todo)
+        if self._masked is not None:
+            keep = touched & ~todo  # (C, H, W) the same masks as last time: the same statistics
+            med3 = torch.where(keep[:, None], self._masked[1], med3)
+            spread3 = torch.where(keep[:, None], self._masked[2], spread3)
+            count = torch.where(keep, self._masked[3], count)
+        self._masked = (subject_masks, med3, spread3, count)
         relax = (self.config.min_std, self.config.luminance_relax)
         plain_med, plain_std, plain_count = self.plain
         mask3 = touched[:, None]  # (C, 1, H, W)
