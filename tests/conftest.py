@@ -101,3 +101,34 @@ def small_body(dtype=torch.float64):
 def quadric_matrix(c: np.ndarray, R: np.ndarray, a: np.ndarray) -> np.ndarray:
     """A with (p - c)^T A (p - c) <= 1 inside."""
     return R @ np.diag(1.0 / a**2) @ R.T
+
+
+# ------------------------------------------------------------------------- tracking voxelised bodies
+
+
+def landmarks_of(skel, angles):
+    """The landmarks of ``skel`` at ``angles (D,)``."""
+    return skel.forward(angles[None]).landmarks[0]
+
+
+def track_voxelised(skel, motion, frames, tracker=None, edit=None):
+    """Track voxelised ground truth of a subject 1.80 m tall (the tracker starts from the generic 1.75 m body):
+    the tracker, the landmark errors of the valid frames (m) and the frames' results."""
+    from torchtrack.blobs import BlobModel
+    from torchtrack.synth.motion import procedural_motion
+    from torchtrack.tracking.markerless import MarkerlessTracker
+
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    T = procedural_motion(subj, motion, frames / 30, 30, starfish_s=0.3)
+    tracker = tracker or MarkerlessTracker(skel)
+    errs, results = [], []
+    for t in range(T.shape[0]):
+        obs = voxelised_observation(subj, blobs, T[t])
+        if edit is not None:
+            obs = edit(t, obs)
+        r = tracker.step(obs)
+        results.append(r)
+        if r.valid:
+            errs.append(float((r.output_points[:16] - landmarks_of(subj, T[t])).norm(dim=-1).mean()))
+    return tracker, np.array(errs), results

@@ -171,7 +171,7 @@ def test_blob_activity_records_a_hand_without_voxels(eval_tracking, skeleton):
     de-activated left hand in the frame tracked and nothing for a skipped frame; the whole body: every blob on."""
     import dataclasses
 
-    from test_tracking import _observation
+    from conftest import voxelised_observation as _observation
 
     from torchtrack.blobs.model import BlobModel
     from torchtrack.occupancy.metrics import inside_ellipsoids

@@ -264,7 +264,7 @@ def test_a_keypoint_start_beside_a_second_person_is_not_used(caplog):
     the pipeline checks the start frame's voxels as the voxel start does, and uses the keypoint start only where
     they hold one person-sized part (two bodies 1.5 m apart: refused, with a warning naming the sequence; one:
     used)."""
-    from tests.test_tracking import _observation
+    from conftest import voxelised_observation as _observation
     from torchtrack.blobs.model import BlobModel
     from torchtrack.tracking import pipeline
     from torchtrack.tracking.markerless import MarkerlessTracker

@@ -216,7 +216,7 @@ def test_refine_config_names_bad_settings():
 
 
 def test_initial_pose_needs_one_of_height_and_skeleton(skel):
-    """(Tracking from a given skeleton: tests/test_tracking.py.)"""
+    """(Tracking from a given skeleton: tests/test_bone_fit.py.)"""
     from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 
     tracker = MarkerlessTracker(skel, TrackerConfig())
