@@ -45,7 +45,8 @@ class TrackerConfig:
             ``start_hypotheses`` finished by EM/IK; its random steps seeded by ``search_seed``), and the starfish
             start too where the frame passes its checks, kept unless the search's scores clearly higher
             (``START_RACE_MARGIN``); ``"starfish"``: the starfish start (Caillette §4.2) alone, which refuses any
-            other pose.
+            other pose: for recordings that open with a clear starfish, where a start in any other pose should
+            be refused rather than searched for.
         start_real_poses: the search also starts from real captured poses
             (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
             reaching poses seen by 8 or more cameras, where more starts land right. Off by default: beside phantom
@@ -74,11 +75,17 @@ class TrackerConfig:
             silhouette holes and ghost volume as the body's shape. Not the default: it helps the synthetic CMU
             walks but costs the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera
             squat (docs/results.md, "Tracker settings").
-        em_cell_m: merge the voxels per cell of this size before EM (0: off); for fine hulls, whose EM cost
-            grows with the voxel count while the blobs need no such detail.
+        em_cell_m: merge the voxels per cell of this size before EM (0: off). Turn it on for fine hulls, whose EM
+            cost grows with the voxel count while the blobs need no such detail: the fast config's 3 cm cells track
+            the 1.5 cm 4-camera hull at 29.7 frames/s against 13.7 (docs/results.md, "Speed").
         blobs: blob config file (``configs/`` name or path).
         floor_contact: keep the lowest foot on the floor (Caillette §4.2: at least one part of the body touches
-            the floor; :func:`~torchtrack.tracking.goals.floor_contact`). Off for jumps and running.
+            the floor; :func:`~torchtrack.tracking.goals.floor_contact`). Turn it on for a subject who never
+            leaves the floor and whose feet the voxels lose (a stance held so still that the background takes
+            the lower legs): a start with the knees bent, the voxels under 0.3 m gone, ends with the ankles 4 cm
+            from the truth with it and 20 cm above without (tests/test_markerless.py). Off by default: wrong for
+            jumps and running, within 0.1 mm on the synthetic table and worse on the Pose2Sim demo
+            (docs/results.md, "Floor contact").
         floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
         ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
