@@ -179,7 +179,9 @@ def colour_term(colours: torch.Tensor | None, blobs: Blobs, config: EMConfig) ->
     if colours is None:
         return ColourTerm(None, None, None)
     seen_views = torch.isfinite(colours).all(-1)  # ([B,] N, C)
-    if not (bool(blobs.colour_known.any()) and config.colour_weight > 0):
+    # no colour known yet (a start): nothing to compute. Asked only on the CPU, where it costs nothing; on a GPU
+    # the answer would wait for the device each frame, and the distances of unknown colours are masked to 0 below
+    if config.colour_weight <= 0 or (colours.device.type == "cpu" and not bool(blobs.colour_known.any())):
         return ColourTerm(seen_views, None, None)
     # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
     # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
@@ -226,9 +228,11 @@ def e_step(points: torch.Tensor, colours: torch.Tensor | None, blobs: Blobs, con
 def _weighted_moments(x: torch.Tensor, w: torch.Tensor, assign: torch.Tensor, K: int
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Per-blob sum of weights (K,), weighted mean (K, 3) and covariance about that mean (K, 3, 3) of the rows of
-    x assigned to it (``assign`` -1: none). Two passes (mean, then centred scatter) to keep float32 precise."""
+    x assigned to it (``assign`` -1: none). Two passes (mean, then centred scatter) to keep float32 precise. Rows
+    assigned to none add zeros rather than being selected out: the same sums, and no wait for the device to count
+    them on a GPU."""
     ok = assign >= 0
-    a, xs, ws = assign[ok], x[ok], w[ok]
+    a, xs, ws = assign.clamp(min=0), torch.where(ok[:, None], x, 0.0), torch.where(ok, w, 0.0)
     total = torch.zeros(K, dtype=x.dtype, device=x.device).index_add_(0, a, ws)
     safe = total.clamp(min=1e-30)
     mean = torch.zeros(K, 3, dtype=x.dtype, device=x.device).index_add_(0, a, ws[:, None] * xs) / safe[:, None]
@@ -271,9 +275,8 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
     learn = learn_colour if isinstance(learn_colour, torch.Tensor) else None
     if colours is not None and (learn is not None or learn_colour):
         has = (assign >= 0) & (view >= 0)
-        idx = has.nonzero()[:, 0]
-        c = colours[idx, view[idx]]  # (n, 3) the chosen view's colour
-        ctot, cmu, ccov = _weighted_moments(c, weights[idx], assign[idx], K)
+        c = colours.gather(1, view.clamp(min=0)[:, None, None].expand(-1, 1, 3))[:, 0]  # (N, 3) the chosen view's
+        ctot, cmu, ccov = _weighted_moments(c, weights, torch.where(has, assign, -1), K)  # colour, where there is one
         ccov = _floor_determinant(ccov + 1e-6 * eye, config.min_colour_std)
         rate = torch.where(known, config.colour_rate, 1.0).to(cmu.dtype)  # (K,): a blob's first colours in full
         upd = (ctot > 0) & active if learn is None else (ctot > 0) & active & learn.to(active.device)

@@ -15,7 +15,10 @@ One step (de Bem §III, Caillette §4; :mod:`torchtrack.tracking.markerless` tel
 
 What to do with each result (accept it, count a divergence, re-acquire) is the driver's
 (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`, :mod:`torchtrack.tracking.lockstep`). Nothing here
-reads files, logs or waits for a value on the host, but for EM's test whether any colour model is learnt yet.
+reads files or logs. On a GPU the step waits for a value from the device only where the ghost test picks its
+candidate voxels (rigs of at most ``ghost_max_cameras``); EM selects no rows by mask and asks whether a colour is
+known only on the CPU; the driver then reads the results once (:meth:`MarkerlessTracker._results`). Not yet
+measured on a device.
 """
 
 from __future__ import annotations
