@@ -72,7 +72,8 @@ def _reference_batched(points, seen, centres, mean, cov, inside_scale, cover_sca
     return ~inside & seen.any(1) & (hit | ~seen).all(1)
 
 
-def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
+@pytest.mark.parametrize("dense", [False, True])  # candidates selected (the CPU's way) or all tested (a GPU's)
+def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections(dense):
     rng = np.random.default_rng(0)
     K, C, N = 5, 4, 400
     mean = rng.uniform(-0.4, 0.4, (K, 3)) + [0, 0, 1.0]
@@ -86,7 +87,7 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
     for inside_scale, cover_scale in ((1.15, 1.2), (1.0, 1.0), (0.8, 1.5)):
         ref = _reference(points, seen, centres, mean, cov, inside_scale, cover_scale)
         got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
-                           torch.tensor(cov), inside_scale, cover_scale, chunk=64).numpy()
+                           torch.tensor(cov), inside_scale, cover_scale, chunk=64, dense=dense).numpy()
         assert 20 < ref.sum() < N - 20  # both kinds present
         np.testing.assert_array_equal(got, ref)
         np.testing.assert_array_equal(_reference_batched(points, seen, centres, mean, cov, inside_scale,
@@ -95,7 +96,7 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
     covers = np.array([True, False, True, False, True])
     ref = _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers)
     got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
-                       torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers)).numpy()
+                       torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers), dense=dense).numpy()
     assert 10 < ref.sum() < _reference(points, seen, centres, mean, cov, 1.15, 1.2).sum()
     np.testing.assert_array_equal(got, ref)
     # a blob does not explain a voxel inside its own ellipsoid grown by self_scale
@@ -103,12 +104,13 @@ def test_ghost_voxels_match_a_plain_loop_of_ray_ellipsoid_intersections():
         ref = _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers, self_scale)
         got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
                            torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(covers), chunk=64,
-                           self_scale=self_scale).numpy()
+                           self_scale=self_scale, dense=dense).numpy()
         assert 5 < ref.sum() < _reference(points, seen, centres, mean, cov, 1.15, 1.2, covers).sum()
         np.testing.assert_array_equal(got, ref)
 
 
-def test_frames_of_different_rigs_in_one_batch_match_the_plain_loop_each():
+@pytest.mark.parametrize("dense", [False, True])
+def test_frames_of_different_rigs_in_one_batch_match_the_plain_loop_each(dense):
     """Three frames padded into one batch (the lockstep tracker's): different voxel counts, 3 to 5 cameras, bodies
     and covering blobs; each frame's ghosts are the plain loop's on that frame alone, and padding is no ghost."""
     rng = np.random.default_rng(1)
@@ -130,7 +132,7 @@ def test_frames_of_different_rigs_in_one_batch_match_the_plain_loop_each():
         points[b, :len(p)], seen[b, :len(p), :sn.shape[1]], centres[b, :len(cen)] = p, sn, cen
     got = ghost_voxels(torch.tensor(points), torch.tensor(seen), torch.tensor(centres), torch.tensor(mean),
                        torch.tensor(cov), 1.15, 1.2, covers=torch.tensor(np.stack([f[5] for f in frames])),
-                       self_scale=1.3, chunk=64).numpy()
+                       self_scale=1.3, chunk=64, dense=dense).numpy()
     for b, (p, sn, cen, m, c, cv) in enumerate(frames):
         ref = _reference(p, sn, cen, m, c, 1.15, 1.2, cv, 1.3)
         assert 5 < ref.sum() < len(p) - 5
@@ -181,7 +183,8 @@ def test_ghost_voxels_in_float32_far_from_the_world_origin_with_thin_blobs():
     assert (got32 != ref).sum() <= 5, (got32 != ref).sum()  # measured 2; 12 without the centring
 
 
-def test_only_a_blob_in_front_of_the_camera_explains_a_voxel():
+@pytest.mark.parametrize("dense", [False, True])
+def test_only_a_blob_in_front_of_the_camera_explains_a_voxel(dense):
     """One camera, a voxel 3.5 m in front of it and a blob on the same line: beyond the voxel, the blob explains
     it (the view sees the blob through it); behind the camera, on the line's other side, it does not."""
     centre = torch.tensor([[3.5, 0.0, 1.0]], dtype=torch.float64)
@@ -189,7 +192,8 @@ def test_only_a_blob_in_front_of_the_camera_explains_a_voxel():
     cov = (torch.eye(3, dtype=torch.float64) * 0.1 ** 2 / 5)[None]  # a ball of 10 cm radius
     seen = torch.ones(1, 1, dtype=torch.bool)
     for x, ghost in ((-0.8, True), (5.0, False), (2.0, True), (0.05, False)):  # the last: the voxel inside it
-        got = ghost_voxels(voxel, seen, centre, torch.tensor([[x, 0.0, 1.0]], dtype=torch.float64), cov)
+        got = ghost_voxels(voxel, seen, centre, torch.tensor([[x, 0.0, 1.0]], dtype=torch.float64), cov,
+                           dense=dense)
         assert bool(got[0]) == ghost, x
         assert _reference(voxel.numpy(), seen.numpy(), centre.numpy(), np.array([[x, 0.0, 1.0]]), cov.numpy(),
                           1.15, 1.2)[0] == ghost

@@ -41,7 +41,8 @@ from torchtrack.checks import InputError, check_shape
 
 def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch.Tensor, mean: torch.Tensor,
                  cov: torch.Tensor, inside_scale: float = 1.15, cover_scale: float = 1.2,
-                 covers: torch.Tensor | None = None, self_scale: float = 0.0, chunk: int = 4096) -> torch.Tensor:
+                 covers: torch.Tensor | None = None, self_scale: float = 0.0, chunk: int = 4096,
+                 dense: bool | None = None) -> torch.Tensor:
     """Which voxels the predicted body explains away (see the module docstring).
 
     Args:
@@ -54,6 +55,8 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         self_scale: a blob does not explain a ray for a voxel inside its ellipsoid grown by this (0: it does;
             only values above ``inside_scale`` act, since voxels inside that are never ghosts).
         chunk: voxels per batch (bounds the (chunk, K, C) temporaries).
+        dense: test every voxel of a chunk rather than only the candidates (seen, outside the body): the same
+            answer, without the wait for the device that selecting them costs on a GPU (None: dense off the CPU).
         B frames at once (the lockstep tracker's sequences): a leading B on every tensor, each frame's voxels
         against its own cameras and body; padding: NaN points, and cameras that see nothing (``seen`` False).
 
@@ -62,7 +65,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     """
     if points.dim() == 2:
         return ghost_voxels(points[None], seen[None], camera_centres[None], mean[None], cov[None], inside_scale,
-                            cover_scale, None if covers is None else covers[None], self_scale, chunk)[0]
+                            cover_scale, None if covers is None else covers[None], self_scale, chunk, dense)[0]
     B, N = points.shape[:2]
     check_shape(points, (B, N, 3), "points")
     C = camera_centres.shape[1]
@@ -76,6 +79,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     if not self_scale >= 0:
         raise InputError(f"ghost_voxels: self_scale must be >= 0 (0: off), got {self_scale}")
     out = torch.zeros(B, N, dtype=torch.bool, device=points.device)
+    dense = points.device.type != "cpu" if dense is None else dense
     if covers is not None:
         check_shape(covers, (B, K), "covers")
     if N == 0 or K == 0:
@@ -106,7 +110,17 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
         x, sn = points[:, lo:lo + chunk].to(dt) - origin, seen[:, lo:lo + chunk]
         d2 = mahalanobis2(x, m, cov)  # (B, n, K); NaN (padding) is inside nothing
         inside = (d2 <= r_in2).any(-1)  # (B, n)
-        bi, ni = (~inside & sn.any(-1)).nonzero(as_tuple=True)
+        candidate = ~inside & sn.any(-1)  # (B, n)
+        if dense:
+            along = torch.einsum("bnj,bkcj->bnkc", x, v) - vc[:, None]  # (B, n, K, C)
+            y = torch.einsum("bkij,bnj->bnki", W, x)[:, :, :, None] - Wc[:, None]  # (B, n, K, C, 3)
+            qq = y.square().sum(-1).clamp(min=1e-30)
+            hit = (dAd[:, None] - along.square() / qq <= r_cov2) & (along < 0) & cover_k[:, None]
+            if self_scale > 0:
+                hit &= (d2 > r_self2)[..., None]
+            out[:, lo:lo + chunk] = candidate & (hit.any(2) | ~sn).all(-1)
+            continue
+        bi, ni = candidate.nonzero(as_tuple=True)
         if bi.numel() == 0:
             continue
         xc = x[bi, ni]  # (M, 3) the candidates, each with its frame's cameras and blobs (bi)

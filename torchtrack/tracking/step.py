@@ -15,10 +15,10 @@ One step (de Bem §III, Caillette §4; :mod:`torchtrack.tracking.markerless` tel
 
 What to do with each result (accept it, count a divergence, re-acquire) is the driver's
 (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`, :mod:`torchtrack.tracking.lockstep`). Nothing here
-reads files or logs. On a GPU the step waits for a value from the device only where the ghost test picks its
-candidate voxels (rigs of at most ``ghost_max_cameras``); EM selects no rows by mask and asks whether a colour is
-known only on the CPU; the driver then reads the results once (:meth:`MarkerlessTracker._results`). Not yet
-measured on a device.
+reads files or logs, nor waits for a value from a GPU: EM and the ghost test mask rows rather than select them
+there (on the CPU, where a selection costs no wait, they select), and EM asks whether a colour is known only on
+the CPU. The driver then reads the results once a frame (:meth:`MarkerlessTracker._results`). Not yet measured on
+a device.
 """
 
 from __future__ import annotations
