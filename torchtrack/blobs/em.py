@@ -267,7 +267,8 @@ def m_step(points: torch.Tensor, weights: torch.Tensor, sizes: torch.Tensor, col
     # covariance about the new mean: observed scatter plus the prior's shape centred at the new mean
     d = mu - mean
     scatter = cov + d[:, :, None] * d[:, None, :]
-    cov = (total[:, None, None] * scatter + ws[:, None, None] * prior.cov) / (total + ws).clamp(min=1e-30)[:, None, None]
+    cov = ((total[:, None, None] * scatter + ws[:, None, None] * prior.cov)
+           / (total + ws).clamp(min=1e-30)[:, None, None])
     active = fill >= config.min_fill
     mean = torch.where(active[:, None], mean, prior.mean)
     cov = torch.where(active[:, None, None], cov, prior.cov)
