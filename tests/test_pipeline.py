@@ -76,6 +76,8 @@ def test_nobody_in_the_video_is_an_error_naming_the_sequence(seq, tmp_path):
     assert not exc.value.poses.valid.any()
     with pytest.raises(InputError, match="threads must be >= 1"):
         torchtrack.track(seq, **FAST, threads=0)
+    with pytest.raises(InputError, match="frame_cache_mb must be >= 0"):
+        torchtrack.track(seq, **FAST, frame_cache_mb=-1)
 
 
 def test_a_given_background_is_the_one_tracked_on_and_each_pass_is_reported(seq):

@@ -341,6 +341,9 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
     from torchtrack.tracking.smoothing import SmoothingConfig, smooth_track
     from torchtrack.tracking.stream import ObservationWorker
 
+    if not frame_cache_mb >= 0:
+        raise InputError(f"frame_cache_mb must be >= 0, got {frame_cache_mb}")
+    cache_bytes = int(frame_cache_mb * 2 ** 20)
     cfg = config if isinstance(config, dict) else load_config(config)
     source = cfg.get("source", "the tracking config")
     ocfg = dict(cfg["observation"])
@@ -416,9 +419,6 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         if refit_passes is None:
             bcfg = bcfg.for_start(body_given=True)
 
-    if not frame_cache_mb >= 0:
-        raise InputError(f"frame_cache_mb must be >= 0, got {frame_cache_mb}")
-    cache_bytes = int(frame_cache_mb * 2 ** 20)
     with contextlib.ExitStack() as stack:
         if workers and device.type == "cpu":  # one worker, and the frames decoded once, for all the passes
             workers = stack.enter_context(ObservationWorker(cache_bytes=cache_bytes))
