@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
@@ -140,7 +139,8 @@ def refit_body_on_track(folder: SequenceFolder, observer: Observer, tracker: Mar
 def track_with_body_refit(
         folder: SequenceFolder, make_observer: Callable[[], Observer], tracker: MarkerlessTracker, poses: Poses,
         config: BodyRefitConfig, start: int = 0, stop: int | None = None, batch: int = 4,
-        device: torch.device | str | None = None, log_dir: str | Path | None = None, log_every: int = 10,
+        device: torch.device | str | None = None, make_logger: Callable[[int], Any] | None = None,
+        log_every: int = 10,
         progress: bool = True, on_pass: Callable[[int, Poses, bool], None] | None = None,
         workers: int | ObservationWorker = 0) -> tuple[Poses, float]:
     """After a track ``poses`` of ``[start, stop)`` by ``tracker`` (its subject still the one the track ended
@@ -152,15 +152,14 @@ def track_with_body_refit(
     Args:
         make_observer: a new observer of the frames (called for each pass's refit and track: an observer that
             counts the frames it has seen starts from 0 every time).
-        log_dir: each pass's track is logged to TensorBoard in ``log_dir/body_refit_N`` (None: not logged).
+        make_logger: gives the logger of pass N's track (a :class:`~torchtrack.logging.RunLogger`, closed here
+            after the pass), e.g. TensorBoard in ``log_dir/body_refit_N`` (None: not logged).
         on_pass: called with the pass number (1 first), its track and whether it was kept.
         Others: as :func:`~torchtrack.tracking.run.track_sequence`.
 
     Returns:
         the kept track and the seconds the passes took (0 without any).
     """
-    from torchtrack.logging import RunLogger
-
     t0 = time.perf_counter()
     if config.passes == 0 or not tracker.initialized:
         return poses, 0.0
@@ -179,7 +178,7 @@ def track_with_body_refit(
         tracker.initialize_from_pose(torch.as_tensor(kept.angles[first]).to(tracker.angles), skeleton=body,
                                      floor_z_m=floor_z)
         log.info("body refit: pass %d of %d (largest change %.1f %%)", p, config.passes, 100 * change)
-        logger = RunLogger(Path(log_dir) / f"body_refit_{p}") if log_dir is not None else None
+        logger = make_logger(p) if make_logger is not None else None
         try:
             new, _ = track_sequence(folder, make_observer(), tracker, start, stop, batch, device, logger=logger,
                                     log_every=log_every, progress=progress, desc=f"body refit {p}/{config.passes}",

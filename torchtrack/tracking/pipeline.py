@@ -444,9 +444,10 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
             folder, bg, make_observer, tracker, rcfg, bg_config, start, stop, batch, device, logger=tb,
             log_every=log_every, progress=progress, workers=workers, on_pass=pass_done)
         kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
+        refit_logger = None if log_dir is None else lambda p: RunLogger(Path(log_dir) / f"body_refit_{p}")
         poses, _ = track_with_body_refit(
-            folder, lambda: make_observer(bg), tracker, poses, bcfg, start, stop, batch, device, log_dir=log_dir,
-            log_every=log_every, progress=progress, workers=workers, on_pass=refit_done)
+            folder, lambda: make_observer(bg), tracker, poses, bcfg, start, stop, batch, device,
+            make_logger=refit_logger, log_every=log_every, progress=progress, workers=workers, on_pass=refit_done)
     if kept_pass is not None:
         poses.extra["refinement_pass"] = kept_pass
     if not poses.valid.any():
