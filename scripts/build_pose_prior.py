@@ -28,7 +28,7 @@ from torchtrack.resources import CONFIG_DIR
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.bvh_motion import retarget_bvh
 from torchtrack.synth.c3d_motion import retarget_c3d
-from torchtrack.tracking.search import mirrored
+from torchtrack.tracking.poses import mirrored
 
 MOCAP = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "mocap"
 ROOT_ZEROED = ("root_tx", "root_ty", "root_tz", "root_rz")

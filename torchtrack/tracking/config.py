@@ -48,16 +48,16 @@ class TrackerConfig:
             other pose: for recordings that open with a clear starfish, where a start in any other pose should
             be refused rather than searched for.
         start_real_poses: the search also starts from real captured poses
-            (:func:`~torchtrack.tracking.search.real_pose_prior`). Turn it on for a subject in crouched, twisted or
+            (:func:`~torchtrack.tracking.poses.real_pose_prior`). Turn it on for a subject in crouched, twisted or
             reaching poses seen by 8 or more cameras, where more starts land right. Off by default: beside phantom
             volume it can take a taller body with its arms raised into the phantom, and one stress sequence
             tracked worse (docs/results.md, "Real poses in the prior").
         start_prior_exclude: the search leaves out the real captures' poses whose capture's name contains one of
-            these (:func:`~torchtrack.tracking.search.real_pose_prior`): for evaluations on the captures the prior
+            these (:func:`~torchtrack.tracking.poses.real_pose_prior`): for evaluations on the captures the prior
             was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
         start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
             same silhouette facing the other way, which one frame's voxels cannot tell from it:
-            :func:`~torchtrack.tracking.search.turned_round`) is tracked beside it for this long from the body's
+            :func:`~torchtrack.tracking.poses.turned_round`) is tracked beside it for this long from the body's
             first move (``START_RACE_MOVED_M``), and the one whose poses fit the voxels better from that move on
             (EM/IK's fit cost lower, the mean two-way score not lower by more than ``START_RACE_MARGIN``, and one
             of the two clearly better: the score by that margin or the cost by ``START_RACE_COST_RATIO``) is

@@ -11,22 +11,20 @@ them, half of those kept face away from the best, so that a body turned round st
 tells it). The tracker's own EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage
 is one batched tensor computation over the hypotheses, on the device of the voxels.
 
-The hypotheses: the skeleton's poses from a structured prior (:func:`pose_prior`: arms hanging, bent, forward,
-sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee raised, kicking) and,
-with ``real_poses``, from real captures (:func:`real_pose_prior`: crouches, twists and reaches that no product of
-per-limb poses gives), at every heading; placed with their lowest point on the floor (the voxels' lowest) and the
-centroid of their blobs over the voxels' centroid, scaled so that their top meets the voxels' top (within
-``scale_range``: the template is the prior of the subject's size, whose proportions the tracker's bone fit then
-measures).
+The hypotheses: the skeleton's poses from a structured prior (:func:`~torchtrack.tracking.poses.pose_prior`: arms
+hanging, bent, forward, sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee
+raised, kicking) and, with ``real_poses``, from real captures (:func:`~torchtrack.tracking.poses.real_pose_prior`:
+crouches, twists and reaches that no product of per-limb poses gives), at every heading; placed with their lowest
+point on the floor (the voxels' lowest) and the centroid of their blobs over the voxels' centroid, scaled so that
+their top meets the voxels' top (within ``scale_range``: the template is the prior of the subject's size, whose
+proportions the tracker's bone fit then measures).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -35,26 +33,11 @@ from torchtrack.blobs.model import BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
+from torchtrack.tracking.poses import ARM_POSES, pose_prior, real_pose_prior
 from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
-__all__ = ["SearchConfig", "SearchResult", "mirrored", "pose_prior", "real_pose_prior", "score_states", "search_pose",
-           "turned_round", "two_way_score"]
+__all__ = ["SearchConfig", "SearchResult", "score_states", "search_pose", "two_way_score"]
 
-#: Arm poses of the prior, per side: (shoulder flexion, shoulder abduction, elbow flexion) in radians.
-ARM_POSES = ((0.0, 0.1, 0.15), (0.3, 0.15, 1.5), (1.5, 0.1, 0.1), (0.0, 0.75, 0.1), (0.0, 1.5, 0.1),
-             (2.7, 0.3, 0.2))
-#: Leg poses of the prior: {dof: value} on top of the rest pose (both legs named).
-LEG_POSES = (
-    {},
-    {"l_hip_abd": 0.3, "r_hip_abd": 0.3},
-    {"l_hip_flex": 0.45, "r_hip_flex": -0.3, "l_knee_flex": 0.2, "r_knee_flex": 0.3},
-    {"r_hip_flex": 0.45, "l_hip_flex": -0.3, "r_knee_flex": 0.2, "l_knee_flex": 0.3},
-    {"l_hip_flex": 1.3, "r_hip_flex": 1.3, "l_knee_flex": 2.0, "r_knee_flex": 2.0, "l_ankle_flex": 0.4,
-     "r_ankle_flex": 0.4, "spine_flex": 0.4},
-    {"l_hip_flex": 1.3, "l_knee_flex": 1.6},
-    {"r_hip_flex": 1.3, "r_knee_flex": 1.6},
-    {"l_hip_flex": 1.2, "l_knee_flex": 0.2, "spine_flex": -0.1},
-)
 #: The body's DOFs the annealed search perturbs, with the step (rad) of its first layer.
 STEP_RAD = 0.3
 #: A voxel counts as inside a blob within this factor of its ellipsoid (voxels stick out of the body's surface by
@@ -78,8 +61,8 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
-        real_poses: add the real captures' poses (:func:`real_pose_prior`) to the structured prior
-            (``TrackerConfig.start_real_poses``).
+        real_poses: add the real captures' poses (:func:`~torchtrack.tracking.poses.real_pose_prior`) to the
+            structured prior (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
             capture the prior was built from leaves its subject out).
     """
@@ -121,55 +104,6 @@ class SearchResult:
     filled: torch.Tensor
     outside: torch.Tensor
     hypotheses: int
-
-
-def pose_prior(skel: Skeleton, symmetric_arms: bool = False) -> torch.Tensor:
-    """(P, D) the prior's poses: every arm pose on each side (or the same on both: ``symmetric_arms``) with every
-    leg pose, root at the origin facing +X (root translation and rotation zero)."""
-    names = list(skel.dof_names)
-    rest = torch.zeros(skel.num_dofs, dtype=skel.lower.dtype, device=skel.lower.device)
-    out = []
-    arm_pairs = ([(a, a) for a in ARM_POSES] if symmetric_arms else
-                 [(a, b) for a in ARM_POSES for b in ARM_POSES])
-    for legs in LEG_POSES:
-        for left, right in arm_pairs:
-            a = rest.clone()
-            for side, (flex, abd, elbow) in (("l", left), ("r", right)):
-                a[names.index(f"{side}_shoulder_flex")] = flex
-                a[names.index(f"{side}_shoulder_abd")] = abd
-                a[names.index(f"{side}_elbow_flex")] = elbow
-            for dof, v in legs.items():
-                a[names.index(dof)] = v
-            out.append(a)
-    return skel.clamp(torch.stack(out))
-
-
-#: The real captures' poses (``scripts/build_pose_prior.py``): angles (P, D), dof_names (D,), source (P,).
-POSE_PRIOR = "pose_prior.npz"
-
-
-@functools.lru_cache(maxsize=2)
-def _prior_file(path: str) -> dict[str, np.ndarray]:
-    with np.load(path) as f:
-        return {k: f[k] for k in ("angles", "dof_names", "source")}
-
-
-def real_pose_prior(skel: Skeleton, exclude: tuple[str, ...] = ()) -> torch.Tensor:
-    """(P, D) the real captures' poses (built-in ``configs/pose_prior.npz``: poses of the captures in
-    ``../shared/data/mocap``, each with its left-right mirror, thinned by farthest-point sampling) on ``skel``'s
-    DOFs (a DOF the file lacks at 0), root translation and heading zero, within the joint limits; the poses of the
-    captures whose name contains a string of ``exclude`` left out."""
-    from torchtrack.resources import builtin_config
-
-    data = _prior_file(str(builtin_config(POSE_PRIOR)))
-    keep = np.asarray([not any(e in str(src) for e in exclude) for src in data["source"]], dtype=bool)
-    names = [str(n) for n in data["dof_names"]]
-    src = torch.from_numpy(data["angles"][keep])
-    out = torch.zeros(src.shape[0], skel.num_dofs, dtype=skel.lower.dtype, device=skel.lower.device)
-    for d, name in enumerate(skel.dof_names):
-        if name in names:
-            out[:, d] = src[:, names.index(name)].to(out)
-    return skel.clamp(out)
 
 
 class _Voxels:
@@ -427,41 +361,6 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
     pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
     return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
-
-
-#: The DOFs that the body's left-right mirror negates (sideways bends, twists and the root's roll); the limbs'
-#: DOFs are named per side with mirror-symmetric signs, so the mirror swaps them as they are.
-MIRROR_NEGATED = ("root_rx", "spine_abd", "spine_twist", "neck_abd", "neck_twist")
-
-
-def _sides_swapped(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
-    """``angles (..., D)`` with the left and right limbs' DOFs swapped and :data:`MIRROR_NEGATED` negated."""
-    names = list(skel.dof_names)
-    other = {"l_": "r_", "r_": "l_"}
-    swap = [names.index(other[n[:2]] + n[2:]) if n[:2] in other else i for i, n in enumerate(names)]
-    sign = torch.tensor([-1.0 if n in MIRROR_NEGATED else 1.0 for n in names], dtype=angles.dtype,
-                        device=angles.device)
-    return angles[..., swap] * sign  # one gather: each side takes the other's values
-
-
-def mirrored(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
-    """``angles (..., D)`` mirrored left to right through the world's XZ plane (y -> -y): the same pose done by
-    the other side (for a body facing +X at the origin, its own sagittal plane)."""
-    out = _sides_swapped(skel, angles)
-    for name in ("root_ty", "root_rz"):
-        out[..., skel.dof_names.index(name)] *= -1.0
-    return out
-
-
-def turned_round(skel: Skeleton, angles: torch.Tensor) -> torch.Tensor:
-    """``angles (..., D)`` reflected through the body's frontal plane (the vertical plane through the root across
-    its heading) and re-expressed as a body facing the other way: heading + pi, left and right limbs swapped, the
-    sideways bends, twists and roll negated. For a pose without flexion it fills the same space facing the other
-    way (the front/back ambiguity of a silhouette, e.g. a starfish); a flexed joint then bends the other way in the
-    world."""
-    out = _sides_swapped(skel, angles)
-    out[..., skel.dof_names.index("root_rz")] += math.pi
-    return out
 
 
 def _top(score: torch.Tensor, n: int) -> torch.Tensor:

@@ -164,7 +164,7 @@ class StartMixin:
 
     def _start_race(self, obs: VoxelObservation, res: FrameResult) -> None:
         """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is."""
-        from torchtrack.tracking.search import turned_round
+        from torchtrack.tracking.poses import turned_round
 
         twin = self._fork()
         twin._twin = True
