@@ -221,12 +221,15 @@ class ObservationWorker:
             q.join_thread()
 
     def _drain(self) -> None:
-        """Take what is queued, so that a worker blocked on a full queue moves on."""
-        try:
-            while True:
+        """Take what is queued, so that a worker blocked on a full queue moves on. An item whose tensors a stopping
+        worker no longer shares fails to unpickle once taken: it is dropped all the same."""
+        for _ in range(4 * PREFETCH_BATCHES + 16):  # bounded: a closed queue raises the same way every time
+            try:
                 self._results.get_nowait()
-        except (queue.Empty, OSError, ValueError):
-            pass
+            except queue.Empty:
+                return
+            except Exception:  # noqa: BLE001 (EOFError, ConnectionError, ...: the item is gone either way)
+                continue
 
     def observe(self, frames: _ObservedFrames) -> Iterator[ObservedBatch]:
         """The observed batches of ``frames``, in order."""
