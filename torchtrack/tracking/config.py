@@ -76,16 +76,15 @@ class TrackerConfig:
             walks but costs the template bodies' heads (a head's top the voxels lack shrinks it) and the 4-camera
             squat (docs/results.md, "Tracker settings").
         em_cell_m: merge the voxels per cell of this size before EM (0: off). Turn it on for fine hulls, whose EM
-            cost grows with the voxel count while the blobs need no such detail: the fast config's 3 cm cells track
-            the 1.5 cm 4-camera hull at 29.7 frames/s against 13.7 (docs/results.md, "Speed").
+            cost grows with the voxel count while the blobs need no such detail, as ``markerless_fast.yaml`` does
+            (its speed on the fine 4-camera hull: docs/results.md, "Speed").
         blobs: blob config file (``configs/`` name or path).
         floor_contact: keep the lowest foot on the floor (Caillette §4.2: at least one part of the body touches
             the floor; :func:`~torchtrack.tracking.goals.floor_contact`). Turn it on for a subject who never
             leaves the floor and whose feet the voxels lose (a stance held so still that the background takes
-            the lower legs): a start with the knees bent, the voxels under 0.3 m gone, ends with the ankles 4 cm
-            from the truth with it and 20 cm above without (tests/test_markerless.py). Off by default: wrong for
-            jumps and running, within 0.1 mm on the synthetic table and worse on the Pose2Sim demo
-            (docs/results.md, "Floor contact").
+            the lower legs; tests/test_markerless.py builds such a case). Off by default: wrong for jumps and
+            running, no better on the synthetic table and worse on the Pose2Sim demo (docs/results.md, "Floor
+            contact").
         floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
         ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
@@ -199,24 +198,15 @@ class TrackerConfig:
         for name in ("ghost_inside_scale", "ghost_cover_scale"):
             if not getattr(self, name) > 0:
                 raise InputError(f"TrackerConfig.{name} must be > 0, got {getattr(self, name)}")
-        if not (self.ghost_self_scale >= 0 and math.isfinite(self.ghost_self_scale)):
-            raise InputError(f"TrackerConfig.ghost_self_scale must be >= 0 and finite (0: off), got "
-                             f"{self.ghost_self_scale}")
-        if not (self.hold_lost_feet >= 0 and math.isfinite(self.hold_lost_feet)):
-            raise InputError(f"TrackerConfig.hold_lost_feet must be >= 0 and finite (0: off), got "
-                             f"{self.hold_lost_feet}")
+        for name in ("ghost_self_scale", "hold_lost_feet", "functional_hips", "velocity_fps"):  # 0: off
+            if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
+                raise InputError(f"TrackerConfig.{name} must be >= 0 and finite (0: off), got {getattr(self, name)}")
         if not 0.0 <= self.hold_min_confidence <= 1.0:
             raise InputError(f"TrackerConfig.hold_min_confidence must be in [0, 1], got {self.hold_min_confidence}")
         if not self.hold_max_step_m > 0:
             raise InputError(f"TrackerConfig.hold_max_step_m must be > 0, got {self.hold_max_step_m}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
-        if not (self.velocity_fps >= 0 and math.isfinite(self.velocity_fps)):
-            raise InputError(f"TrackerConfig.velocity_fps must be >= 0 and finite (0: velocity at every rate), got "
-                             f"{self.velocity_fps}")
-        if not (self.functional_hips >= 0 and math.isfinite(self.functional_hips)):
-            raise InputError(f"TrackerConfig.functional_hips must be >= 0 and finite (0: off), got "
-                             f"{self.functional_hips}")
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any], source: str = "<config>") -> TrackerConfig:

@@ -135,7 +135,7 @@ def _serve(jobs, results, current, threads: int, cache_bytes: int, debug: bool) 
 
     cv2.setNumThreads(1)
     os.environ.setdefault("OPENCV_FFMPEG_THREADS", "1")
-    folders: dict[tuple, SequenceFolder] = {}  # the sequences seen, with their frame caches
+    kept: tuple[tuple, SequenceFolder] | None = None  # the last sequence, with its decoded frames
     while (job := jobs.get()) is not None:
         number, payload = job
         try:
@@ -145,10 +145,10 @@ def _serve(jobs, results, current, threads: int, cache_bytes: int, debug: bool) 
             results.put((number, _END))
             continue
         key = (str(frames.folder.root), tuple(map(str, frames.folder.camera_names)), frames.folder.num_frames)
-        if key not in folders:
+        if kept is None or kept[0] != key:  # one sequence's frames at a time
             frames.folder.cache_frames(cache_bytes)
-            folders = {key: frames.folder}  # one sequence's frames at a time
-        frames.folder = folders[key]
+            kept = (key, frames.folder)
+        frames.folder = kept[1]
         with warnings.catch_warnings(record=True) as caught:  # under the process's default filters
             try:
                 for item in frames:
