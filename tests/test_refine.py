@@ -102,6 +102,31 @@ def test_clearance_is_the_distance_to_the_nearest_set_pixel():
             np.testing.assert_allclose(got[i, c].numpy(), d, atol=1e-5)
 
 
+def test_clearance_within_a_radius_gives_the_same_clear_frames():
+    """Distances up to ``within_px`` as the plain loop's, the others no nearer; clear_frame_masks, which compares
+    them with thresholds up to that, keeps the same frames from either."""
+    gen = torch.Generator().manual_seed(1)
+    masks = torch.zeros(12, 40, 60, dtype=torch.bool)
+    for i in range(12):  # a blob that moves across the image, one frame without it
+        y, x = 5 + 2 * i, 4 + 4 * i
+        masks[i, y:y + 6, x:x + 5] = torch.rand(6, 5, generator=gen) > 0.3
+    masks[7] = False
+    full, bounded = clearance_px(masks), clearance_px(masks, within_px=6.0)
+    v, u = np.mgrid[0:40, 0:60]
+    for i in range(12):
+        m = masks[i].numpy()
+        if m.any():
+            d = np.sqrt((v[..., None] - v[m]) ** 2 + (u[..., None] - u[m]) ** 2).min(-1)
+            np.testing.assert_allclose(full[i].numpy(), d, atol=1e-5)
+    near = full <= 6.0
+    assert torch.equal(bounded[near], full[near]) and (bounded[~near] > 6.0).all() and torch.isinf(bounded).any()
+    for k, clear_px, near_px in ((4, 6.0, 0.0), (4, 3.0, 6.0), (20, 6.0, 5.0)):
+        assert torch.equal(clear_frame_masks(bounded, k, clear_px, near_px),
+                           clear_frame_masks(full, k, clear_px, near_px))
+    with pytest.raises(InputError, match="within_px"):
+        clearance_px(masks, within_px=0.0)
+
+
 def test_clear_frame_masks_keep_the_clearest_frames_and_never_the_body():
     k, big = 5, 20.0
     cases = {  # clearance over 12 frames -> the frames kept
@@ -286,7 +311,7 @@ def test_a_first_pass_that_tracks_nothing_is_returned_with_a_warning(monkeypatch
                   valid=np.zeros(T, bool), confidence=np.zeros((T, 1), np.float32))
     calls = []
     monkeypatch.setattr(refine, "track_sequence", lambda *a, **k: (calls.append(k) or empty, 1.0))
-    folder = SimpleNamespace(num_frames=T, root="seq")
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0)
     observer = SimpleNamespace(rig=_rig())
     with pytest.warns(DataWarning, match="tracked no frame"):
         poses, _, bg = refine.track_with_background_refinement(
@@ -544,7 +569,7 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
     monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
-    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
                               subject=SimpleNamespace(skeleton=skel, blobs=None),
@@ -571,6 +596,55 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
     assert len(calls) == 6 and calls[-1] is logger
     with pytest.raises(InputError, match="min_change_m"):
         RefineConfig(min_change_m=-1.0)
+
+
+def test_a_fast_sequence_is_refined_on_every_nth_frame_and_tracked_at_the_full_rate(monkeypatch, skel):
+    """60 frames/s with ``max_fps`` 30: the passes track every 2nd frame, each sampled frame is drawn at the pose of
+    the nearest frame they tracked, and the kept pass's background is tracked once more at the full rate (with
+    the logger); ``max_fps`` 0 tracks every frame."""
+    from types import SimpleNamespace
+
+    from torchtrack.tracking import refine
+
+    T = 9
+    calls, drawn = [], []
+
+    def fake_track(folder, observer, tracker, start, stop, *args, step=1, **kwargs):
+        calls.append((step, kwargs.get("logger"), observer.background))
+        index = np.arange(0, T, step)
+        poses = _poses_at(np.zeros((len(index), 16, 3)), np.ones(len(index), bool), skel, 0.01 * len(calls))
+        poses.frame_index = index
+        poses.angles[:, 0] = index  # the frame each pose was tracked at
+        return poses, 1.0
+
+    def fake_background(frames, angles, *args, **kwargs):
+        drawn.append(angles[:, 0].tolist())
+        return f"background {len(drawn)}"
+
+    monkeypatch.setattr(refine, "track_sequence", fake_track)
+    monkeypatch.setattr(refine, "refined_background", fake_background)
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=60.0, camera_names=["a", "b"],
+                             sample_frames=lambda *a, **k: ([0, 3, 5, 8], None))
+    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
+                              subject=SimpleNamespace(skeleton=skel, blobs=None),
+                              initialize_from_pose=lambda *a, **k: None)
+    logger = object()
+    poses, _, bg = refine.track_with_background_refinement(
+        folder, "first", lambda b: SimpleNamespace(rig=_rig(), background=b), tracker,
+        RefineConfig(passes=2, min_change_m=0.0, keep="last"), BackgroundConfig(), logger=logger)
+    assert [c[0] for c in calls] == [2, 2, 2, 1] and all(c[1] is None for c in calls[:3])
+    assert calls[-1][1:] == (logger, "background 2") and bg == "background 2"
+    assert np.array_equal(poses.frame_index, np.arange(T))
+    assert drawn[0] == [0.0, 2.0, 4.0, 8.0]  # frames 0, 3, 5, 8 at the nearest of 0, 2, 4, 6, 8 (a tie: the first)
+    calls.clear()
+    refine.track_with_background_refinement(
+        folder, "first", lambda b: SimpleNamespace(rig=_rig(), background=b), tracker,
+        RefineConfig(passes=2, min_change_m=0.0, keep="last", max_fps=0.0), BackgroundConfig(), logger=logger)
+    assert [c[0] for c in calls] == [1, 1, 1] and calls[-1][1] is logger  # the last pass logged as it runs
+    assert [RefineConfig().frame_step(f) for f in (25, 29.97, 30, 50, 59.94, 60, 120)] == [1, 1, 1, 1, 2, 2, 4]
+    with pytest.raises(InputError, match="max_fps"):
+        RefineConfig(max_fps=-1.0)
 
 
 def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel):
@@ -603,7 +677,7 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", fake_background)
     monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
-    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
                               subject=SimpleNamespace(skeleton=skel, blobs=None),
@@ -693,7 +767,7 @@ def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
     monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
-    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     observer = SimpleNamespace(rig=_rig())
     refine.track_with_background_refinement(folder, "first", lambda b: observer, tracker,
@@ -725,7 +799,7 @@ def test_an_automatic_start_is_searched_for_again_on_each_pass(monkeypatch, skel
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: f"refined {len(events)}")
     monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
-    folder = SimpleNamespace(num_frames=T, root="seq", camera_names=["a", "b"],
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=False, subject=SimpleNamespace(skeleton=skel, blobs=None),
                               reset=lambda: events.append(("reset",)),

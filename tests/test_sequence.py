@@ -81,6 +81,10 @@ def test_batches_content_order_and_device(two_cams, device):
     assert [b.frame_index.tolist() for b in sub] == [[5, 6, 7]]
     torch.testing.assert_close(sub[0].images, images[5:8].cpu(), **exact_on(device))
     torch.testing.assert_close(seq.read_frame(7, device=device), images[7], rtol=0, atol=0)
+    # every third frame from 1
+    strided = list(seq.iter_batches(2, start=1, step=3))
+    assert [b.frame_index.tolist() for b in strided] == [[1, 4], [7]]
+    torch.testing.assert_close(torch.cat([b.images for b in strided]).cpu(), images[1::3].cpu(), rtol=0, atol=0)
 
 
 def test_batches_bounded_decoding(two_cams):
@@ -107,6 +111,8 @@ def test_range_errors(two_cams):
         next(seq.iter_batches(2, stop=11))
     with pytest.raises(InputError, match="batch_size"):
         next(seq.iter_batches(0))
+    with pytest.raises(InputError, match="step"):
+        next(seq.iter_batches(2, step=0))
     with pytest.raises(InputError, match="outside"):
         seq.read_frame(10)
 

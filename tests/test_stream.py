@@ -149,6 +149,13 @@ def test_tracking_with_a_worker_gives_the_same_poses(seq):
     assert runs[0].valid.all() and np.array_equal(runs[0].valid, runs[1].valid)
     # same observations; the tracker's float sums may round differently at another thread count
     np.testing.assert_allclose(runs[1].joints3d, runs[0].joints3d, atol=1e-3)
+    # every 2nd frame: a sequence at half the rate, near the full rate's track at those frames
+    half = MarkerlessTracker(Skeleton.from_urdf(), cfg)
+    strided = track_sequence(folder, observer, half, progress=False, workers=1, step=2)[0]
+    assert strided.frame_index.tolist() == list(range(0, folder.num_frames, 2)) and half.frame_rate == folder.fps / 2
+    assert strided.valid.all()
+    apart = np.linalg.norm(strided.landmarks() - runs[0].landmarks()[::2], axis=-1).mean()
+    assert apart < 0.02, apart
 
 
 def _same(a: list, b: list) -> None:
@@ -176,6 +183,8 @@ def test_one_worker_serves_several_passes_one_left_early_or_failing(seq):
         with pytest.raises(InputError, match=r"frame range \[0, 99\) outside"):
             list(observe_batches(folder, hull, 0, 99, workers=worker))
         _same(list(observe_batches(folder, hull, 1, 4)), list(observe_batches(folder, hull, 1, 4, workers=worker)))
+        every = list(observe_batches(folder, hull, 0, folder.num_frames, batch=1))  # and every 3rd frame from 1
+        _same(every[1::3], list(observe_batches(folder, hull, 1, folder.num_frames, batch=1, step=3, workers=worker)))
         assert worker.alive and _live_workers() == 1
     assert not worker.alive and _live_workers() == 0
     with pytest.raises(InputError, match="has stopped"):

@@ -293,27 +293,31 @@ def ray_box_intersect(
 
 
 def rays_meet_ellipsoids(origins: torch.Tensor, dirs: torch.Tensor, centres: torch.Tensor, R: torch.Tensor,
-                         semi_axes: torch.Tensor) -> torch.Tensor:
+                         semi_axes: torch.Tensor, bundle: int = 64, max_tests: int = 1 << 22) -> torch.Tensor:
     """Whether each camera's rays meet any of each frame's ellipsoids ahead of the camera.
 
     All rays of a camera leave its centre, so for the ray ``o + t d`` and the ellipsoid ``(x - c)^T A (x - c) = 1``
     (``A = R diag(1/a^2) R^T``, ``m = o - c``, ``g = m^T A m - 1 > 0`` for a camera outside it) the two roots in
     ``t`` are real where ``d^T ((A m)(A m)^T / g - A) d >= 0`` and positive where ``d . A m < 0``: a quadratic and
-    a linear form in ``d`` whose coefficients are the camera's and ellipsoid's, one matrix product of the rays'
-    monomials per camera and frame; only for the rays within the cone of the sphere around the frame's ellipsoids
-    (most of an image misses the body). Solving every ray's quadratic for its nearest hit, as a renderer must
-    (:func:`ray_ellipsoid_intersect`), took a fifth of each background refinement pass.
-    A camera inside an ellipsoid sees it everywhere.
+    a linear form in ``d`` whose coefficients are the camera's and ellipsoid's (the ellipsoid's silhouette conic).
+    A ray is tested against an ellipsoid only where its bundle's cone (``bundle`` consecutive rays about their
+    mean direction) meets the cone of the ellipsoid's bounding sphere: an ellipsoid covers a small part of an image,
+    so consecutive rays that are near each other (an image's pixels in tiles, as the refinement's body masks order
+    them) make few tests. The result does not depend on the order. A camera inside an ellipsoid sees it everywhere.
 
     Args:
         origins: (C, 3) camera centres. dirs: (C, P, 3) unit ray directions. centres: (T, K, 3), R: (T, K, 3, 3)
             (columns: the axes), semi_axes: (K, 3) or (T, K, 3): T frames' K ellipsoids.
+        bundle: rays screened together. max_tests: (ray, ellipsoid) tests held at once (memory).
 
     Returns:
         (T, C, P) bool.
     """
     T, K, _ = centres.shape
     C, P, _ = dirs.shape
+    if bundle < 1 or max_tests < bundle:
+        raise InputError(f"rays_meet_ellipsoids: bundle must be >= 1 and max_tests >= bundle, got {bundle}, "
+                         f"{max_tests}")
     semi_axes = semi_axes.expand(T, K, 3)
     A = (R / semi_axes[..., None, :].square()) @ R.transpose(-1, -2)  # (T, K, 3, 3)
     m = origins[:, None, None] - centres[None]  # (C, T, K, 3)
@@ -322,25 +326,33 @@ def rays_meet_ellipsoids(origins: torch.Tensor, dirs: torch.Tensor, centres: tor
     B = Am[..., :, None] * Am[..., None, :] / g.clamp(min=1e-12)[..., None, None] - A[None]  # (C, T, K, 3, 3)
     quad = torch.stack([B[..., 0, 0], B[..., 1, 1], B[..., 2, 2], 2 * B[..., 0, 1], 2 * B[..., 0, 2],
                         2 * B[..., 1, 2]], -1)  # (C, T, K, 6)
-    # the cone of each frame's bounding sphere (about the ellipsoids' mean, through their farthest reach) seen from
-    # each camera, a little wider for the rounding: rays outside it miss every ellipsoid
-    middle = centres.mean(1)  # (T, 3)
-    radius = ((centres - middle[:, None]).norm(dim=-1) + semi_axes.amax(-1)).amax(-1) * 1.01 + 1e-3  # (T,)
-    to_mid = middle[None] - origins[:, None]  # (C, T, 3)
-    dist = to_mid.norm(dim=-1)  # (C, T)
-    cos_cone = (1 - (radius[None] / dist).clamp(max=1).square()).sqrt()  # (C, T); 0: the camera inside the sphere
-    near = dirs @ (to_mid / dist[..., None]).transpose(1, 2) >= cos_cone[:, None]  # (C, P, T)
-    out = torch.zeros((T, C, P), dtype=torch.bool, device=dirs.device)
+    # the bundles' cones: the rays padded with the last to whole bundles, each bundle's mean direction and the
+    # largest angle of its rays from it
+    nb = -(-P // bundle)
+    padded = torch.cat([dirs, dirs[:, -1:].expand(C, nb * bundle - P, 3)], 1)  # (C, nb * bundle, 3)
+    axis = F.normalize(padded.view(C, nb, bundle, 3).sum(2), dim=-1)  # (C, nb, 3)
+    spread = torch.acos((padded.view(C, nb, bundle, 3) * axis[:, :, None]).sum(-1).amin(-1).clamp(-1, 1))
+    x, y, z = padded.unbind(-1)
+    mono = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z], -1)  # (C, nb * bundle, 6): the quadratic's terms
+    # each ellipsoid's bounding sphere from each camera: its direction and angular radius (a little wider for
+    # the rounding; a camera inside the sphere: every direction)
+    dist = m.norm(dim=-1)  # (C, T, K)
+    radius = semi_axes.amax(-1)[None] * 1.01 + 1e-6  # (1, T, K)
+    reach = torch.where(dist > radius, torch.asin((radius / dist).clamp(max=1.0)), torch.full_like(dist, torch.pi))
+    out = torch.zeros((C, T, nb, bundle), dtype=torch.bool, device=dirs.device)
+    mono, padded = mono.view(C, nb, bundle, 6), padded.view(C, nb, bundle, 3)
     for c in range(C):
-        for t in range(T):
-            if bool((g[c, t] <= 0).any()):
-                out[t, c] = True
-                continue
-            idx = near[c, :, t].nonzero()[:, 0]
-            if idx.numel() == 0:
-                continue
-            x, y, z = dirs[c, idx].unbind(-1)
-            mono = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z], -1)  # (n, 6)
-            hit = (mono @ quad[c, t].T >= 0) & (dirs[c, idx] @ Am[c, t].T < 0)  # (n, K)
-            out[t, c, idx] = hit.any(-1)
-    return out
+        # (T, K, nb): the angle between the bundle's axis and the sphere's centre within the two cones' sum; the
+        # bundles that meet any of a frame's spheres are tested against all its ellipsoids, one matrix product each
+        cos_apart = torch.einsum("bi,tki->tkb", axis[c], -m[c] / dist[c, ..., None].clamp(min=1e-12))
+        apart = torch.acos(cos_apart.clamp(-1, 1))
+        t, b = (apart <= reach[c, ..., None] + spread[c] + 1e-4).any(1).nonzero(as_tuple=True)
+        step = max(1, max_tests // (bundle * K))
+        for s in range(0, t.numel(), step):
+            ts, bs = t[s:s + step], b[s:s + step]
+            meets = torch.bmm(mono[c, bs], quad[c, ts].transpose(1, 2)) >= 0  # (n, bundle, K)
+            ahead = torch.bmm(padded[c, bs], Am[c, ts].transpose(1, 2)) < 0
+            out[c, ts, bs] = (meets & ahead).any(-1)
+    out = out.view(C, T, nb * bundle)
+    out[(g <= 0).any(-1)] = True  # (C, T): a camera inside an ellipsoid
+    return out[..., :P].transpose(0, 1).contiguous()

@@ -482,8 +482,9 @@ class SequenceFolder:
 
     def iter_batches(self, batch_size: int, start: int = 0, stop: int | None = None,
                      device: torch.device | str | None = None,
-                     size_wh: tuple[int, int] | None = None) -> Iterator[FrameBatch]:
-        """Yield frames ``start .. stop-1`` in order, ``batch_size`` at a time (the last batch may be shorter).
+                     size_wh: tuple[int, int] | None = None, step: int = 1) -> Iterator[FrameBatch]:
+        """Yield frames ``start, start + step, ..`` before ``stop`` in order, ``batch_size`` at a time (the last batch
+        may be shorter).
 
         At most ``batch_size`` frames per camera are decoded and held at a time.
 
@@ -493,18 +494,20 @@ class SequenceFolder:
             device: where the tensors go (None: CPU, where decoding happens).
             size_wh: (W, H) to resize to with ``cv2.INTER_AREA``; None keeps the calibrated size (all cameras
                 must then share it).
+            step: every ``step``-th frame (the frames between are decoded, not returned).
 
         Yields:
             :class:`FrameBatch`: frame_index (B,), images (B, C, 3, H, W) float32 RGB [0, 1] (NaN where invalid),
             valid (B, C) bool.
         """
-        if batch_size < 1:
-            raise InputError(f"batch_size must be >= 1, got {batch_size}")
+        if batch_size < 1 or step < 1:
+            raise InputError(f"batch_size and step must be >= 1, got {batch_size} and {step}")
         stop = self.num_frames if stop is None else stop
         if not 0 <= start <= stop <= self.num_frames:
             raise InputError(f"{self.root}: frame range [{start}, {stop}) outside [0, {self.num_frames}]")
-        for b0 in range(start, stop, batch_size):
-            indices = list(range(b0, min(b0 + batch_size, stop)))
+        frames = range(start, stop, step)
+        for b0 in range(0, len(frames), batch_size):
+            indices = list(frames[b0:b0 + batch_size])
             buf, valid = self._read_block(self.sources, indices, size_wh)
             images = self._to_images(buf, valid, device)
             yield FrameBatch(torch.tensor(indices, dtype=torch.int64, device=images.device), images,

@@ -31,6 +31,7 @@ the sequence again with it (``torchtrack observe SEQ --background-from-track OUT
 from __future__ import annotations
 
 import logging
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -99,6 +100,11 @@ class RefineConfig:
             compare fits to different observations: an early pass's fit to a poor background can be the closest.
         patience: with ``keep: fit``, the passes stop once this many in a row have not bettered the best settled
             pass: a pass that moved little can still be followed by one that moves on to a better track.
+        max_fps: the passes track every n-th frame of a sequence faster than this, n = floor(fps / max_fps), and
+            the result is tracked once more at the full rate on its background (0: every frame). The passes'
+            tracks only serve the background's estimate and the choice of pass, and the tracker's settings are
+            measured at 30 frames/s: a 60 frames/s clip's passes cost half (docs/results.md, "Background
+            refinement").
     """
 
     passes: int = 16
@@ -109,10 +115,12 @@ class RefineConfig:
     min_change_m: float = 0.01
     keep: str = "fit"
     patience: int = 3
+    max_fps: float = 30.0
 
     def __post_init__(self) -> None:
         for name, kind in (("passes", int), ("clear_frames", int), ("patience", int), ("blob_scale", float),
-                           ("clear_fraction", float), ("near_fraction", float), ("min_change_m", float)):
+                           ("clear_fraction", float), ("near_fraction", float), ("min_change_m", float),
+                           ("max_fps", float)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
                 raise InputError(f"background_refinement.{name} must be a number{' (whole)' * (kind is int)}, "
@@ -133,9 +141,15 @@ class RefineConfig:
         if not 0.0 <= self.near_fraction < 1.0:
             raise InputError(f"background_refinement.near_fraction must be in [0, 1) (0: off), got "
                              f"{self.near_fraction}")
-        if not (self.min_change_m >= 0 and np.isfinite(self.min_change_m)):
-            raise InputError(f"background_refinement.min_change_m must be >= 0 and finite (0: off), got "
-                             f"{self.min_change_m}")
+        for name in ("min_change_m", "max_fps"):
+            value = getattr(self, name)
+            if not (value >= 0 and np.isfinite(value)):
+                raise InputError(f"background_refinement.{name} must be >= 0 and finite (0: off), got {value}")
+
+    def frame_step(self, fps: float) -> int:
+        """n: the passes track every n-th frame of a sequence of ``fps`` frames a second (``max_fps``; a rate 1 %
+        under a multiple counts as it: 59.94 frames/s as 60)."""
+        return max(1, int(fps / self.max_fps * 1.01)) if self.max_fps > 0 and np.isfinite(fps) else 1
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any] | None, source: str = "<config>") -> RefineConfig:
@@ -183,32 +197,46 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     skeleton = skeleton.to(device)
     blobs = (BlobModel.from_config(skeleton) if blobs is None else blobs).to(device)
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
-    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32, device=device),
-                          torch.arange(W, dtype=torch.float32, device=device), indexing="ij")
-    uv = torch.stack([u, v], -1).reshape(1, -1, 2).expand(len(rig), -1, -1)
-    origins, dirs = rig.pixel_rays(uv)  # (C, HW, 3)
+    # the pixels of the image padded to whole 8 x 8 tiles, tile by tile: rays_meet_ellipsoids' bundles of 64
+    # consecutive rays are tiles
+    th, tw = -(-H // 8), -(-W // 8)
+    ty, tx, iy, ix = torch.meshgrid(*(torch.arange(n, device=device) for n in (th, tw, 8, 8)), indexing="ij")
+    uv = torch.stack([tx * 8 + ix, ty * 8 + iy], -1).reshape(1, -1, 2).float().expand(len(rig), -1, -1)
+    origins, dirs = rig.pixel_rays(uv)  # (C, th * tw * 64, 3)
     T, C = angles.shape[0], len(rig)
     angles = angles.to(device, torch.float32)
-    out = torch.ones((T, C, H * W), dtype=torch.bool, device=device)
+    out = torch.ones((T, C, th * tw * 64), dtype=torch.bool, device=device)
     ok = torch.isfinite(angles).all(-1)
     if bool(ok.any()):
         centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
         axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
-        out[ok] = rays_meet_ellipsoids(origins[:, 0], dirs, centres.to(origins.dtype), R.to(origins.dtype), axes)
-    return out.reshape(T, C, H, W)
+        out[ok] = rays_meet_ellipsoids(origins[:, 0], dirs, centres.to(origins.dtype), R.to(origins.dtype), axes,
+                                       bundle=64)
+    tiles = out.view(T, C, th, tw, 8, 8).permute(0, 1, 2, 4, 3, 5)  # (T, C, th, 8, tw, 8)
+    return tiles.reshape(T, C, th * 8, tw * 8)[..., :H, :W].contiguous()
 
 
-def clearance_px(masks: torch.Tensor) -> torch.Tensor:
+def clearance_px(masks: torch.Tensor, within_px: float = math.inf) -> torch.Tensor:
     """(..., H, W) bool -> (..., H, W) float32 Euclidean distance in pixels from each pixel to the nearest set
-    pixel of its own image (0 on the mask; ``inf`` in an image with no set pixel)."""
-    from scipy.ndimage import distance_transform_edt
+    pixel of its own image (0 on the mask; ``inf`` in an image with no set pixel). Only the distances up to
+    ``within_px`` are needed: each image's are computed within its mask's bounding box grown by that much, and
+    are ``inf`` outside it (where they are over ``within_px``). OpenCV's exact transform (``DIST_MASK_PRECISE``)."""
+    import cv2
 
     check_shape(masks, ("...", "H", "W"), "masks")
+    if not within_px > 0:
+        raise InputError(f"clearance_px: within_px must be > 0, got {within_px}")
     flat = masks.reshape(-1, *masks.shape[-2:]).cpu().numpy()
+    H, W = flat.shape[1:]
+    grow = math.ceil(within_px) + 1 if math.isfinite(within_px) else max(H, W)
     out = np.full(flat.shape, np.inf, np.float32)
     for i, m in enumerate(flat):
-        if m.any():
-            out[i] = distance_transform_edt(~m)
+        rows, cols = np.flatnonzero(m.any(1)), np.flatnonzero(m.any(0))
+        if rows.size:
+            y0, y1 = max(rows[0] - grow, 0), min(rows[-1] + 1 + grow, H)
+            x0, x1 = max(cols[0] - grow, 0), min(cols[-1] + 1 + grow, W)
+            free = (~m[y0:y1, x0:x1]).astype(np.uint8)  # the transform measures to the nearest zero pixel
+            out[i, y0:y1, x0:x1] = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
     return torch.from_numpy(out).reshape(masks.shape).to(masks.device)
 
 
@@ -217,7 +245,8 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
     """Subject masks that leave each pixel its clearest frames.
 
     Args:
-        clearance: (N, ..., H, W) each pixel's distance to the body in each of N frames.
+        clearance: (N, ..., H, W) each pixel's distance to the body in each of N frames (those over
+            ``max(clear_px, near_px)`` may be any larger value: :func:`clearance_px`'s ``within_px``).
         clear_frames: k: each pixel keeps at least its k clearest frames (all of them when N <= k), ties
             included, but never a frame where it is on the body (clearance 0).
         clear_px: frames at least this clear are all kept.
@@ -257,9 +286,11 @@ def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tens
     clear_px = config.clear_fraction * max(H, W)
     masks = torch.empty((N, C, H, W), dtype=torch.bool)
     body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs).cpu()
+    near_px = config.near_fraction * max(H, W)
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
-        masks[:, c] = clear_frame_masks(clearance_px(body[:, c]), config.clear_frames, clear_px,
-                                        config.near_fraction * max(H, W))
+        # clear_frame_masks compares clearances with thresholds up to clear_px and near_px only
+        clearance = clearance_px(body[:, c], within_px=max(clear_px, near_px))
+        masks[:, c] = clear_frame_masks(clearance, config.clear_frames, clear_px, near_px)
     if isinstance(frames, MovingSequence):
         return BackgroundModel.from_moving(frames, masks.to(frames.frames.device))
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
@@ -373,7 +404,9 @@ def track_with_background_refinement(
     """Track, then up to ``config.passes`` times re-estimate the background from the track and track again; with
     ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting settled one, with ``keep: last`` and
     ``config.min_change_m`` the pass after the first whose track moved less than that from the one before
-    (:func:`track_change_m`), and tracked as many frames, is the last.
+    (:func:`track_change_m`), and tracked as many frames, is the last. On a sequence faster than
+    ``config.max_fps`` the passes track every n-th frame (:meth:`RefineConfig.frame_step`) and the result is
+    the kept pass's background tracked at the full rate.
 
     A tracker given its initial pose starts every pass from it; one that was not (the automatic start) is reset
     before each pass and searches for its start on that pass's observation (:meth:`MarkerlessTracker.reset`), so
@@ -420,6 +453,10 @@ def track_with_background_refinement(
     indices, frames, poses = None, None, None
     final = config.passes  # the last pass: all of them, or the one after convergence
     select = config.keep == "fit" and config.passes > 0
+    step = config.frame_step(folder.fps) if config.passes else 1  # the passes' frames; the result at the full rate
+    if step > 1:
+        log.info("background refinement: the passes track every %d%s frame (max_fps %g)", step,
+                 {2: "nd", 3: "rd"}.get(step, "th"), config.max_fps)
     best: tuple[tuple[int, float], int, Poses, BackgroundModel] | None = None  # (rank, pass, track, background)
     settled: tuple[tuple[int, float], int, Poses, BackgroundModel] | None = None  # the same of settled passes
     for p in range(config.passes + 1):
@@ -435,8 +472,10 @@ def track_with_background_refinement(
                                                        size_wh=(W, H),
                                                        progress="background refinement" if progress else None)
                 frames = MovingSequence(frames, bg_config, folder.camera_names)
-            k = np.asarray(indices) - start
-            angles = torch.as_tensor(poses.angles[k])  # a lost frame: the pose the tracker held for it
+            # each sampled frame at the pose of the nearest frame the pass tracked (a lost frame: the pose the
+            # tracker held for it)
+            k = np.abs(np.asarray(indices)[:, None] - poses.frame_index[None]).argmin(1)
+            angles = torch.as_tensor(poses.angles[k])
             if p == 1 and start_state is not None and tracker.body_version:
                 # the first pass moved the given start's hips (TrackerConfig.functional_hips): start in that body
                 start_state = (tracker.restate(start_state[0][None], 0)[0], tracker.subject.skeleton, start_state[2])
@@ -446,12 +485,12 @@ def track_with_background_refinement(
             restart(tracker, start_state)
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
         before = poses
-        # with the selection the logs come from the chosen pass, tracked once more at the end
+        # with the selection or a frame step the logs come from the chosen pass, tracked once more at the end
         poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device,
-                                  logger=logger if last and not select else None, log_every=log_every,
-                                  progress=progress,
+                                  logger=logger if last and not select and step == 1 else None,
+                                  log_every=log_every, progress=progress,
                                   desc=f"track {p + 1}/{config.passes + 1}" if config.passes else "track",
-                                  workers=workers)
+                                  workers=workers, step=step)
         ran = p
         if on_pass is not None:
             on_pass(p, poses)
@@ -480,24 +519,29 @@ def track_with_background_refinement(
                 final = p + 1
                 log.info("background refinement: converged; pass %d is the last", p + 2)
     best = settled if settled is not None else best
+    chosen = ran
     if best is not None:
         _, chosen, poses, background = best
         log.info("background refinement: pass %d fits its observation best (mean IK residual %.1f mm)",
                  chosen + 1, 1e3 * best[0][1])
-        # tracked once more when it is not the last pass (so that the tracker ends in its state: its body, if a
-        # later pass moved the hips) or for its logs: the same start and background, so the same track
-        again = logger is not None or chosen != p
-        if again:
-            observer = make_observer(background)
-            restart(tracker, start_state)
-            poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device, logger=logger,
-                                      log_every=log_every, progress=progress, desc=f"pass {chosen + 1} again",
-                                      workers=workers)
-            lost, moved = int((~poses.valid).sum()), track_change_m(poses, best[2])
-            if lost != best[0][0] or moved > 1e-3:
+    # tracked once more: at the full rate after passes with a frame step; else with the selection when the chosen
+    # pass is not the last (so that the tracker ends in its state: its body, if a later pass moved the hips) or
+    # for its logs. The same start and background, so at the same rate the same track
+    if step > 1 or (best is not None and (logger is not None or chosen != ran)):
+        observer = make_observer(background)
+        restart(tracker, start_state)
+        kept = poses
+        poses, _ = track_sequence(folder, observer, tracker, start, stop, batch, device, logger=logger,
+                                  log_every=log_every, progress=progress,
+                                  desc=f"pass {chosen + 1} again" + (" (every frame)" if step > 1 else ""),
+                                  workers=workers)
+        if step == 1:
+            lost, moved = int((~poses.valid).sum()), track_change_m(poses, kept)
+            if lost != int((~kept.valid).sum()) or moved > 1e-3:
                 log.warning("background refinement: pass %d tracked again differs from its first track (%d lost "
                             "frames, moved %.1f mm; a non-deterministic device?)", chosen + 1, lost, 1e3 * moved)
-        poses.extra["refinement_pass"] = np.int64(chosen + 1)
-        if again and on_pass is not None:
+        if on_pass is not None:
             on_pass(ran + 1, poses)
+    if best is not None:
+        poses.extra["refinement_pass"] = np.int64(chosen + 1)
     return poses, time.perf_counter() - t0, background

@@ -26,8 +26,8 @@ log = logging.getLogger(__name__)
 def track_sequence(folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int = 0,
                    stop: int | None = None, batch: int = 4, device: torch.device | str | None = None,
                    logger=None, log_every: int = 10, progress: bool = True, desc: str = "track",
-                   workers: int | ObservationWorker = 0) -> tuple[Poses, float]:
-    """Track frames ``[start, stop)`` of ``folder``.
+                   workers: int | ObservationWorker = 0, step: int = 1) -> tuple[Poses, float]:
+    """Track frames ``[start, stop)`` of ``folder`` (every ``step``-th: ``start, start + step, ..``).
 
     A frame is tracked from the cameras whose frame is readable (a camera that ends early or stops decoding is
     left out of the frames it lacks: the occupancy takes no evidence from it), when at least
@@ -48,6 +48,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
         workers: an :class:`~torchtrack.tracking.stream.ObservationWorker` reads and observes the frames ahead of
             the tracker (CPU); 1 in a worker started for this track (2-3 s; a calling script needs an ``if __name__
             == "__main__":`` guard; see :func:`~torchtrack.tracking.stream.observe_batches`); 0 in this process.
+        step: track every ``step``-th frame, as a sequence of ``fps / step`` frames a second (the tracker's
+            prediction and its races in seconds follow); the poses hold those frames (``frame_index``).
 
     Returns:
         the poses (docs/formats.md; ``extra`` holds ``subject_height_m``, ``observation_model``,
@@ -58,8 +60,8 @@ def track_sequence(folder: SequenceFolder, observer: Observer, tracker: Markerle
 
     scheduler = _SCHEDULER.get()
     if scheduler is not None:
-        return scheduler.run(_Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, 0))
-    one = _Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, workers)
+        return scheduler.run(_Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, 0, step))
+    one = _Pass(folder, observer, tracker, start, stop, batch, device, logger, log_every, workers, step)
     # closing: a tracking error (its traceback holds this frame) must not keep the worker and thread share
     with tqdm(total=one.num_frames, unit="frame", desc=desc, disable=not progress) as bar, closing(one):
         for frame in one.frames():
@@ -85,20 +87,24 @@ class _Frame(NamedTuple):
 
 
 class _Pass:
-    """One track of frames ``[start, stop)`` of a sequence: its frames as they are read and observed, the results
-    recorded, and the poses at the end (:func:`track_sequence`'s work, driven alone or in lockstep)."""
+    """One track of every ``step``-th frame of ``[start, stop)`` of a sequence: its frames as they are read and
+    observed, the results recorded, and the poses at the end (:func:`track_sequence`'s work, driven alone or in
+    lockstep)."""
 
     def __init__(self, folder: SequenceFolder, observer: Observer, tracker: MarkerlessTracker, start: int,
                  stop: int | None, batch: int, device, logger, log_every: int,
-                 workers: int | ObservationWorker) -> None:
+                 workers: int | ObservationWorker, step: int = 1) -> None:
         self.folder, self.observer, self.tracker, self.logger = folder, observer, tracker, logger
-        self.start = start
+        self.start, self.step = start, step
         self.stop = folder.num_frames if stop is None else min(stop, folder.num_frames)
         if self.stop <= start:
             raise InputError(f"{folder.root}: no frames in [{start}, {self.stop}) ({folder.num_frames} frames)")
-        tracker.set_frame_rate(folder.fps)
+        if not (isinstance(step, int) and step >= 1):
+            raise InputError(f"track_sequence: step must be a whole number >= 1, got {step!r}")
+        tracker.set_frame_rate(folder.fps / step)
+        self.frame_index = np.arange(start, self.stop, step, dtype=np.int64)
         self.names = tracker.generic.output_names
-        T, D, C = self.stop - start, tracker.generic.num_dofs, len(observer.rig.names)
+        T, D, C = len(self.frame_index), tracker.generic.num_dofs, len(observer.rig.names)
         self.joints3d = np.full((T, len(self.names), 3), np.nan, np.float32)
         self.angles = np.full((T, D), np.nan, np.float32)
         self.valid = np.zeros(T, bool)
@@ -112,11 +118,11 @@ class _Pass:
         self.t_start = time.perf_counter()
         keep = log_every if logger is not None else 0
         self.stream = observe_batches(folder, observer, start, self.stop, batch, device, keep, workers,
-                                      cell_m=tracker.config.em_cell_m)
+                                      cell_m=tracker.config.em_cell_m, step=step)
 
     @property
     def num_frames(self) -> int:
-        return self.stop - self.start
+        return len(self.frame_index)
 
     def close(self) -> None:
         self.stream.close()
@@ -134,7 +140,7 @@ class _Pass:
             wait = (time.perf_counter() - t0) / n
             for i, obs in enumerate(fb.observations):
                 t = int(fb.frame_index[i])
-                k = t - self.start
+                k = (t - self.start) // self.step
                 self.cameras_valid[k] = fb.valid[i].cpu().numpy()
                 self.version[k] = self.tracker.body_version
                 enough = self.cameras_valid[k].sum() >= self.need  # too few readable cameras to carve the body
@@ -180,8 +186,8 @@ class _Pass:
         """The pass's poses (re-stated in the final body) and its seconds; the reports on cameras and start."""
         tracker, rig = self.tracker, self.observer.rig
         restate(tracker, self.angles, self.joints3d, self.version)
-        _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.start, self.need)
-        _report_start(self.folder, tracker, self.reinit, self.start)
+        _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.frame_index, self.need)
+        _report_start(self.folder, tracker, self.reinit, self.frame_index)
         elapsed = time.perf_counter() - self.t_start
         extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
                  "observation_model": np.asarray(self.observer.model), "ik_residual_m": self.residual,
@@ -189,7 +195,7 @@ class _Pass:
                  "camera_names": np.asarray(list(rig.names)), "cameras_valid": self.cameras_valid}
         if tracker.subject is not None:  # the subject's body, for a later --init-pose (de Bem's reusable start)
             extra["body_urdf"] = np.asarray(tracker.subject.skeleton.urdf_text)
-        poses = Poses(fps=self.folder.fps, frame_index=np.arange(self.start, self.stop, dtype=np.int64),
+        poses = Poses(fps=self.folder.fps, frame_index=self.frame_index.copy(),
                       joint_names=list(self.names), joints3d=self.joints3d, dof_names=list(tracker.generic.dof_names),
                       angles=self.angles, valid=self.valid, confidence=self.confidence, extra=extra)
         return poses, elapsed
@@ -312,19 +318,21 @@ def lockstep_passes(jobs: list, progress: bool = True) -> list:
     return out
 
 
-def _report_start(folder: SequenceFolder, tracker: MarkerlessTracker, reinit: np.ndarray, start: int) -> None:
-    """Warn once per folder when the start was refused on frames (they are invalid), saying why."""
+def _report_start(folder: SequenceFolder, tracker: MarkerlessTracker, reinit: np.ndarray,
+                  frame_index: np.ndarray) -> None:
+    """Warn once per folder when the start was refused on frames (they are invalid), saying why (``frame_index``:
+    the frames of ``reinit``)."""
     refused = tracker.start_refusals
     if not refused or "start" in folder.reported:
         return
     folder.reported.add("start")
     started = np.flatnonzero(reinit)
-    where = f"started at frame {start + int(started[0])}" if started.size else "never started"
+    where = f"started at frame {int(frame_index[started[0]])}" if started.size else "never started"
     log.warning("%s: %s; %d earlier frame(s) with voxels were not started from (invalid), the first because: %s",
                 folder.root, where, len(refused), refused[0])
 
 
-def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.ndarray, start: int,
+def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.ndarray, frame_index: np.ndarray,
                     need: int) -> None:
     """Warn once per folder and camera about the frames it was left out of, and about the frames that had too
     few readable cameras to be tracked (the refinement and refit passes read the same frames again)."""
@@ -337,12 +345,12 @@ def _report_cameras(folder: SequenceFolder, names: list[str], cameras_valid: np.
             reported.add(f"camera {name}")
             log.warning("%s: camera '%s' has no readable frame for %d frame(s) (%s); they were tracked from the "
                         "other cameras where at least %d were readable", folder.root, name, missing.size,
-                        frame_ranges((missing + start).tolist()), need)
+                        frame_ranges(frame_index[missing].tolist()), need)
     few = np.flatnonzero(cameras_valid.sum(1) < need)
     if few.size and "few cameras" not in reported:
         reported.add("few cameras")
         log.warning("%s: %d frame(s) (%s) have fewer than %d readable cameras and were not tracked", folder.root,
-                    few.size, frame_ranges((few + start).tolist()), need)
+                    few.size, frame_ranges(frame_index[few].tolist()), need)
 
 
 def restate(tracker: MarkerlessTracker, angles: np.ndarray, joints3d: np.ndarray, version: np.ndarray) -> None:

@@ -99,25 +99,27 @@ _END = "end"  # the worker's last item of a job
 
 
 class _ObservedFrames:
-    """The frames of ``folder`` in ``[start, stop)``, observed batch by batch (picklable, for a worker)."""
+    """Every ``step``-th frame of ``folder`` in ``[start, stop)``, observed batch by batch (picklable, for a
+    worker)."""
 
     def __init__(self, folder: SequenceFolder, observer: Observer, start: int, stop: int, batch: int,
-                 device: torch.device | str | None, keep_images: int, cell_m: float = 0.0) -> None:
+                 device: torch.device | str | None, keep_images: int, cell_m: float = 0.0, step: int = 1) -> None:
         self.folder, self.observer, self.cell_m = folder, observer, cell_m
-        self.start, self.stop, self.batch, self.device = start, stop, batch, device
+        self.start, self.stop, self.batch, self.device, self.step = start, stop, batch, device, step
         self.keep_images = keep_images
 
     def __iter__(self) -> Iterator[ObservedBatch]:
         W, H = (int(v) for v in self.observer.rig.image_size_wh[0].tolist())
         k = self.keep_images
-        for fb in self.folder.iter_batches(self.batch, self.start, self.stop, device=self.device, size_wh=(W, H)):
+        for fb in self.folder.iter_batches(self.batch, self.start, self.stop, device=self.device, size_wh=(W, H),
+                                           step=self.step):
             t0 = time.perf_counter()
             with torch.no_grad():
                 observations = self.observer(fb.images, fb.valid)
                 if self.cell_m > 0:
                     observations = [o.pooled(self.cell_m) for o in observations]
             seconds = time.perf_counter() - t0
-            images = [fb.images[i].clone() if k and (int(t) - self.start) % k == 0 else None
+            images = [fb.images[i].clone() if k and (int(t) - self.start) // self.step % k == 0 else None
                       for i, t in enumerate(fb.frame_index.tolist())]  # a copy: not the whole batch kept alive
             yield ObservedBatch(fb.frame_index, fb.valid, observations, images, seconds)
 
@@ -272,14 +274,14 @@ class ObservationWorker:
 def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop: int, batch: int = 4,
                     device: torch.device | str | None = None, keep_images: int = 0,
                     workers: int | ObservationWorker = 0, cell_m: float = 0.0,
-                    worker_threads: int | None = None) -> Iterator[ObservedBatch]:
-    """Read and observe frames ``[start, stop)`` of ``folder``, ``batch`` at a time, in order.
+                    worker_threads: int | None = None, step: int = 1) -> Iterator[ObservedBatch]:
+    """Read and observe every ``step``-th frame of ``folder`` in ``[start, stop)``, ``batch`` at a time, in order.
 
     Args:
         folder: the sequence. observer: the observation model at the processing size (frames are read at its
             rig's size).
         device: where frames and observations live (None: CPU).
-        keep_images: also hand out the images of every ``keep_images``-th frame from ``start`` (0: none), e.g.
+        keep_images: also hand out the images of every ``keep_images``-th frame observed (0: none), e.g.
             the frames a logger draws on.
         workers: 0 observes in this process; an :class:`ObservationWorker` in that worker, running ahead of the
             caller; 1 in a worker started for this call (2-3 s) and stopped at its end. CPU only: for an observer
@@ -297,18 +299,18 @@ def observe_batches(folder: SequenceFolder, observer: Observer, start: int, stop
     """
     if not isinstance(workers, ObservationWorker) and workers not in (0, 1):
         raise InputError(f"observation workers must be 0 or 1, got {workers}")
-    if not (keep_images >= 0 and cell_m >= 0 and (worker_threads is None or worker_threads >= 1)):
-        raise InputError(f"observe_batches: keep_images and cell_m must be >= 0 and worker_threads >= 1, got "
-                         f"{keep_images}, {cell_m}, {worker_threads}")
+    if not (keep_images >= 0 and cell_m >= 0 and (worker_threads is None or worker_threads >= 1) and step >= 1):
+        raise InputError(f"observe_batches: keep_images and cell_m must be >= 0, worker_threads and step >= 1, got "
+                         f"{keep_images}, {cell_m}, {worker_threads}, {step}")
     where = {b.device for b in observer.buffers()} | {torch.device(device or "cpu")}
     if workers and any(d.type != "cpu" for d in where):
         log.info("observation on %s: in this process (a worker process observes on the CPU only)",
                  ", ".join(sorted(map(str, where))))
         workers = 0
     if not workers:
-        yield from _ObservedFrames(folder, observer, start, stop, batch, device, keep_images, cell_m)
+        yield from _ObservedFrames(folder, observer, start, stop, batch, device, keep_images, cell_m, step)
         return
-    frames = _ObservedFrames(folder, observer, start, stop, batch, None, keep_images, cell_m)
+    frames = _ObservedFrames(folder, observer, start, stop, batch, None, keep_images, cell_m, step)
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
