@@ -568,7 +568,7 @@ def test_refinement_stops_one_pass_after_the_track_settles(monkeypatch, skel):
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
-    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
@@ -623,7 +623,7 @@ def test_a_fast_sequence_is_refined_on_every_nth_frame_and_tracked_at_the_full_r
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", fake_background)
-    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: frames)
     folder = SimpleNamespace(num_frames=T, root="seq", fps=60.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: ([0, 3, 5, 8], None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
@@ -645,6 +645,44 @@ def test_a_fast_sequence_is_refined_on_every_nth_frame_and_tracked_at_the_full_r
     assert [RefineConfig().frame_step(f) for f in (25, 29.97, 30, 50, 59.94, 60, 120)] == [1, 1, 1, 1, 2, 2, 4]
     with pytest.raises(InputError, match="max_fps"):
         RefineConfig(max_fps=-1.0)
+
+
+def test_the_refinement_uses_the_frames_the_first_background_came_from(monkeypatch, skel):
+    """The frames (and passes 1-3) the first background was estimated from are not read again when they are the
+    frames the refinement samples at its settings; other frames or settings are read."""
+    from types import SimpleNamespace
+
+    from torchtrack.tracking import refine
+
+    T, reads, used = 9, [], []
+
+    def fake_track(*args, **kwargs):
+        return _poses_at(np.zeros((T, 16, 3)), np.ones(T, bool), skel), 1.0
+
+    def fake_background(frames, *args, **kwargs):
+        used.append(frames)
+        return "refined"
+
+    monkeypatch.setattr(refine, "track_sequence", fake_track)
+    monkeypatch.setattr(refine, "refined_background", fake_background)
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: "read again")
+    folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
+                             sample_frames=lambda *a, **k: reads.append(a) or (list(range(T)), None))
+    tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
+                              subject=SimpleNamespace(skeleton=skel, blobs=None),
+                              initialize_from_pose=lambda *a, **k: None)
+    config = BackgroundConfig()
+    first = SimpleNamespace(indices=list(range(T)), config=config, shape=(T, 2, 3, H, W))
+    for sequence, start, bg_config, read in ((first, 0, config, False), (first, 1, config, True),
+                                             (first, 0, BackgroundConfig(max_frames=5), True),
+                                             (SimpleNamespace(**{**vars(first), "shape": (T, 2, 3, 8, 8)}), 0,
+                                              config, True)):
+        reads.clear()
+        used.clear()
+        refine.track_with_background_refinement(folder, "first", lambda b: SimpleNamespace(rig=_rig()), tracker,
+                                                RefineConfig(passes=2, keep="last", min_change_m=0.0), bg_config,
+                                                start=start, sequence=sequence)
+        assert len(used) == 2 and used[0] is used[1] and (used[0] == "read again") == read and len(reads) == read
 
 
 def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel):
@@ -676,7 +714,7 @@ def test_fit_keeps_the_refined_pass_that_fits_best_and_logs_it(monkeypatch, skel
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", fake_background)
-    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=True, angles=torch.zeros(skel.num_dofs), floor_z=0.0, body_version=0,
@@ -766,7 +804,7 @@ def test_passes_after_the_first_start_in_the_body_it_moved(monkeypatch, skel):
     tracker.initialize_from_pose = recording_init
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: "refined")
-    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     observer = SimpleNamespace(rig=_rig())
@@ -798,7 +836,7 @@ def test_an_automatic_start_is_searched_for_again_on_each_pass(monkeypatch, skel
 
     monkeypatch.setattr(refine, "track_sequence", fake_track)
     monkeypatch.setattr(refine, "refined_background", lambda *a, **k: f"refined {len(events)}")
-    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a: frames)  # no frames here
+    monkeypatch.setattr(refine, "MovingSequence", lambda frames, *a, **k: frames)  # no frames here
     folder = SimpleNamespace(num_frames=T, root="seq", fps=10.0, camera_names=["a", "b"],
                              sample_frames=lambda *a, **k: (list(range(T)), None))
     tracker = SimpleNamespace(initialized=False, subject=SimpleNamespace(skeleton=skel, blobs=None),

@@ -279,21 +279,31 @@ class BackgroundModel(nn.Module):
                 intrinsics to match). device: where frames and model go (None: CPU). progress: show a progress
             bar over the frames read.
         """
+        return cls.from_folder_and_frames(folder, config, size_wh, device, progress)[0]
+
+    @classmethod
+    def from_folder_and_frames(cls, folder: SequenceFolder, config: BackgroundConfig = BackgroundConfig(),
+                               size_wh: tuple[int, int] | None = None, device: torch.device | str | None = None,
+                               progress: bool = False) -> tuple[BackgroundModel, MovingSequence | None]:
+        """:meth:`from_folder`, and where the model was estimated from video frames their
+        :class:`MovingSequence` (its ``indices`` the frames), which a refinement of the background from a track
+        re-uses instead of reading and estimating them again (None: from ``background/`` frames)."""
         frames = folder.background_frames(config.max_frames, device=device, size_wh=size_wh,
                                           progress="background" if progress else None)
         if frames is not None and frames.shape[0] >= MIN_FRAMES:
             logger.info("background of %s: %d empty-scene frames from %s", folder.root, frames.shape[0],
                         folder.root / "background")
-            return cls.from_frames(frames, config, folder.camera_names)
+            return cls.from_frames(frames, config, folder.camera_names), None
         n = min(config.max_frames, len(folder))
         logger.info("background of %s: no usable background/ frames; estimating it from %d of the %d video "
                     "frames (temporal median, second pass against ghosts)", folder.root, n, len(folder))
         if n < MIN_SEQUENCE_FRAMES:
             raise InputError(f"{folder.root}: no background/ frames and only {len(folder)} video frames; need at "
                              f"least {MIN_SEQUENCE_FRAMES} to estimate the background")
-        _, frames = folder.sample_frames(n, device=device, size_wh=size_wh,
-                                         progress="background (estimated)" if progress else None)
-        return cls.from_sequence(frames, config, folder.camera_names)
+        indices, frames = folder.sample_frames(n, device=device, size_wh=size_wh,
+                                               progress="background (estimated)" if progress else None)
+        seq = MovingSequence(frames, config, folder.camera_names, indices=indices)
+        return cls.from_moving(seq), seq
 
     # ------------------------------------------------------------------------------------------ evaluation
 
@@ -476,16 +486,19 @@ class MovingSequence:
     Args:
         frames: (N, C, 3, H, W) RGB in [0, 1]; at most ``config.max_frames`` are used, evenly sampled. names: (C,)
             camera names for messages. refine: False stops after pass 1 (to measure what the second pass brings;
-            no fill or masks either).
+            no fill or masks either). indices: (N,) the frames' indices in their sequence, where known.
 
     Attributes:
         mean, std: (C, 3, H, W) the background of passes 1-3.
     """
 
-    def __init__(self, frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str], refine: bool = True
-                 ) -> None:
+    def __init__(self, frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str], refine: bool = True,
+                 indices: Sequence[int] | None = None) -> None:
         _check_frames(frames, MIN_SEQUENCE_FRAMES)
+        if indices is not None and len(indices) != frames.shape[0]:
+            raise ShapeError(f"MovingSequence: {len(indices)} indices for {frames.shape[0]} frames")
         self.config, self.names, self.refine = config, list(names), refine
+        self.indices = None if indices is None else [int(i) for i in indices]
         self.shape = tuple(frames.shape)  # the subject masks' frames are the frames given
         self.frames = frames = est.subsample(frames, config.max_frames)
         self.dead = dead = est.dead_frames(frames)  # (N, C)

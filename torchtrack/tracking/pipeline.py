@@ -381,6 +381,7 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         raise InputError(f"{source}, background: {exc}") from None
     if background is not None and background_from_track is not None:
         raise InputError("give a background or a track to re-estimate it from, not both")
+    sequence = None  # the frames the background was estimated from, for the refinement
     if background is not None:
         bg = background.to(device)
     elif background_from_track is not None:
@@ -390,7 +391,8 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         bg = refined_from_track(folder, earlier, bg_config, rcfg, (W, H), device, source=name,
                                 blob_specs=tcfg.blobs)
     else:
-        bg = BackgroundModel.from_folder(folder, bg_config, size_wh=(W, H), device=device, progress=progress)
+        bg, sequence = BackgroundModel.from_folder_and_frames(folder, bg_config, size_wh=(W, H), device=device,
+                                                              progress=progress)
     tracker = MarkerlessTracker(Skeleton.from_urdf().to(device), tcfg)
     found = None
     if init_pose is not None:
@@ -408,6 +410,8 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         log.info("%s: the background is measured from its background/ frames, not refined from the track",
                  folder.root)
         rcfg = replace(rcfg, passes=0)
+    if not rcfg.passes:
+        sequence = None
 
     def make_observer(background: BackgroundModel) -> Any:
         return observer_from_config(rig, background, ocfg, model, voxel_m).to(device)
@@ -442,7 +446,8 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
 
         poses, _, bg = track_with_background_refinement(
             folder, bg, make_observer, tracker, rcfg, bg_config, start, stop, batch, device, logger=tb,
-            log_every=log_every, progress=progress, workers=workers, on_pass=pass_done)
+            log_every=log_every, progress=progress, workers=workers, on_pass=pass_done, sequence=sequence)
+        del sequence  # its frames: not held through the body refit
         kept_pass = poses.extra.get("refinement_pass")  # a kept body refit's track is a new record: carry it over
         refit_logger = None if log_dir is None else lambda p: RunLogger(Path(log_dir) / f"body_refit_{p}")
         poses, _ = track_with_body_refit(

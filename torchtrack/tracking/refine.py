@@ -49,7 +49,7 @@ from torchtrack.cameras import CameraRig
 from torchtrack.checks import InputError, ShapeError, check_shape, config_section
 from torchtrack.ellipsoids import rays_meet_ellipsoids
 from torchtrack.io.poses import Poses
-from torchtrack.io.sequence import SequenceFolder
+from torchtrack.io.sequence import SequenceFolder, evenly_spaced
 from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.body_refit import mean_ik_residual_m
@@ -399,8 +399,8 @@ def track_with_background_refinement(
         tracker: MarkerlessTracker, config: RefineConfig, bg_config: BackgroundConfig, start: int = 0,
         stop: int | None = None, batch: int = 4, device: torch.device | str | None = None, logger=None,
         log_every: int = 10, progress: bool = True,
-        on_pass: Callable[[int, Poses], None] | None = None, workers: int | ObservationWorker = 0
-) -> tuple[Poses, float, BackgroundModel]:
+        on_pass: Callable[[int, Poses], None] | None = None, workers: int | ObservationWorker = 0,
+        sequence: MovingSequence | None = None) -> tuple[Poses, float, BackgroundModel]:
     """Track, then up to ``config.passes`` times re-estimate the background from the track and track again; with
     ``keep: fit`` the passes stop ``config.patience`` passes after the best-fitting settled one, with ``keep: last`` and
     ``config.min_change_m`` the pass after the first whose track moved less than that from the one before
@@ -430,6 +430,9 @@ def track_with_background_refinement(
     Args:
         background: the background of the first pass. make_observer: builds an observer on a background.
         on_pass: called with the pass number (0 first) and its poses after each track, the logged one too.
+        sequence: the frames the first background was estimated from, with its passes 1-3
+            (:meth:`BackgroundModel.from_folder_and_frames`): used, not read and estimated again, when they are
+            the frames the refinement samples, at its size and settings.
         Others: as :func:`~torchtrack.tracking.run.track_sequence`.
 
     Returns:
@@ -468,10 +471,15 @@ def track_with_background_refinement(
                               DataWarning, stacklevel=2)
                 break
             if frames is None:  # read once, and the background's passes 1-3 on them done once
-                indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device,
-                                                       size_wh=(W, H),
-                                                       progress="background refinement" if progress else None)
-                frames = MovingSequence(frames, bg_config, folder.camera_names)
+                indices = [start + i for i in evenly_spaced(stop - start, bg_config.max_frames)]
+                if (sequence is not None and sequence.indices == indices and sequence.config == bg_config
+                        and sequence.shape[-2:] == (H, W)):
+                    frames = sequence
+                else:
+                    indices, frames = folder.sample_frames(bg_config.max_frames, start, stop, device=device,
+                                                           size_wh=(W, H),
+                                                           progress="background refinement" if progress else None)
+                    frames = MovingSequence(frames, bg_config, folder.camera_names, indices=indices)
             # each sampled frame at the pose of the nearest frame the pass tracked (a lost frame: the pose the
             # tracker held for it)
             k = np.abs(np.asarray(indices)[:, None] - poses.frame_index[None]).argmin(1)
