@@ -12,6 +12,8 @@ Sequences are rendered once under --work (re-rendered when their settings change
     .venv/bin/python scripts/eval_robustness.py --cases walk_8 cross_8    # a subset
     .venv/bin/python scripts/eval_robustness.py --cases cmu131_01_8 --stop 24   # the start: its first 24 frames
     .venv/bin/python scripts/eval_robustness.py --set background.shadow_min_gain=1 --all-views  # as before (2026-11-27)
+    .venv/bin/python scripts/eval_robustness.py --fps 60 --no-background-frames --work out/eval_robustness60
+        # recordings without empty frames (the background estimated from the video, refined from the track)
 
 Columns: MPJPE over the 16 landmarks (mm) on the frames where the subject is in view (every landmark inside at
 least 3 images), the worst such frame, invalid frames among them, and the start: the first frame within 50 mm
@@ -114,8 +116,8 @@ def prior_leave_out(motion: str) -> list[str]:
     return [stem.split("_", 1)[0] + "_"]
 
 
-def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
-    """The case's sequence: its fixed settings and the seed's draws."""
+def synth_config(case: Case, duration: float, fps: float, background_frames: int = 20) -> SynthConfig:
+    """The case's sequence: its fixed settings and the seed's draws; ``background_frames`` empty-scene frames."""
     rng = np.random.default_rng(case.seed)
     skin = tuple(float(v) for v in np.array([0.85, 0.62, 0.48]) * rng.uniform(0.45, 1.1))
     colours = []
@@ -165,7 +167,8 @@ def synth_config(case: Case, duration: float, fps: float) -> SynthConfig:
     arms, legs = start if start is not None else (1.25, 0.3)
     return SynthConfig(motion=motion, duration_s=duration, starfish_s=starfish_s, fps=fps,
                        subject_height_m=float(rng.uniform(1.55, 1.95)), rig=rig, scene=scene, body=body,
-                       starfish_arms=arms, starfish_legs=legs, path=path, seed=case.seed)
+                       starfish_arms=arms, starfish_legs=legs, path=path, seed=case.seed,
+                       background_frames=background_frames)
 
 
 def in_view(seq: Path, truth: np.ndarray) -> np.ndarray:
@@ -204,9 +207,9 @@ def score(seq: Path, poses, stop: int | None = None) -> dict:
 
 
 def run_case(case: Case, work: Path, duration: float, fps: float, config: dict, save: Path | None = None,
-             stop: int | None = None) -> dict:
+             stop: int | None = None, background_frames: int = 20) -> dict:
     seq = work / case.name
-    cfg = synth_config(case, duration, fps)
+    cfg = synth_config(case, duration, fps, background_frames)
     if not is_current(seq, cfg):
         write_sequence(cfg, seq, progress=False)
     t0 = time.perf_counter()
@@ -234,6 +237,9 @@ def main() -> None:
                     help=f"cases to run (default: all: {' '.join(c.name for c in CASES)})")
     ap.add_argument("--duration", type=float, default=3.0, help="seconds of motion after the start (default: 3)")
     ap.add_argument("--fps", type=float, default=30.0, help="frame rate of the sequences (default: 30)")
+    ap.add_argument("--no-background-frames", action="store_true",
+                    help="render no empty-scene frames: the background is estimated from the video and refined "
+                         "from the track, as on recordings without them (give another --work)")
     ap.add_argument("--work", type=Path, default=Path("out/eval_robustness"), help="rendered sequences")
     ap.add_argument("--config", default="markerless.yaml", help="tracking config (default: markerless.yaml)")
     ap.add_argument("--set", nargs="*", default=[], metavar="SECTION.KEY=VALUE",
@@ -274,7 +280,8 @@ def main() -> None:
         if args.all_views:
             config["observation"]["min_views"] = case.cameras + int(case.overhead)
         config["tracker"]["start_prior_exclude"] = prior_leave_out(case.motion)
-        r = run_case(case, work, args.duration, args.fps, config, args.save, args.stop)
+        r = run_case(case, work, args.duration, args.fps, config, args.save, args.stop,
+                     0 if args.no_background_frames else 20)
         rows.append((case, r))
         start = "never" if r["start_s"] is None else f"{r['start_s']:.2f} s"
         print(f"{case.name:<14} {r['cameras']:>4} {case.start:<8} {case.path:<6} {r['mpjpe']:>7.1f} {r['worst']:>7.1f} "
