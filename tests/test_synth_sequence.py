@@ -95,6 +95,17 @@ def test_atomic_replace_and_bad_motion(seq, tmp_path):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".s.")]
 
 
+def test_a_sequence_without_background_frames_is_read_as_one(tmp_path):
+    """No empty frames (a recording made elsewhere): no background/ folder, in either video format; the reader
+    finds none and the video frames are as the ground truth's count."""
+    for fmt in ("mp4", "png"):
+        out = write_sequence(_cfg(background_frames=0, video_format=fmt, duration_s=0.2, starfish_s=0.0),
+                             tmp_path / fmt, progress=False)
+        assert not (out / "background").exists()
+        folder = SequenceFolder(out)
+        assert folder.background_frames(5) is None and folder.num_frames == load_poses(out / "gt.npz").num_frames
+
+
 def test_cli_synth(tmp_path, capsys):
     from torchtrack.cli import main
 

@@ -279,7 +279,8 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
             frames[t] = _to_uint8(images)
         frames.flush()
         del frames
-        _write_streams(tmp / "background", rig.names, tmp / "bg.npy", cfg.video_format, cfg.fps)
+        if cfg.background_frames:  # none: a recording without empty frames (the background estimated from video)
+            _write_streams(tmp / "background", rig.names, tmp / "bg.npy", cfg.video_format, cfg.fps)
         _write_streams(tmp / "video", rig.names, tmp / "frames.npy", cfg.video_format, cfg.fps)
         (tmp / "bg.npy").unlink()
         (tmp / "frames.npy").unlink()
