@@ -187,6 +187,18 @@ def test_a_run_that_tracks_no_frame_exits_non_zero_and_keeps_an_earlier_track(ri
     err = capsys.readouterr().err
     assert "torchtrack track: error: none of the 4 frames of" in err and "nobody was found in the capture volume" in err
     assert "no poses.npz written" in err and not (tmp_path / "out" / "poses.npz").exists()
+    assert "estimated from the video" not in err  # the room was measured: no hint about a static subject
+    # a subject who never moves, no empty frames: the background estimated from the video is the subject
+    still = _copy(seq, tmp_path / "still")
+    shutil.rmtree(still / "background")
+    for cam in (still / "video").iterdir():
+        frames = sorted(cam.glob("*.png"))
+        for f in frames[1:]:
+            shutil.copyfile(frames[0], f)
+    assert main(["track", str(still), "--out", str(tmp_path / "still_out"), *FAST]) == 3
+    err = capsys.readouterr().err
+    assert "nobody was found in the capture volume" in err and "estimated from the video" in err
+    assert "--fill-static-subject" in err
     earlier = tmp_path / "earlier"
     assert main(["track", str(seq), "--out", str(earlier), "--stop", "4", *FAST]) == 0
     before = _snapshot(earlier)
