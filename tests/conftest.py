@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +133,33 @@ def track_voxelised(skel, motion, frames, tracker=None, edit=None):
         if r.valid:
             errs.append(float((r.output_points[:16] - landmarks_of(subj, T[t])).norm(dim=-1).mean()))
     return tracker, np.array(errs), results
+
+
+def facing_pair_rig(k1: float = 0.0, W: int = 64, H: int = 64):
+    """Two cameras of W x H pixels 4 m from the origin, looking at it horizontally from +y and from -x; the second
+    with radial distortion ``k1``."""
+    from torchtrack.cameras import CameraRig
+
+    K = torch.tensor([[80.0, 0, (W - 1) / 2], [0, 80.0, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+    Rs, ts = [], []
+    for yaw in (math.pi / 2, math.pi):
+        centre = torch.tensor([4 * math.cos(yaw), 4 * math.sin(yaw), 0.9], dtype=torch.float64)
+        z = -centre / centre.norm()
+        z[2] = 0.0
+        z = z / z.norm()
+        x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
+        y = torch.linalg.cross(z, x)
+        R = torch.stack([x, y, z])  # world -> camera rows
+        Rs.append(R)
+        ts.append(-R @ centre)
+    return CameraRig(["a", "b"], K.expand(2, 3, 3).clone(), torch.stack(Rs), torch.stack(ts),
+                     torch.tensor([[W, H], [W, H]]),
+                     torch.tensor([[0.0] * 5, [k1, 0, 0, 0, 0]], dtype=torch.float64)).float()
+
+
+def pose_at(skel, x: float, y: float = 0.0) -> torch.Tensor:
+    """The rest pose with the root at (x, y)."""
+    a = skel.rest_angles()
+    a[skel.dof_names.index("root_tx")] = x
+    a[skel.dof_names.index("root_ty")] = y
+    return a
