@@ -198,3 +198,10 @@ def test_rays_meet_ellipsoids_where_the_caster_hits(device):
             hit, _, _ = ray_ellipsoid_intersect(origins[c].expand(P, 3), dirs[c], centres[t], R, semi)
             assert torch.equal(got[t, c], torch.isfinite(hit)), (t, c)
     assert got[2, 2].all() and 0.1 < got[:2].double().mean() < 0.9  # hits and misses
+    # bundles of 16 rays, tested a pair at a time; a ray that is not finite misses alone, its bundle still tested
+    dirs[0, 3] = float("nan")
+    small = rays_meet_ellipsoids(*(x.to(device) for x in (origins, dirs, centres, RT, semi)), bundle=16,
+                                 max_tests=16).cpu()
+    assert not small[:, 0, 3].any()
+    small[:, 0, 3] = got[:, 0, 3]
+    assert torch.equal(small, got)

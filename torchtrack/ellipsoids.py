@@ -327,11 +327,14 @@ def rays_meet_ellipsoids(origins: torch.Tensor, dirs: torch.Tensor, centres: tor
     quad = torch.stack([B[..., 0, 0], B[..., 1, 1], B[..., 2, 2], 2 * B[..., 0, 1], 2 * B[..., 0, 2],
                         2 * B[..., 1, 2]], -1)  # (C, T, K, 6)
     # the bundles' cones: the rays padded with the last to whole bundles, each bundle's mean direction and the
-    # largest angle of its rays from it
+    # largest angle of its rays from it; a bundle with a ray that is not finite (a pixel the lens model cannot
+    # undistort) is not screened
     nb = -(-P // bundle)
     padded = torch.cat([dirs, dirs[:, -1:].expand(C, nb * bundle - P, 3)], 1)  # (C, nb * bundle, 3)
-    axis = F.normalize(padded.view(C, nb, bundle, 3).sum(2), dim=-1)  # (C, nb, 3)
-    spread = torch.acos((padded.view(C, nb, bundle, 3) * axis[:, :, None]).sum(-1).amin(-1).clamp(-1, 1))
+    bundles = padded.view(C, nb, bundle, 3)
+    axis = F.normalize(bundles.nan_to_num(0.0, 0.0, 0.0).sum(2), dim=-1)  # (C, nb, 3)
+    spread = torch.acos((bundles * axis[:, :, None]).sum(-1).amin(-1).clamp(-1, 1))  # (C, nb)
+    spread = torch.where(torch.isfinite(bundles).all(-1).all(-1), spread, torch.pi)
     x, y, z = padded.unbind(-1)
     mono = torch.stack([x * x, y * y, z * z, x * y, x * z, y * z], -1)  # (C, nb * bundle, 6): the quadratic's terms
     # each ellipsoid's bounding sphere from each camera: its direction and angular radius (a little wider for

@@ -51,7 +51,9 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     # consecutive rays are tiles
     th, tw = -(-H // 8), -(-W // 8)
     ty, tx, iy, ix = torch.meshgrid(*(torch.arange(n, device=device) for n in (th, tw, 8, 8)), indexing="ij")
-    uv = torch.stack([tx * 8 + ix, ty * 8 + iy], -1).reshape(1, -1, 2).float().expand(len(rig), -1, -1)
+    # the padding repeats the last column and row (a ray from outside the image may not undistort)
+    u, v = (tx * 8 + ix).clamp(max=W - 1), (ty * 8 + iy).clamp(max=H - 1)
+    uv = torch.stack([u, v], -1).reshape(1, -1, 2).float().expand(len(rig), -1, -1)
     origins, dirs = rig.pixel_rays(uv)  # (C, th * tw * 64, 3)
     T, C = angles.shape[0], len(rig)
     angles = angles.to(device, torch.float32)

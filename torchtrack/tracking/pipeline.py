@@ -410,8 +410,8 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
         log.info("%s: the background is measured from its background/ frames, not refined from the track",
                  folder.root)
         rcfg = replace(rcfg, passes=0)
-    if not rcfg.passes:
-        sequence = None
+    if not rcfg.passes or start > 0 or (stop is not None and stop < folder.num_frames):
+        sequence = None  # the refinement samples other frames than the whole clip's
 
     def make_observer(background: BackgroundModel) -> Any:
         return observer_from_config(rig, background, ocfg, model, voxel_m).to(device)

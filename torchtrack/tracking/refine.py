@@ -382,6 +382,7 @@ def track_with_background_refinement(
                                                            size_wh=(W, H),
                                                            progress="background refinement" if progress else None)
                     frames = MovingSequence(frames, bg_config, folder.camera_names, indices=indices)
+                sequence = None  # in use as frames, or not of use
             # each sampled frame at the pose of the nearest frame the pass tracked (a lost frame: the pose the
             # tracker held for it)
             k = np.abs(np.asarray(indices)[:, None] - poses.frame_index[None]).argmin(1)

@@ -186,8 +186,9 @@ class _Pass:
         """The pass's poses (re-stated in the final body) and its seconds; the reports on cameras and start."""
         tracker, rig = self.tracker, self.observer.rig
         restate(tracker, self.angles, self.joints3d, self.version)
-        _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.frame_index, self.need)
-        _report_start(self.folder, tracker, self.reinit, self.frame_index)
+        if self.step == 1:  # once per folder: from a track of every frame (after passes with a step, one follows)
+            _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.frame_index, self.need)
+            _report_start(self.folder, tracker, self.reinit, self.frame_index)
         elapsed = time.perf_counter() - self.t_start
         extra = {"subject_height_m": np.float64(tracker.height_m or np.nan),
                  "observation_model": np.asarray(self.observer.model), "ik_residual_m": self.residual,
