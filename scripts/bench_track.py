@@ -5,7 +5,8 @@ Cases (issue targets on the 2-core CPU):
 * bayes: 8 cameras 640x480, Bayesian grid 64^3;
 * ``--lockstep [B ...]``: the tracker's throughput on B different synthetic sequences tracked in lockstep (one
   batched step per frame for all of them, :mod:`torchtrack.tracking.lockstep`), frames/s summed over the B
-  sequences for each B (default 1, 4, 16; a GPU's figure: add 64), observations made beforehand.
+  sequences for each B (default 1, 4, 16; a GPU's figure: add 64), observations made beforehand; on CUDA also the
+  host synchronisations a frame of the lockstep step.
 
 Renders the sequences once under --work (synthetic walk), then tracks them with the defaults of
 configs/markerless.yaml apart from the observation settings named here, and prints ms per frame by stage.
@@ -160,7 +161,11 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
                    timed_from: int) -> None:
     """Track the first B of ``observations``' sequences in lockstep (:class:`Lockstep`) for each B in ``sizes``;
     print frames/s summed over the B sequences over the frames from ``timed_from`` on (after the starts and their
-    races, which each tracker runs on its own), and the share of them the batched step took."""
+    races, which each tracker runs on its own), and the share of them the batched step took. On CUDA also the host
+    synchronisations per frame of ``Lockstep.step`` on those frames (torch's sync debug mode: one warning per
+    synchronising call), where the issue allows one (torchtrack/tracking/step.py says where it is)."""
+    import warnings
+
     from torchtrack.tracking.lockstep import Lockstep
 
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
@@ -172,7 +177,7 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
         for t in trackers:
             t.set_frame_rate(30.0)
         lockstep = Lockstep(trackers)
-        plain = 0
+        plain, syncs = 0, []
         for k in range(T):
             if k == timed_from:
                 sync()
@@ -180,14 +185,27 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
             frames = {i: observations[i % len(observations)][k] for i in range(B)}
             if k >= timed_from:
                 plain += sum(t.routine(o) is not None for t, o in zip(trackers, frames.values()))
-            _, errors = lockstep.step(frames)
+            counting = device.type == "cuda" and k >= timed_from
+            with warnings.catch_warnings(record=True) as caught:
+                if counting:
+                    warnings.simplefilter("always")
+                    torch.cuda.set_sync_debug_mode("warn")
+                try:
+                    _, errors = lockstep.step(frames)
+                finally:
+                    if counting:
+                        torch.cuda.set_sync_debug_mode("default")
+            if counting:
+                syncs.append(sum("synchroniz" in str(w.message) for w in caught))
             if errors:
                 raise next(iter(errors.values()))
         sync()
         fps = B * (T - timed_from) / (time.perf_counter() - t0)
         base = fps if base is None else base
         print(f"B = {B:3d}: {fps:7.1f} frames/s summed ({fps / base:.1f}x B = {sizes[0]}); "
-              f"{plain / (B * (T - timed_from)):.0%} of the frames in the batched step", flush=True)
+              f"{plain / (B * (T - timed_from)):.0%} of the frames in the batched step"
+              + (f"; host synchronisations a frame: mean {sum(syncs) / len(syncs):.1f}, most {max(syncs)}" if syncs else ""),
+              flush=True)
 
 
 def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:
