@@ -18,6 +18,7 @@ from torchtrack.background import (
     FOREGROUND_MAHALANOBIS2, BackgroundConfig, BackgroundModel, MovingSequence, estimate, sequence_statistics,
     static,
 )
+from torchtrack.background import model as background_model
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.io.video import DataWarning
@@ -417,7 +418,7 @@ def test_chunked_statistics_equal_unchunked(monkeypatch):
                                rtol=1e-12, atol=1e-12)
 
 
-def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free():
+def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free(monkeypatch):
     frames, _, _ = _noise_frames(N=41, H=20, W=16)
     frames[:30, :, :, 5:15, 4:12] = 0.9  # a body standing in the same place for 30 of 41 frames: the median ghosts
     frames[:38, :, :, 0:3, 0:3] = 0.2  # a corner covered in all but 3 frames: too few to re-estimate it from
@@ -455,6 +456,14 @@ def test_subject_masks_give_the_median_of_the_frames_each_pixel_is_free():
     for _ in range(2):  # and the same masks twice
         step = BackgroundModel.from_moving(seq, moved)
         assert torch.equal(step.mean_yuv, fresh.mean_yuv) and torch.equal(step.std_yuv, fresh.std_yuv)
+    # the frames' YUV kept between passes (bounded by YUV_CACHE_ELEMENTS) against converting them each time
+    monkeypatch.setattr(background_model, "YUV_CACHE_ELEMENTS", 0)
+    uncached = MovingSequence(frames, EXACT, ["a", "b"])
+    for m in (masks, moved):
+        plain_step = BackgroundModel.from_moving(uncached, m)
+    assert uncached._yuv is None and seq._yuv is not None
+    assert torch.equal(uncached.mean, seq.mean) and torch.equal(uncached.std, seq.std)  # passes 1-3
+    assert torch.equal(plain_step.mean_yuv, step.mean_yuv) and torch.equal(plain_step.std_yuv, step.std_yuv)
     free2 = np.where(moved.numpy()[:, :, None], np.nan, yuv)
     inner = (slice(None), slice(None), slice(5, 15), slice(3, 13))  # the moved body's square, 11+ frames free
     np.testing.assert_allclose(step.mean_yuv.numpy()[inner], np.nanmedian(free2, 0)[inner], atol=1e-12)

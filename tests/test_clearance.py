@@ -10,7 +10,7 @@ import torch
 from torchtrack.blobs import BlobModel
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.skeleton import Skeleton
-from torchtrack.tracking.clearance import body_masks, clear_frame_masks, clearance_px
+from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px
 
 from conftest import facing_pair_rig as _rig
 from conftest import pose_at as _pose
@@ -33,6 +33,7 @@ def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel, W, H):
     got = body_masks(rig, skel, angles, blob_scale=1.2)
     assert got.shape == (3, 2, H, W) and got.dtype == torch.bool
     assert got[2].all()  # an untracked frame: the body may be anywhere
+    assert torch.equal(body_masks(rig, skel, angles, 1.2, tiles=PixelTiles(rig)), got)  # rays made once, reused
     blobs = BlobModel.from_config(skel)
     centres, R = blobs.ellipsoids(skel.forward(angles[:2]).bone_frames)
     axes = (blobs.semi_axes * 1.2).double().numpy()

@@ -262,9 +262,7 @@ def median_mad(frames: torch.Tensor, dead: torch.Tensor, gains: torch.Tensor | N
             if not bool(sel.any()):
                 continue
             v = x[sel]  # (P, 3, N)
-        m = v.nanmedian(dim=-1).values  # (P, 3)
-        s = MAD_TO_STD * (v - m[..., None]).abs().nanmedian(dim=-1).values if spread else None  # (P, 3)
-        n = N - v[:, 0].isnan().sum(-1)  # (P,)
+        m, s, n = nan_median_mad(v, spread)
         if pixels is None:
             put[0].copy_(m.view_as(put[0]))
             if spread:
@@ -276,6 +274,28 @@ def median_mad(frames: torch.Tensor, dead: torch.Tensor, gains: torch.Tensor | N
                 std[:, r][sel] = s
             count[:, r][sel] = n
     return med.permute(0, 3, 1, 2).contiguous(), std.permute(0, 3, 1, 2).contiguous(), count
+
+
+def nan_median_mad(values: torch.Tensor, spread: bool = True
+                   ) -> tuple[torch.Tensor, torch.Tensor | None, torch.Tensor]:
+    """(P, 3, N) YUV values, frames last (NaN: left out) -> median (P, 3), robust std ``MAD_TO_STD * MAD`` (P, 3)
+    or None without ``spread``, and the frames used (P,) (a pixel's frames are left out in all channels at once).
+    With ``spread`` the values are overwritten by their distances to the median (no second array that size)."""
+    n = values.shape[-1] - values[:, 0].isnan().sum(-1)
+    m = values.nanmedian(dim=-1).values
+    s = MAD_TO_STD * values.sub_(m[..., None]).abs_().nanmedian(dim=-1).values if spread else None
+    return m, s, n
+
+
+def frames_last_yuv(frames: torch.Tensor, dead: torch.Tensor, gains: torch.Tensor | None,
+                    dtype: torch.dtype) -> torch.Tensor:
+    """(N, C, 3, H, W) RGB -> (C, H, W, 3, N) YUV in ``dtype`` (as :func:`median_mad` reads it: gains divided out,
+    NaN for dead frames), frames last: the layout :func:`nan_median_mad` is fast on, to index pixels from."""
+    N, C, _, H, W = frames.shape
+    out = torch.empty((C, H, W, 3, N), dtype=dtype, device=frames.device)
+    for r in _row_chunks(frames):
+        out[:, r] = _yuv(frames[:, :, :, r], dead, gains, dtype).permute(1, 3, 4, 2, 0)
+    return out
 
 
 def dilate(mask: torch.Tensor, radius_px: int) -> torch.Tensor:

@@ -57,6 +57,10 @@ FOREGROUND_MAHALANOBIS2 = 16.0
 #: Fewest usable frames per camera for :meth:`BackgroundModel.from_frames` / :meth:`~BackgroundModel.from_sequence`.
 MIN_FRAMES = 2
 MIN_SEQUENCE_FRAMES = 5
+#: A moving sequence refined with subject masks keeps its frames' YUV, frames last, when it has at most this many
+#: values (1 GiB in float32): each refinement then reads the changed pixels' values instead of converting every
+#: frame again (half the time of a refinement's re-estimation on the Pose2Sim demo).
+YUV_CACHE_ELEMENTS = 1 << 28
 
 #: The shadow test's texture window (pixels, odd): a cast shadow darkens its background's texture without
 #: changing it (``BackgroundConfig.shadow_min_ncc``).
@@ -514,7 +518,10 @@ class MovingSequence:
             gains = est.sequence_gains(grid, dead, y_ref, names, "sequence frames")  # (N, C)
         self.gains = gains
         self._masked: tuple[torch.Tensor, ...] | None = None  # the last subject masks and their statistics
-        med, spread, count = est.median_mad(frames, dead, gains, dtype)  # (C, 3, H, W) each
+        # (C, H, W, 3, N) the frames' YUV, for passes 1-3 and every refinement's subject masks
+        fits = refine and frames.numel() <= YUV_CACHE_ELEMENTS
+        self._yuv = est.frames_last_yuv(frames, dead, gains, dtype) if fits else None
+        med, spread, count = self._statistics()  # (C, 3, H, W) each
         std = est.floor_and_relax(spread, *relax)
         self.plain = (med, std, count)  # pass 1: what subject masks that never cover a pixel leave it
         if not refine:
@@ -522,7 +529,7 @@ class MovingSequence:
             return
         fg = est.foreground_masks(frames, dead, gains, med, std, FOREGROUND_MAHALANOBIS2, max(1, max(H, W) // 160))
         touched = fg.any(0)  # (C, H, W): elsewhere pass 2 would use the same frames as pass 1
-        med2, spread2, count = est.median_mad(frames, dead, gains, dtype, foreground=fg, pixels=touched)
+        med2, spread2, count = self._statistics(fg, touched)
         use = (count >= est.MIN_CLEAN_FRAMES)[:, None]  # (C, 1, H, W)
         logger.info("background second pass: %.1f%% of the pixels were foreground in some frame, %.1f%% re-estimated "
                     "from their non-foreground frames (mean foreground fraction %.1f%%)",
@@ -553,8 +560,7 @@ class MovingSequence:
         # only the pixels whose masks over the frames changed since the last call are computed again (the
         # refinement's later passes move the track a little: most of the masks stay)
         todo = touched if self._masked is None else touched & (subject_masks != self._masked[0]).any(0)
-        med3, spread3, count = est.median_mad(self.frames, self.dead, self.gains, self.dtype,
-                                              foreground=subject_masks, pixels=todo)
+        med3, spread3, count = self._statistics(subject_masks, todo)
         if self._masked is not None:
             keep = touched & ~todo  # (C, H, W) the same masks as last time: the same statistics
             med3 = torch.where(keep[:, None], self._masked[1], med3)
@@ -570,6 +576,30 @@ class MovingSequence:
         logger.info("background from the frames free of the given subject masks at %.1f%% of the pixels",
                     100 * float(use.float().mean()))
         return torch.where(use, med3, self.mean), torch.where(use, std3, self.std)
+
+
+    def _statistics(self, foreground: torch.Tensor | None = None, pixels: torch.Tensor | None = None
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:func:`~torchtrack.background.estimate.median_mad` of the frames, from their YUV kept where it fits
+        (``YUV_CACHE_ELEMENTS``; the same values, the same figures), in chunks of pixels as it does."""
+        if self._yuv is None:
+            return est.median_mad(self.frames, self.dead, self.gains, self.dtype, foreground=foreground,
+                                  pixels=pixels)
+        C, H, W, _, N = self._yuv.shape
+        values = self._yuv.view(-1, 3, N)  # (CHW, 3, N)
+        out = torch.full((C * H * W, 3), float("nan"), dtype=self.dtype, device=values.device)
+        med, std, count = out, out.clone(), torch.zeros(C * H * W, dtype=torch.long, device=values.device)
+        rows = torch.arange(C * H * W, device=values.device) if pixels is None else pixels.flatten().nonzero()[:, 0]
+        fg = None if foreground is None else foreground.permute(1, 2, 3, 0).reshape(-1, N)  # (CHW, N)
+        step = max(1, est.CHUNK_ELEMENTS // (3 * N))
+        for lo in range(0, len(rows), step):
+            r = rows[lo:lo + step]
+            v = values[r]  # (P, 3, N) a copy
+            if fg is not None:
+                v.masked_fill_(fg[r][:, None], float("nan"))
+            med[r], std[r], count[r] = est.nan_median_mad(v)
+        return (med.view(C, H, W, 3).permute(0, 3, 1, 2).contiguous(),
+                std.view(C, H, W, 3).permute(0, 3, 1, 2).contiguous(), count.view(C, H, W))
 
 
 def sequence_statistics(frames: torch.Tensor, config: BackgroundConfig, names: Sequence[str],

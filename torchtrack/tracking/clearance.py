@@ -19,11 +19,34 @@ from torchtrack.checks import InputError, ShapeError, check_shape
 from torchtrack.ellipsoids import rays_meet_ellipsoids
 from torchtrack.skeleton import Skeleton
 
-__all__ = ["body_masks", "clear_frame_masks", "clearance_px"]
+__all__ = ["PixelTiles", "body_masks", "clear_frame_masks", "clearance_px"]
+
+
+class PixelTiles:
+    """A rig's pixel rays (through the lens model, :meth:`CameraRig.pixel_rays`) ordered in 8 x 8 tiles, as
+    :func:`body_masks` tests them: made once for the many masks of a background refinement (undistorting every
+    pixel costs as much as testing it).
+
+    Attributes:
+        origins, dirs: (C, 3) and (C, th * tw * 64, 3); size: (H, W); tiles: (th, tw) the image padded to whole
+            tiles (the padding repeats the last column and row: a ray from outside the image may not undistort).
+    """
+
+    def __init__(self, rig: CameraRig) -> None:
+        if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
+            raise InputError("body_masks: the cameras must share one image size")
+        device = rig.K.device
+        W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+        th, tw = -(-H // 8), -(-W // 8)
+        ty, tx, iy, ix = torch.meshgrid(*(torch.arange(n, device=device) for n in (th, tw, 8, 8)), indexing="ij")
+        u, v = (tx * 8 + ix).clamp(max=W - 1), (ty * 8 + iy).clamp(max=H - 1)
+        uv = torch.stack([u, v], -1).reshape(1, -1, 2).float().expand(len(rig), -1, -1)
+        origins, self.dirs = rig.pixel_rays(uv)  # (C, th * tw * 64, 3)
+        self.origins, self.size, self.tiles = origins[:, 0], (H, W), (th, tw)
 
 
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
-               blobs: BlobModel | None = None) -> torch.Tensor:
+               blobs: BlobModel | None = None, tiles: PixelTiles | None = None) -> torch.Tensor:
     """Where the body of the blob model is seen: the union of its ellipsoids in every view.
 
     A pixel is set when its ray (through the lens model, :meth:`CameraRig.pixel_rays`) meets an ellipsoid in
@@ -36,25 +59,17 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
         angles: (T, D) state vectors; a frame with a non-finite value (an untracked frame) gives a mask that is
             set everywhere (the body may be anywhere).
         blob_scale: the ellipsoids' semi-axes are multiplied by this.
+        tiles: ``PixelTiles(rig)``, made once for many calls on one rig (default: made here).
 
     Returns:
         (T, C, H, W) bool on the rig's device.
     """
     check_shape(angles, ("T", skeleton.num_dofs), "angles")
-    if bool((rig.image_size_wh != rig.image_size_wh[0]).any()):
-        raise InputError("body_masks: the cameras must share one image size")
+    tiles = PixelTiles(rig) if tiles is None else tiles  # rays_meet_ellipsoids' bundles of 64 rays are its tiles
+    origins, dirs, (H, W), (th, tw) = tiles.origins, tiles.dirs, tiles.size, tiles.tiles
     device = rig.K.device
     skeleton = skeleton.to(device)
     blobs = (BlobModel.from_config(skeleton) if blobs is None else blobs).to(device)
-    W, H = (int(v) for v in rig.image_size_wh[0].tolist())
-    # the pixels of the image padded to whole 8 x 8 tiles, tile by tile: rays_meet_ellipsoids' bundles of 64
-    # consecutive rays are tiles
-    th, tw = -(-H // 8), -(-W // 8)
-    ty, tx, iy, ix = torch.meshgrid(*(torch.arange(n, device=device) for n in (th, tw, 8, 8)), indexing="ij")
-    # the padding repeats the last column and row (a ray from outside the image may not undistort)
-    u, v = (tx * 8 + ix).clamp(max=W - 1), (ty * 8 + iy).clamp(max=H - 1)
-    uv = torch.stack([u, v], -1).reshape(1, -1, 2).float().expand(len(rig), -1, -1)
-    origins, dirs = rig.pixel_rays(uv)  # (C, th * tw * 64, 3)
     T, C = angles.shape[0], len(rig)
     angles = angles.to(device, torch.float32)
     out = torch.ones((T, C, th * tw * 64), dtype=torch.bool, device=device)
@@ -62,7 +77,7 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     if bool(ok.any()):
         centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
         axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
-        out[ok] = rays_meet_ellipsoids(origins[:, 0], dirs, centres.to(origins.dtype), R.to(origins.dtype), axes,
+        out[ok] = rays_meet_ellipsoids(origins, dirs, centres.to(origins.dtype), R.to(origins.dtype), axes,
                                        bundle=64)
     tiles = out.view(T, C, th, tw, 8, 8).permute(0, 1, 2, 4, 3, 5)  # (T, C, th, 8, tw, 8)
     return tiles.reshape(T, C, th * 8, tw * 8)[..., :H, :W].contiguous()

@@ -52,7 +52,7 @@ from torchtrack.io.sequence import SequenceFolder, evenly_spaced
 from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.body_refit import mean_ik_residual_m
-from torchtrack.tracking.clearance import body_masks, clear_frame_masks, clearance_px
+from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
@@ -173,7 +173,8 @@ def track_change_m(poses: Poses, before: Poses) -> float:
 
 def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tensor, rig: CameraRig,
                        skeleton: Skeleton, bg_config: BackgroundConfig, config: RefineConfig,
-                       camera_names: list[str] | None = None, blobs: BlobModel | None = None) -> BackgroundModel:
+                       camera_names: list[str] | None = None, blobs: BlobModel | None = None,
+                       tiles: PixelTiles | None = None) -> BackgroundModel:
     """The background re-estimated from each pixel's frames clearest of the tracked body (module docstring).
 
     Args:
@@ -182,12 +183,14 @@ def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tens
             the background's passes 1-3 for every refinement pass.
         angles: (N, D) the tracked state vectors of those frames (NaN where untracked).
         skeleton, blobs: the tracked subject's skeleton and blob model (see :func:`body_masks`).
+        tiles: the rig's pixel rays, made once for several calls (:class:`PixelTiles`; default: made here).
     """
     N, C, _, H, W = frames.shape
     check_shape(angles, (N, skeleton.num_dofs), "angles")
     clear_px = config.clear_fraction * max(H, W)
     masks = torch.empty((N, C, H, W), dtype=torch.bool)
-    body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs).cpu()
+    body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs,
+                      tiles).cpu()
     near_px = config.near_fraction * max(H, W)
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
         # clear_frame_masks compares clearances with thresholds up to clear_px and near_px only
@@ -355,6 +358,7 @@ def track_with_background_refinement(
     observer = make_observer(background)
     rig = observer.rig
     W, H = (int(v) for v in rig.image_size_wh[0].tolist())
+    tiles = PixelTiles(rig) if config.passes else None  # the pixel rays of every pass's body masks
     indices, frames, poses = None, None, None
     final = config.passes  # the last pass: all of them, or the one after convergence
     select = config.keep == "fit" and config.passes > 0
@@ -391,7 +395,7 @@ def track_with_background_refinement(
                 # the first pass moved the given start's hips (TrackerConfig.functional_hips): start in that body
                 start_state = (tracker.restate(start_state[0][None], 0)[0], tracker.subject.skeleton, start_state[2])
             background = refined_background(frames, angles, rig, tracker.subject.skeleton, bg_config, config,
-                                            folder.camera_names, tracker.subject.blobs)
+                                            folder.camera_names, tracker.subject.blobs, tiles)
             observer = make_observer(background)
             restart(tracker, start_state)
             log.info("background refinement: pass %d of %d", p + 1, config.passes + 1)
