@@ -1,5 +1,5 @@
-"""The markerless tracker's loop (torchtrack.tracking.markerless) on voxelised ground-truth bodies: held feet, lost
-arms, the prediction, the trunk, frames with nobody, the initial pose, the config, CPU against CUDA.
+"""The markerless tracker's loop (torchtrack.tracking.markerless) on voxelised ground-truth bodies: held feet, the
+prediction, the trunk, frames with nobody, the initial pose, the config, CPU against CUDA.
 
 References are independent of the code under test: ground-truth poses of procedural motions and the voxels of
 their ellipsoids.
@@ -147,117 +147,6 @@ def test_re_acquisition_holds_no_foot_from_before_the_loss(skel):
     loss (held there, it stays 25 cm off)."""
     err = _unseen_leg_run(skel, hide_from=11, gone_frame=10, jump=0.3)
     assert err[-5:].max() < 0.05, err  # measured 10 cm on the re-acquired frame, 2-4 cm from the 9th on
-
-
-def _lost_arm_run(skel, start_edit, lost_hand_frames, frames=8):
-    """A subject 1.80 m tall standing still with the arms hanging (voxelised ground truth), tracked from its pose
-    with the left arm's DOFs set by ``start_edit`` (an arm that ran off its voxels). Returns per frame the left
-    wrist's error (m), whether the left hand's blob was active, and the right wrist's error (m)."""
-    subj = skel.scaled_to_height(1.80)
-    blobs = BlobModel.from_config(subj)
-    true = subj.rest_angles()
-    start = true.clone()
-    for name, value in start_edit.items():
-        start[skel.dof_names.index(name)] = value
-    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=lost_hand_frames))
-    tracker.initialize_from_pose(start, 1.80)
-    obs = _observation(subj, blobs, true)
-    truth = _landmarks(subj, true)
-    lw, rw, hand = LANDMARKS.index("l_wrist"), LANDMARKS.index("r_wrist"), blobs.names.index("l_hand")
-    left, active, right = [], [], []
-    for _ in range(frames):
-        r = tracker.step(obs)
-        assert r.valid
-        left.append(float((r.output_points[lw] - truth[lw]).norm()))
-        right.append(float((r.output_points[rw] - truth[rw]).norm()))
-        active.append(bool(r.blobs.active[hand]))
-    return np.array(left), np.array(active), np.array(right)
-
-
-@pytest.mark.parametrize("edit", [{"l_shoulder_abd": 1.5}, {"l_shoulder_flex": 2.5},
-                                  {"l_shoulder_abd": 1.2, "l_elbow_flex": 2.0}])
-def test_a_lost_arm_is_searched_again_from_hanging(skel, edit):
-    """The left arm starts out where there are no voxels (held out sideways, raised, or bent): its hand's blob is
-    empty and, de-activated, never fills again, so without the search the wrist stays 0.5-1 m off. With
-    ``lost_hand_frames`` 3 the arm is searched for from hanging on the third frame the hand is off, found (it fits
-    better than the frame tracked again as it was), and stays found (no velocity carries it back off); the right
-    arm is not touched."""
-    left, active, right = _lost_arm_run(skel, edit, 0)
-    assert left.min() > 0.4 and not active.any()
-    left, active, right = _lost_arm_run(skel, edit, 3)
-    assert not active[:2].any() and left[:2].min() > 0.4  # the first two frames: not searched yet
-    assert active[2:].all() and left[2:].max() < 0.02, left
-    assert right.max() < 0.02, right
-
-
-def _raised_arm_without_hand(skel):
-    """A subject 1.80 m tall, the left arm raised sideways above the shoulder, whose left hand's voxels are gone
-    (its ellipsoid grown by 2 cm emptied): the body, the pose, the observation and the hand's blob index."""
-    subj = skel.scaled_to_height(1.80)
-    blobs = BlobModel.from_config(subj)
-    true = subj.rest_angles()
-    true[skel.dof_names.index("l_shoulder_abd")] = 2.0
-    obs = _observation(subj, blobs, true)
-    k = blobs.names.index("l_hand")
-    centres, R = blobs.ellipsoids(subj.forward(true[None].double()).bone_frames)
-    keep = ~inside_ellipsoids(obs.points.double(), centres[0, k:k + 1], R[0, k:k + 1],
-                              blobs.semi_axes[k:k + 1].double() + 0.02)
-    obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
-                           obs.cameras_valid)
-    return subj, true, obs, k
-
-
-def _counting_searches(tracker, monkeypatch):
-    """Count the tracker's extra passes of the lost-arm search (two per search)."""
-    calls = []
-    inner = tracker._track_again
-
-    def counted(obs, angles):
-        calls.append(1)
-        return inner(obs, angles)
-
-    monkeypatch.setattr(tracker, "_track_again", counted)
-    return calls
-
-
-def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel, monkeypatch):
-    """A hand that is off because its voxels are gone, not because the arm is lost: searched for every second
-    frame (``lost_hand_frames`` 2), the arm tracked again from hanging fits worse than the raised one the forearm's
-    voxels show (kept, it leaves the arm off them), so the arm stays where it is, its elbow and wrist within 3 cm
-    of the truth."""
-    subj, true, obs, k = _raised_arm_without_hand(skel)
-    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=2))
-    tracker.initialize_from_pose(true, 1.80)
-    calls = _counting_searches(tracker, monkeypatch)
-    truth = _landmarks(subj, true)
-    for t in range(6):
-        r = tracker.step(obs)
-        assert r.valid and not bool(r.blobs.active[k])
-        for name in ("l_elbow", "l_wrist"):
-            j = LANDMARKS.index(name)
-            assert float((r.output_points[j] - truth[j]).norm()) < 0.03, (t, name)
-    assert len(calls) == 2 * 3  # searched on the 2nd, 4th and 6th frames
-
-
-def test_the_lost_hands_count_starts_again_after_a_frame_with_nobody(skel, monkeypatch):
-    """Two frames with the hand off, a frame with nobody (the count starts again), the re-acquisition (not
-    counted), then the third accepted frame with the hand off is the first searched (``lost_hand_frames`` 3)."""
-    subj, true, obs, k = _raised_arm_without_hand(skel)
-    # no race after the re-acquisition: its twin, a copy of this tracker, would call the patched search too
-    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=3, start_race_s=0.0))
-    tracker.initialize_from_pose(true, 1.80)
-    calls = _counting_searches(tracker, monkeypatch)
-    empty = VoxelObservation(obs.points[:0], obs.sizes[:0], obs.weights[:0], obs.colours[:0], obs.cameras_valid)
-    for o in (obs, obs):
-        tracker.step(o)
-    assert tracker.hands_off == [2, 0]
-    assert not tracker.step(empty).valid and tracker.hands_off == [0, 0]
-    assert tracker.step(obs).reinitialised and tracker.hands_off == [0, 0]
-    for _ in range(2):
-        tracker.step(obs)
-    assert tracker.hands_off == [2, 0] and not calls
-    tracker.step(obs)
-    assert len(calls) == 2 and tracker.hands_off == [0, 0]
 
 
 def test_the_floor_is_the_initial_poses_lower_sole_or_the_configured_height(skel):

@@ -1,5 +1,5 @@
-"""The start and re-acquisition (torchtrack.tracking.start, torchtrack.tracking.search): the search from any pose,
-refusals, the starfish fast path, the heading races, on voxelised ground-truth bodies.
+"""The start (torchtrack.tracking.start, torchtrack.tracking.search): the search from any pose, refusals, the
+starfish fast path, on voxelised ground-truth bodies.
 """
 
 from __future__ import annotations
@@ -8,7 +8,6 @@ import dataclasses
 import math
 import re
 
-import numpy as np
 import pytest
 import torch
 
@@ -19,7 +18,6 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import procedural_motion
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
-from torchtrack.tracking.poses import turned_round
 
 from conftest import landmarks_of as _landmarks, voxelised_observation as _observation
 
@@ -29,89 +27,6 @@ torch.set_grad_enabled(False)
 @pytest.fixture(scope="module")
 def skel() -> Skeleton:
     return Skeleton.from_urdf()
-
-
-def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
-    """Tracked walking, then nobody, then back mid-squat and turned 150 degrees 0.5 m away: the re-acquisition
-    (the last pose at four headings, the search where none passes the checks) lands within 50 mm of the truth
-    (the pose's forward kinematics)."""
-    subj = skel.scaled_to_height(1.75)
-    blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel)
-    for t in range(walk.shape[0]):
-        assert tracker.step(_observation(subj, blobs, walk[t])).valid
-    nobody = _observation(subj, blobs, walk[-1])
-    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
-                              nobody.cameras_valid)
-    assert not tracker.step(nobody).valid
-    names = list(skel.dof_names)
-    back = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[14].clone()
-    back[names.index("root_rz")] = float(walk[-1, names.index("root_rz")]) + math.radians(150)
-    back[names.index("root_tx")] += 0.5
-    res = tracker.step(_observation(subj, blobs, back))
-    assert res.valid and res.reinitialised
-    truth = subj.forward(back[None].double()).output_points[0]
-    err = (res.output_points.double() - truth).norm(dim=-1).mean()
-    assert float(err) < 0.05, float(err)
-
-
-def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
-    """MarkerlessTracker._fit_many against _track run round after round on each start in turn, as re-acquisition
-    fitted its hypotheses before: a walking body's voxels, the last pose at four headings."""
-    subj = skel.scaled_to_height(1.75)
-    blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel)
-    assert all(tracker.step(_observation(subj, blobs, a)).valid for a in walk[:4])
-    obs = _observation(subj, blobs, walk[8])
-    tracker.colour = None
-    names = list(skel.dof_names)
-    starts = tracker.angles.repeat(4, 1)
-    starts[:, names.index("root_rz")] += torch.tensor([0.0, 0.5, 1.0, -0.5]).to(starts) * math.pi
-    got = tracker._fit_many(obs, starts, 3, math.radians(45))
-    for h in range(4):
-        tracker.angles = tracker.previous = starts[h]
-        for _ in range(3):
-            want = tracker._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
-            tracker.angles = tracker.previous = want.angles
-        torch.testing.assert_close(got[h].angles, want.angles, rtol=1e-4, atol=1e-4)
-        assert got[h].residual_m == pytest.approx(want.residual_m, rel=1e-3, abs=1e-5)
-        assert got[h].explained == pytest.approx(want.explained, rel=1e-5)
-        torch.testing.assert_close(got[h].confidence, want.confidence, rtol=1e-4, atol=1e-5)
-    assert got[0].residual_m < min(r.residual_m for r in got[1:])  # the right heading fits best
-
-
-def test_a_reacquired_body_learns_its_colours_afresh(skel):
-    """A colour model learnt before a loss (here: in a light 40 % dimmer, as elsewhere in a room) is not carried
-    over a re-acquisition: the re-acquired frame learns the colours again, each blob's as rendered (the synthetic
-    voxels' colours), and the frames after it are tracked within 50 mm of the truth."""
-    subj = skel.scaled_to_height(1.75)
-    blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel)
-    for t in range(10):
-        assert tracker.step(_observation(subj, blobs, walk[t])).valid
-    rendered = blobs.colour.float()
-    wrong = 0.6 * tracker.colour.colour_mean
-    assert float((wrong - rendered).abs().amax(-1).median()) > 0.1  # the corruption is one a blob would notice
-    tracker.colour = dataclasses.replace(tracker.colour, colour_mean=wrong)
-    nobody = _observation(subj, blobs, walk[10])
-    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
-                              nobody.cameras_valid)
-    for _ in range(3):
-        assert not tracker.step(nobody).valid
-    back = walk[13:20].clone()
-    back[:, list(skel.dof_names).index("root_tx")] += 0.3
-    for t in range(back.shape[0]):
-        res = tracker.step(_observation(subj, blobs, back[t]))
-        assert res.valid and res.reinitialised == (t == 0)
-        if t == 0:
-            known = tracker.colour.colour_known  # the blobs EM learnt a colour for on this frame
-            assert int(known.sum()) >= 8, known
-            assert float((tracker.colour.colour_mean - rendered)[known].abs().amax(-1).median()) < 0.03
-        truth = subj.forward(back[t][None].double()).output_points[0]
-        assert float((res.output_points.double() - truth).norm(dim=-1).mean()) < 0.05, t
 
 
 @pytest.mark.parametrize("frame, turn", [(12, 0.0), (20, 2.5), (5, -1.9)])
@@ -212,42 +127,6 @@ def test_the_search_finds_a_real_pose_no_product_of_limb_poses_gives(skel):
     assert err < 0.06, err
 
 
-@pytest.mark.parametrize("race_s", [0.5, 0.0])
-def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
-    """The search's answer forced to face backwards (its states turned round) on a walk from its first frame: the
-    start race tracks the right way round beside it and wins after start_race_s, its frames replacing the
-    backwards ones (take_revised), landmarks within 50 mm of the truth from the first frame (ground truth: the
-    walk's forward kinematics). With the race off the track stays backwards."""
-    import torchtrack.tracking.search as search
-
-    found = search.search_pose
-    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
-        r := found(obs, sk, *a, **k), angles=turned_round(sk, r.angles)))
-    subj = skel.scaled_to_height(1.8)
-    blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s))
-    tracker.set_frame_rate(30.0)
-    out, revised = [], 0
-    for t in range(24):
-        out.append(tracker.step(_observation(subj, blobs, walk[t])))
-        late = tracker.take_revised()
-        for j, (res, version) in enumerate(late):
-            out[t - len(late) + 1 + j] = res
-            assert version == 0
-        revised += len(late)
-    err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[t]).double()).norm(dim=-1).mean())
-                    for t, r in enumerate(out)])
-    if race_s:
-        # the race's 0.5 s at 30 fps counted from the frame where the body has moved 0.1 m (pelvis-relative)
-        rel = [_landmarks(subj, walk[t]).double() - _landmarks(subj, walk[t]).double()[:1] for t in range(24)]
-        moved = next(t for t in range(24) if float((rel[t] - rel[0]).norm(dim=-1).max()) > 0.1)
-        assert abs(revised - (moved + 15)) <= 1 and out[0].reinitialised, (revised, moved)
-        assert err.max() < 0.05, err
-    else:
-        assert revised == 0 and err.mean() > 0.1, err
-
-
 @pytest.mark.parametrize("arm", [0.95, 1.75, 2.2])
 def test_starfish_arms_measured_from_the_voxels(skel, arm):
     """The starfish start reads the arms' abduction from the voxels' far ends (the hands, seen from the shoulders of
@@ -301,59 +180,6 @@ def test_a_starfish_start_takes_the_fast_path_where_the_search_misses(skel, monk
         assert err < 0.05, err
     # the starfish's start measures how far its toes point ahead; the search's leaves it NaN
     assert math.isnan(tracker.start_check.toe_ahead_m) != starfish
-
-
-@pytest.mark.parametrize("race_s", [0.5, 0.0])
-def test_a_reacquisition_turned_round_loses_its_race(skel, monkeypatch, race_s):
-    """A walker lost for three frames comes back, and the re-acquired pose is forced to face backwards (turned
-    round just before the re-acquired frame learns its colours): the race that the re-acquisition starts tracks
-    the right way round beside it and wins after start_race_s, its frames replacing the backwards ones from the
-    re-acquired frame on, all within 50 mm of the truth (ground truth: the walk's forward kinematics). With the
-    race off the track stays backwards."""
-
-    subj = skel.scaled_to_height(1.75)
-    blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 2.0, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s))
-    tracker.set_frame_rate(30.0)
-    for t in range(30):  # the start and its own race, over before the loss
-        tracker.step(_observation(subj, blobs, walk[t]))
-        tracker.take_revised()
-    assert not tracker.racing
-    empty = _observation(subj, blobs, walk[30])
-    empty = VoxelObservation(empty.points[:0], empty.sizes[:0], empty.weights[:0], empty.colours[:0],
-                             empty.cameras_valid)
-    for _ in range(3):
-        assert not tracker.step(empty).valid
-    armed = [True]
-    learn = MarkerlessTracker._learn_colour
-
-    def backwards(self, obs):
-        if armed[0]:  # the re-acquired pose only (the race's twin learns its colours after it)
-            armed[0] = False
-            self.angles = self.previous = turned_round(self.subject.skeleton, self.angles)
-        return learn(self, obs)
-
-    monkeypatch.setattr(MarkerlessTracker, "_learn_colour", backwards)
-    out, revised = [], 0
-    for t in range(33, 55):
-        out.append(tracker.step(_observation(subj, blobs, walk[t])))
-        late = tracker.take_revised()
-        for j, (res, _version) in enumerate(late):
-            out[len(out) - len(late) + j] = res
-        revised += len(late)
-    assert not armed[0] and out[0].reinitialised
-    err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[33 + i]).double()).norm(dim=-1)
-                          .mean()) for i, r in enumerate(out)])
-    if race_s:
-        # the race's 0.5 s at 30 fps counted from the frame where the body has moved 0.1 m from the re-acquired
-        # frame's pose (pelvis-relative)
-        rel = [_landmarks(subj, walk[t]).double() - _landmarks(subj, walk[t]).double()[:1] for t in range(33, 55)]
-        moved = next(i for i in range(len(rel)) if float((rel[i] - rel[0]).norm(dim=-1).max()) > 0.1)
-        assert abs(revised - (moved + 15)) <= 1, (revised, moved)
-        assert err.max() < 0.05, err
-    else:
-        assert revised == 0 and err.mean() > 0.1, err
 
 
 def test_a_standing_start_beside_a_phantom_is_no_starfish(skel):

@@ -1,0 +1,223 @@
+"""Recovery (torchtrack.tracking.recovery): a lost track re-acquired, a lost arm searched for again, on voxelised
+ground-truth bodies.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.blobs import BlobModel
+from torchtrack.conventions import LANDMARKS
+from torchtrack.occupancy.metrics import inside_ellipsoids
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.motion import procedural_motion
+from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
+from torchtrack.tracking.observation import VoxelObservation
+
+from conftest import landmarks_of as _landmarks, voxelised_observation as _observation
+
+torch.set_grad_enabled(False)
+
+
+@pytest.fixture(scope="module")
+def skel() -> Skeleton:
+    return Skeleton.from_urdf()
+
+
+def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
+    """Tracked walking, then nobody, then back mid-squat and turned 150 degrees 0.5 m away: the re-acquisition
+    (the last pose at four headings, the search where none passes the checks) lands within 50 mm of the truth
+    (the pose's forward kinematics)."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    for t in range(walk.shape[0]):
+        assert tracker.step(_observation(subj, blobs, walk[t])).valid
+    nobody = _observation(subj, blobs, walk[-1])
+    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
+                              nobody.cameras_valid)
+    assert not tracker.step(nobody).valid
+    names = list(skel.dof_names)
+    back = procedural_motion(subj, "squat", 1.0, 30, starfish_s=0.0)[14].clone()
+    back[names.index("root_rz")] = float(walk[-1, names.index("root_rz")]) + math.radians(150)
+    back[names.index("root_tx")] += 0.5
+    res = tracker.step(_observation(subj, blobs, back))
+    assert res.valid and res.reinitialised
+    truth = subj.forward(back[None].double()).output_points[0]
+    err = (res.output_points.double() - truth).norm(dim=-1).mean()
+    assert float(err) < 0.05, float(err)
+
+
+def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
+    """MarkerlessTracker._fit_many against _track run round after round on each start in turn, as re-acquisition
+    fitted its hypotheses before: a walking body's voxels, the last pose at four headings."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    assert all(tracker.step(_observation(subj, blobs, a)).valid for a in walk[:4])
+    obs = _observation(subj, blobs, walk[8])
+    tracker.colour = None
+    names = list(skel.dof_names)
+    starts = tracker.angles.repeat(4, 1)
+    starts[:, names.index("root_rz")] += torch.tensor([0.0, 0.5, 1.0, -0.5]).to(starts) * math.pi
+    got = tracker._fit_many(obs, starts, 3, math.radians(45))
+    for h in range(4):
+        tracker.angles = tracker.previous = starts[h]
+        for _ in range(3):
+            want = tracker._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            tracker.angles = tracker.previous = want.angles
+        torch.testing.assert_close(got[h].angles, want.angles, rtol=1e-4, atol=1e-4)
+        assert got[h].residual_m == pytest.approx(want.residual_m, rel=1e-3, abs=1e-5)
+        assert got[h].explained == pytest.approx(want.explained, rel=1e-5)
+        torch.testing.assert_close(got[h].confidence, want.confidence, rtol=1e-4, atol=1e-5)
+    assert got[0].residual_m < min(r.residual_m for r in got[1:])  # the right heading fits best
+
+
+def test_a_reacquired_body_learns_its_colours_afresh(skel):
+    """A colour model learnt before a loss (here: in a light 40 % dimmer, as elsewhere in a room) is not carried
+    over a re-acquisition: the re-acquired frame learns the colours again, each blob's as rendered (the synthetic
+    voxels' colours), and the frames after it are tracked within 50 mm of the truth."""
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel)
+    for t in range(10):
+        assert tracker.step(_observation(subj, blobs, walk[t])).valid
+    rendered = blobs.colour.float()
+    wrong = 0.6 * tracker.colour.colour_mean
+    assert float((wrong - rendered).abs().amax(-1).median()) > 0.1  # the corruption is one a blob would notice
+    tracker.colour = dataclasses.replace(tracker.colour, colour_mean=wrong)
+    nobody = _observation(subj, blobs, walk[10])
+    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
+                              nobody.cameras_valid)
+    for _ in range(3):
+        assert not tracker.step(nobody).valid
+    back = walk[13:20].clone()
+    back[:, list(skel.dof_names).index("root_tx")] += 0.3
+    for t in range(back.shape[0]):
+        res = tracker.step(_observation(subj, blobs, back[t]))
+        assert res.valid and res.reinitialised == (t == 0)
+        if t == 0:
+            known = tracker.colour.colour_known  # the blobs EM learnt a colour for on this frame
+            assert int(known.sum()) >= 8, known
+            assert float((tracker.colour.colour_mean - rendered)[known].abs().amax(-1).median()) < 0.03
+        truth = subj.forward(back[t][None].double()).output_points[0]
+        assert float((res.output_points.double() - truth).norm(dim=-1).mean()) < 0.05, t
+
+
+def _lost_arm_run(skel, start_edit, lost_hand_frames, frames=8):
+    """A subject 1.80 m tall standing still with the arms hanging (voxelised ground truth), tracked from its pose
+    with the left arm's DOFs set by ``start_edit`` (an arm that ran off its voxels). Returns per frame the left
+    wrist's error (m), whether the left hand's blob was active, and the right wrist's error (m)."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    true = subj.rest_angles()
+    start = true.clone()
+    for name, value in start_edit.items():
+        start[skel.dof_names.index(name)] = value
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=lost_hand_frames))
+    tracker.initialize_from_pose(start, 1.80)
+    obs = _observation(subj, blobs, true)
+    truth = _landmarks(subj, true)
+    lw, rw, hand = LANDMARKS.index("l_wrist"), LANDMARKS.index("r_wrist"), blobs.names.index("l_hand")
+    left, active, right = [], [], []
+    for _ in range(frames):
+        r = tracker.step(obs)
+        assert r.valid
+        left.append(float((r.output_points[lw] - truth[lw]).norm()))
+        right.append(float((r.output_points[rw] - truth[rw]).norm()))
+        active.append(bool(r.blobs.active[hand]))
+    return np.array(left), np.array(active), np.array(right)
+
+
+@pytest.mark.parametrize("edit", [{"l_shoulder_abd": 1.5}, {"l_shoulder_flex": 2.5},
+                                  {"l_shoulder_abd": 1.2, "l_elbow_flex": 2.0}])
+def test_a_lost_arm_is_searched_again_from_hanging(skel, edit):
+    """The left arm starts out where there are no voxels (held out sideways, raised, or bent): its hand's blob is
+    empty and, de-activated, never fills again, so without the search the wrist stays 0.5-1 m off. With
+    ``lost_hand_frames`` 3 the arm is searched for from hanging on the third frame the hand is off, found (it fits
+    better than the frame tracked again as it was), and stays found (no velocity carries it back off); the right
+    arm is not touched."""
+    left, active, right = _lost_arm_run(skel, edit, 0)
+    assert left.min() > 0.4 and not active.any()
+    left, active, right = _lost_arm_run(skel, edit, 3)
+    assert not active[:2].any() and left[:2].min() > 0.4  # the first two frames: not searched yet
+    assert active[2:].all() and left[2:].max() < 0.02, left
+    assert right.max() < 0.02, right
+
+
+def _raised_arm_without_hand(skel):
+    """A subject 1.80 m tall, the left arm raised sideways above the shoulder, whose left hand's voxels are gone
+    (its ellipsoid grown by 2 cm emptied): the body, the pose, the observation and the hand's blob index."""
+    subj = skel.scaled_to_height(1.80)
+    blobs = BlobModel.from_config(subj)
+    true = subj.rest_angles()
+    true[skel.dof_names.index("l_shoulder_abd")] = 2.0
+    obs = _observation(subj, blobs, true)
+    k = blobs.names.index("l_hand")
+    centres, R = blobs.ellipsoids(subj.forward(true[None].double()).bone_frames)
+    keep = ~inside_ellipsoids(obs.points.double(), centres[0, k:k + 1], R[0, k:k + 1],
+                              blobs.semi_axes[k:k + 1].double() + 0.02)
+    obs = VoxelObservation(obs.points[keep], obs.sizes[keep], obs.weights[keep], obs.colours[keep],
+                           obs.cameras_valid)
+    return subj, true, obs, k
+
+
+def _counting_searches(tracker, monkeypatch):
+    """Count the tracker's extra passes of the lost-arm search (two per search)."""
+    calls = []
+    inner = tracker._track_again
+
+    def counted(obs, angles):
+        calls.append(1)
+        return inner(obs, angles)
+
+    monkeypatch.setattr(tracker, "_track_again", counted)
+    return calls
+
+
+def test_an_arm_the_voxels_do_not_show_is_kept_where_it_was(skel, monkeypatch):
+    """A hand that is off because its voxels are gone, not because the arm is lost: searched for every second
+    frame (``lost_hand_frames`` 2), the arm tracked again from hanging fits worse than the raised one the forearm's
+    voxels show (kept, it leaves the arm off them), so the arm stays where it is, its elbow and wrist within 3 cm
+    of the truth."""
+    subj, true, obs, k = _raised_arm_without_hand(skel)
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=2))
+    tracker.initialize_from_pose(true, 1.80)
+    calls = _counting_searches(tracker, monkeypatch)
+    truth = _landmarks(subj, true)
+    for t in range(6):
+        r = tracker.step(obs)
+        assert r.valid and not bool(r.blobs.active[k])
+        for name in ("l_elbow", "l_wrist"):
+            j = LANDMARKS.index(name)
+            assert float((r.output_points[j] - truth[j]).norm()) < 0.03, (t, name)
+    assert len(calls) == 2 * 3  # searched on the 2nd, 4th and 6th frames
+
+
+def test_the_lost_hands_count_starts_again_after_a_frame_with_nobody(skel, monkeypatch):
+    """Two frames with the hand off, a frame with nobody (the count starts again), the re-acquisition (not
+    counted), then the third accepted frame with the hand off is the first searched (``lost_hand_frames`` 3)."""
+    subj, true, obs, k = _raised_arm_without_hand(skel)
+    # no race after the re-acquisition: its twin, a copy of this tracker, would call the patched search too
+    tracker = MarkerlessTracker(skel, TrackerConfig(lost_hand_frames=3, start_race_s=0.0))
+    tracker.initialize_from_pose(true, 1.80)
+    calls = _counting_searches(tracker, monkeypatch)
+    empty = VoxelObservation(obs.points[:0], obs.sizes[:0], obs.weights[:0], obs.colours[:0], obs.cameras_valid)
+    for o in (obs, obs):
+        tracker.step(o)
+    assert tracker.hands_off == [2, 0]
+    assert not tracker.step(empty).valid and tracker.hands_off == [0, 0]
+    assert tracker.step(obs).reinitialised and tracker.hands_off == [0, 0]
+    for _ in range(2):
+        tracker.step(obs)
+    assert tracker.hands_off == [2, 0] and not calls
+    tracker.step(obs)
+    assert len(calls) == 2 and tracker.hands_off == [0, 0]

@@ -1,0 +1,136 @@
+"""Recovery (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`'s part that finds the body again): a lost
+track re-acquired from the last good pose and the start's search, and (off by default) a lost arm searched for
+again from hanging."""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import replace
+
+import torch
+
+from torchtrack.tracking.start import START_MAX_OUTSIDE
+from torchtrack.tracking.step import FrameResult
+from torchtrack.tracking.voxels import VoxelObservation
+
+log = logging.getLogger(__name__)
+
+#: hold_lost_feet: after a re-acquisition, a remembered foot farther than this from the re-acquired pose's is no
+#: longer held (the subject may have moved on while it was lost).
+REACQUIRED_FOOT_M = 0.1
+#: While lost, the re-acquisition searches for the whole state (a second or more on a CPU) every this many frames.
+REACQUIRE_SEARCH_EVERY = 5
+#: Re-acquisition: of its fits that pass the checks, those within this of the best two-way score
+#: (:func:`~torchtrack.tracking.search.score_states`, 0-1) compete by EM/IK's fit cost. The score tells a wrong
+#: heading or pose from the right one, but it also prefers a limb no view shows (a stance leg learnt into the
+#: background) moved onto voxels; the fit cost leaves such a limb where the pose puts it.
+REACQUIRE_SCORE_MARGIN = 0.05
+
+
+class RecoveryMixin:
+    """The recovery's methods of :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its state: see there)."""
+
+    def _search_lost_arms(self, obs: VoxelObservation, res: FrameResult) -> tuple[FrameResult, list[torch.Tensor]]:
+        """``lost_hand_frames``: an accepted frame's result, or the frame tracked again with a lost arm at rest
+        where that fits better (see :class:`TrackerConfig`), and the DOF indices of each arm so found. Counts each
+        hand's de-activated frames since it went off or was last searched for."""
+        n = self.config.lost_hand_frames
+        found_arms: list[torch.Tensor] = []
+        if n <= 0:
+            return res, found_arms
+        sub = self.subject
+        again = None  # the frame tracked once more as it is: once for both arms, until a search is kept
+        for i, side in enumerate(("l", "r")):
+            k = sub.blobs.names.index(f"{side}_hand")
+            self.hands_off[i] = 0 if bool(res.blobs.active[k]) else self.hands_off[i] + 1
+            if self.hands_off[i] < n:
+                continue
+            self.hands_off[i] = 0  # the next search n frames on: a hand no view shows costs 2 passes per n frames
+            hanging = res.angles.clone()
+            hanging[sub.arm_dofs[i]] = sub.arm_rest[i]
+            # both from this frame's solution, one more pass each: a second pass alone lowers the cost (the rest of
+            # the body fits again), so the search is measured against the frame tracked again as it is
+            if again is None:
+                again = self._track_again(obs, res.angles)
+            trial = self._track_again(obs, sub.skeleton.clamp(hanging[None])[0])
+            cost, trial_cost = self._fit_cost(again), self._fit_cost(trial)
+            found = trial_cost < cost and not self._diverging(trial)
+            log.debug("the %s hand off for %d frames: the arm searched from hanging fits at %.1f mm against %.1f: %s",
+                      side, n, 1e3 * trial_cost, 1e3 * cost, "kept" if found else "refused")
+            if found:
+                res, again = trial, None
+                found_arms.append(sub.arm_dofs[i])
+        return res, found_arms
+
+    def _track_again(self, obs: VoxelObservation, angles: torch.Tensor) -> FrameResult:
+        """The frame tracked once more from ``angles``, without velocity; the tracker's pose is left as it was."""
+        kept = self.angles, self.previous
+        self.angles = self.previous = angles
+        try:
+            return self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        finally:
+            self.angles, self.previous = kept
+
+    def _searched(self, obs: VoxelObservation) -> FrameResult | None:
+        """The subject's body searched for in ``obs`` from any pose (:mod:`torchtrack.tracking.search`, its size
+        fixed), the best hypothesis finished by EM/IK; None where it lies out of the observed volume."""
+        from torchtrack.tracking.search import SearchConfig, search_pose
+
+        gen = torch.Generator(device=obs.points.device).manual_seed(self.config.search_seed)
+        found = search_pose(obs, self.subject.skeleton, self.subject.blobs, SearchConfig(
+            scale_range=(1.0, 1.0), real_poses=self.config.start_real_poses,
+            prior_exclude=self.config.start_prior_exclude), gen, n=1)
+        if float(found.outside[0]) > START_MAX_OUTSIDE:
+            return None
+        self.angles = self.previous = found.angles[0].to(obs.points.dtype)
+        res = None
+        for _ in range(max(2, self.config.init_passes // 2)):
+            res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            self.angles = self.previous = res.angles
+        return res
+
+    def _reacquire(self, obs: VoxelObservation) -> FrameResult:
+        """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings) and, at once
+        and then every REACQUIRE_SEARCH_EVERY lost frames, from any pose by the start's search. Of the fits that
+        do not diverge, those within REACQUIRE_SCORE_MARGIN of the best two-way score (EM/IK's residual alone
+        cannot tell a body turned a quarter or half round from the right one) compete by the fit cost; the winner
+        races its twin turned round as a start does (``start_race_s``). The colour model goes: the fits go without
+        it and the re-acquired frame learns it afresh."""
+        from torchtrack.tracking.search import score_states
+
+        pts, w = obs.points, obs.weights
+        c = (w[:, None] * pts).sum(0) / w.sum()
+        skel = self.subject.skeleton
+        base = self.angles.clone()
+        self.colour = None  # learnt before the loss (elsewhere in the room, or from frames losing the body)
+        ix, iy, irz = (skel.dof_names.index(n) for n in ("root_tx", "root_ty", "root_rz"))
+        starts = base.repeat(4, 1)
+        starts[:, ix], starts[:, iy] = c[0], c[1]
+        starts[:, irz] = base[irz] + torch.tensor([0.0, 0.5, 1.0, -0.5], dtype=base.dtype, device=base.device) * math.pi
+        fits = self._fit_many(obs, starts, max(2, self.config.init_passes // 2), math.radians(45))
+        if (self.lost - self.config.lost_frames) % REACQUIRE_SEARCH_EVERY == 0:
+            found = self._searched(obs)
+            if found is not None:
+                fits.append(found)
+        held = [r for r in fits if not self._diverging(r)]
+        if not held:  # keep searching from the last good pose on the next frame
+            self.angles = self.previous = base
+            self.lost += 1
+            return replace(min(fits, key=self._fit_cost), valid=False, reinitialised=True)
+        score = score_states(obs, skel, self.subject.blobs, torch.stack([r.angles for r in held]))[0]
+        log.debug("re-acquisition: %d of %d fits hold, scores %s; fit costs %s mm", len(held), len(fits),
+                  " ".join(f"{float(x):.3f}" for x in score), " ".join(f"{1e3 * self._fit_cost(r):.1f}" for r in held))
+        close = [r for r, x in zip(held, score.tolist()) if x >= float(score.max()) - REACQUIRE_SCORE_MARGIN]
+        best = min(close, key=self._fit_cost)
+        self.angles = self.previous = best.angles
+        self.lost = 0
+        self.hands_off = [0, 0]
+        if self.feet_seen is not None and best.feet is not None:  # a held foot the new pose left is let go
+            far = (best.feet[0] - self.feet_seen).norm(dim=-1) > REACQUIRED_FOOT_M
+            self.feet_still = self.feet_still & ~far
+        best = self._learn_colour(obs)
+        if (self.config.start == "search" and self.config.start_race_s > 0 and self._race is None
+                and not self._twin):
+            self._start_race(obs, best)
+        return best
