@@ -264,7 +264,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, Hips
 
     def _results(self, st: Stepped) -> list[FrameResult]:
         """The step's batch as one :class:`FrameResult` per row (one wait for the host)."""
-        residual, explained = st.residual_m.tolist(), st.explained.tolist()
+        residual, explained = torch.stack([st.residual_m.double(), st.explained.double()]).tolist()  # exact
         blobs = [Blobs(*v) for v in zip(*(getattr(st.blobs, f.name).unbind(0) for f in dataclasses.fields(Blobs)))]
         return [FrameResult(st.angles[h], st.output_points[h], st.confidence[h], True, residual[h], explained[h],
                             False, blobs[h], st.bone_frames[h], (st.feet[h], st.feet_observed[h]))
