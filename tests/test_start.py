@@ -271,3 +271,26 @@ def test_starfish_heading_the_toes_point_along_wins_a_near_tie(skel, monkeypatch
     assert check.toe_ahead_m == pytest.approx(0.01, abs=3e-3)
     assert [c for _, c in check.headings[:2]] == pytest.approx([0.02, 0.02 - flip_better_mm * 1e-3])
     assert math.cos(check.headings[0][0]) > 0.99 and math.cos(check.headings[1][0]) < -0.99  # toes', flip
+
+
+def test_a_start_too_tall_is_rescaled_until_the_fitted_pose_spans_the_voxels(skel):
+    """A standing subject 1.66 m tall, started as a 1.80 m body at the true pose (the root's height scaled with
+    it): the size check rescales the body until the fitted pose spans the voxels' height, which lands it within
+    3 cm of the truth (ground truth: the subject's own height; without the check it stays at 1.80)."""
+    names = list(skel.dof_names)
+    subj = skel.scaled_to_height(1.66)
+    truth = subj.rest_angles()
+    truth[names.index("l_shoulder_abd")] = truth[names.index("r_shoulder_abd")] = 0.4  # arms off the trunk
+    truth[names.index("root_tz")] -= float(subj.forward(truth[None]).output_points[0, :, 2].min())  # on the floor
+    obs = _observation(subj, BlobModel.from_config(subj), truth)
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    start = truth.clone()
+    start[names.index("root_tz")] *= 1.80 / 1.66
+    tracker.initialize_from_pose(start.float(), 1.80)
+    res = tracker._track(obs, learn_colour=False, max_rot=math.radians(45))
+    tracker.angles = tracker.previous = res.angles
+    sole, top = obs.height_span()
+    assert tracker._span(res.angles) > (top - sole) + 0.02  # too tall: the fitted pose overshoots the voxels
+    res = tracker._fit_size_to_span(obs, res)
+    assert abs(tracker.height_m - 1.66) < 0.03, tracker.height_m
+    assert abs(tracker._span(res.angles) - (top - sole)) < 0.02

@@ -19,6 +19,7 @@ from torchtrack.checks import InputError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.bone_fit import BONE_FIT_VOXEL_M, FIT_ROUNDS
+from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.race import START_RACE_MARGIN
 from torchtrack.tracking.step import FrameResult
 
@@ -56,6 +57,14 @@ STARFISH_HAND_SHARE = 0.02
 #: subject stands still, painted out with the room around them). The synthetic starts stay well under it and the
 #: Pose2Sim demo's first frame on the filled background well over it (docs/results.md, "Tracker settings").
 STARFISH_MAX_VOLUME_RATIO = 3.0
+#: The start's size is a guess of the pose it assumes (the voxels' height over the starfish's top-to-standing ratio
+#: of the template's style, or the search's scale of its prior pose); the fitted pose measures it: the body is
+#: rescaled, at most this many rounds each followed by EM/IK passes, until the fitted pose spans the voxels' height
+#: (lowest sole to highest point) within SPAN_TOLERANCE. A starfish of another style or a search's pose crouched
+#: into a fat few-camera hull otherwise starts the body several cm too tall, its feet under the floor
+#: (docs/results.md, "Robustness", the 4-camera rows).
+SPAN_ROUNDS = 3
+SPAN_TOLERANCE = 0.005
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
                 "starfish start (tracker start: starfish), in the starfish pose. Or give an initial pose with "
@@ -317,6 +326,35 @@ class StartMixin:
         angle = sum(math.atan2(r, d) for r, d in zip(reach, drop)) / 2
         return min(max(angle, 0.0), math.pi)
 
+    def _span(self, angles: torch.Tensor) -> float:
+        """The body's height span at ``angles (D,)``: its highest output point (head top, hand tips) over its lowest
+        sole or point (m)."""
+        sub = self.subject
+        fk = sub.skeleton.forward(angles[None])
+        points = fk.output_points[0]
+        low = torch.minimum(sole_heights(fk.joints[0, sub.feet], sub.ankle_height).min(), points[:, 2].min())
+        return float(points[:, 2].max() - low)
+
+    def _fit_size_to_span(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
+        """The body rescaled until the fitted pose spans the voxels' height (``SPAN_ROUNDS``), the root's height
+        above the soles scaled with it, each round finished by EM/IK passes."""
+        sole, top = obs.height_span()
+        iz = self.subject.skeleton.dof_names.index("root_tz")
+        for _ in range(SPAN_ROUNDS):
+            s = (top - sole) / self._span(res.angles)
+            if not math.isfinite(s) or abs(s - 1.0) < SPAN_TOLERANCE:
+                break
+            log.debug("start: the fitted pose spans %.3f m, the voxels %.3f m: the body rescaled by %.3f",
+                      (top - sole) / s, top - sole, s)
+            angles = res.angles.clone()
+            angles[iz] = sole + (angles[iz] - sole) * s
+            self._setup(self.height_m * s, angles.device)
+            self.angles = self.previous = angles
+            for _ in range(max(2, self.config.init_passes // 3)):
+                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = res.angles
+        return res
+
     def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
                       tried: tuple) -> FrameResult:
         """From a start's fit: the bone fit, the checks (the starfish's raised arms only for its start), the
@@ -326,6 +364,7 @@ class StartMixin:
         for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):
             res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
             self.angles = self.previous = res.angles
+        res = self._fit_size_to_span(obs, res)
         # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
         # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
         # undone and ends the fit (a guard against feedback between the fit and the pose, which let the hull's
