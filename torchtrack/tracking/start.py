@@ -65,6 +65,9 @@ STARFISH_MAX_VOLUME_RATIO = 3.0
 #: (docs/results.md, "Robustness", the 4-camera rows).
 SPAN_ROUNDS = 3
 SPAN_TOLERANCE = 0.005
+#: ... and within this fraction of the guess (the blob-scale fit's bound, below): the pose's guess is off by a few
+#: per cent, more is a frame the fit does not explain (phantom volume, a second body), which the checks refuse.
+SPAN_MAX_CHANGE = 0.1
 #: What every refusal of the automatic initialisation tells the user to do.
 START_ADVICE = ("The tracker starts at the first frame that shows one whole person in the capture volume; with the "
                 "starfish start (tracker start: starfish), in the starfish pose. Or give an initial pose with "
@@ -340,12 +343,19 @@ class StartMixin:
         above the soles scaled with it, each round finished by EM/IK passes."""
         sole, top = obs.height_span()
         iz = self.subject.skeleton.dof_names.index("root_tz")
+        guess = self.height_m
         for _ in range(SPAN_ROUNDS):
             s = (top - sole) / self._span(res.angles)
-            if not math.isfinite(s) or abs(s - 1.0) < SPAN_TOLERANCE:
+            if not math.isfinite(s):
+                break
+            # a correction of the pose's guess, not a new guess: within SPAN_MAX_CHANGE of it (a phantom's voxels
+            # must not grow the body without bound)
+            lo, hi = (1 - SPAN_MAX_CHANGE) * guess, (1 + SPAN_MAX_CHANGE) * guess
+            s = min(max(s * self.height_m, lo), hi) / self.height_m
+            if abs(s - 1.0) < SPAN_TOLERANCE:
                 break
             log.debug("start: the fitted pose spans %.3f m, the voxels %.3f m: the body rescaled by %.3f",
-                      (top - sole) / s, top - sole, s)
+                      self._span(res.angles), top - sole, s)
             angles = res.angles.clone()
             angles[iz] = sole + (angles[iz] - sole) * s
             self._setup(self.height_m * s, angles.device)
