@@ -34,6 +34,8 @@ def test_body_masks_match_a_plain_loop_over_pixels_and_ellipsoids(skel, W, H):
     assert got.shape == (3, 2, H, W) and got.dtype == torch.bool
     assert got[2].all()  # an untracked frame: the body may be anywhere
     assert torch.equal(body_masks(rig, skel, angles, 1.2, tiles=PixelTiles(rig)), got)  # rays made once, reused
+    with pytest.raises(InputError, match="pixel tiles"):  # another rig's rays are refused, not misread
+        body_masks(rig, skel, angles, 1.2, tiles=PixelTiles(_rig(k1=-0.6, W=W + 8, H=H)))
     blobs = BlobModel.from_config(skel)
     centres, R = blobs.ellipsoids(skel.forward(angles[:2]).bone_frames)
     axes = (blobs.semi_axes * 1.2).double().numpy()

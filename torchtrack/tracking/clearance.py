@@ -66,6 +66,10 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     """
     check_shape(angles, ("T", skeleton.num_dofs), "angles")
     tiles = PixelTiles(rig) if tiles is None else tiles  # rays_meet_ellipsoids' bundles of 64 rays are its tiles
+    W0, H0 = (int(v) for v in rig.image_size_wh[0].tolist())
+    if tiles.size != (H0, W0) or tiles.dirs.shape[0] != len(rig):
+        raise InputError(f"body_masks: the pixel tiles are of {tiles.dirs.shape[0]} cameras at {tiles.size[1]}x"
+                         f"{tiles.size[0]}, the rig has {len(rig)} at {W0}x{H0}")
     origins, dirs, (H, W), (th, tw) = tiles.origins, tiles.dirs, tiles.size, tiles.tiles
     device = rig.K.device
     skeleton = skeleton.to(device)

@@ -345,7 +345,8 @@ class StartMixin:
         iz = self.subject.skeleton.dof_names.index("root_tz")
         guess = self.height_m
         for _ in range(SPAN_ROUNDS):
-            s = (top - sole) / self._span(res.angles)
+            span = self._span(res.angles)
+            s = (top - sole) / span
             if not math.isfinite(s):
                 break
             # a correction of the pose's guess, not a new guess: within SPAN_MAX_CHANGE of it (a phantom's voxels
@@ -355,7 +356,7 @@ class StartMixin:
             if abs(s - 1.0) < SPAN_TOLERANCE:
                 break
             log.debug("start: the fitted pose spans %.3f m, the voxels %.3f m: the body rescaled by %.3f",
-                      self._span(res.angles), top - sole, s)
+                      span, top - sole, s)
             angles = res.angles.clone()
             angles[iz] = sole + (angles[iz] - sole) * s
             self._setup(self.height_m * s, angles.device)
