@@ -64,6 +64,11 @@ class TrackerConfig:
             kept, its frames replacing the other's
             (:meth:`MarkerlessTracker.take_revised`): a body's motion shows which way it faces, as knees and elbows
             bend one way only (0: off).
+        settle_back_s: after a start or a re-acquisition, once the track has held this long (and any start race is
+            decided), the frames since are tracked again backwards from there and take that track where it fits
+            them better on average (:mod:`~torchtrack.tracking.settle`; 0: off): the first frames after a
+            re-acquisition at the volume's edge, tracked from a guess, are the track's worst
+            (docs/results.md, "Robustness", the subject who leaves).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -154,6 +159,7 @@ class TrackerConfig:
     start_real_poses: bool = False
     start_prior_exclude: tuple[str, ...] = ()
     start_race_s: float = 0.5
+    settle_back_s: float = 1.0
     fit_bone_lengths: bool = True
     bone_fit: str = "blobs"
     em_cell_m: float = 0.0
@@ -183,6 +189,9 @@ class TrackerConfig:
             raise InputError(f"TrackerConfig.start must be one of {', '.join(STARTS)}, got {self.start!r}")
         if not self.start_race_s >= 0:
             raise InputError(f"TrackerConfig.start_race_s must be >= 0 s, got {self.start_race_s}")
+        if not 0 <= self.settle_back_s < math.inf:
+            raise InputError(f"TrackerConfig.settle_back_s must be a number of seconds >= 0, got "
+                             f"{self.settle_back_s}")
         if self.start_hypotheses < 1:
             raise InputError(f"TrackerConfig.start_hypotheses must be >= 1, got {self.start_hypotheses}")
         if self.bone_fit not in BONE_FITS:

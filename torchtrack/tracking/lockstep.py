@@ -79,6 +79,7 @@ class Lockstep:
             for (i, obs), tracker, res in zip(plain, trackers, first._results(stepped)):
                 try:
                     out[i] = tracker.accept(obs, res)
+                    tracker._settle_step(obs, out[i])  # as step() does
                 except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
                     errors[i] = exc
         return dict(sorted(out.items())), errors

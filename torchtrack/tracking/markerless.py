@@ -61,6 +61,7 @@ from torchtrack.tracking.hips import HipsMixin, with_hips_raised
 from torchtrack.tracking.recovery import RecoveryMixin
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.race import RaceMixin, _Race
+from torchtrack.tracking.settle import SettleMixin
 from torchtrack.tracking.start import (HEADING_MARGIN_M, STARFISH_MAX_VOLUME_RATIO, STARFISH_MIN_ARM_RAISE_DEG,
                                        StartCheck, StartMixin)
 from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, VoxelBatch,
@@ -76,7 +77,7 @@ log = logging.getLogger(__name__)
 MIN_FRAME_RATE, MAX_FRAME_RATE = 0.1, 10000.0
 
 
-class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, HipsMixin):
+class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneFitMixin, HipsMixin):
     """Tracks one subject through a sequence of voxel observations (see the module docstring).
 
     Args:
@@ -113,6 +114,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, Hips
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
         self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
         self._twin = False  # this tracker races another's start (it starts no race of its own)
+        # settle_back_s: the frames since the last start or re-acquisition, each (observation, result, body version)
+        self._settle: list[tuple[VoxelObservation, FrameResult, int]] | None = None
 
     @property
     def _step_config(self) -> StepConfig:
@@ -184,7 +187,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, Hips
         self.start_refusals = []
 
     def _clear(self) -> None:
-        self._race, self._revised = None, []
+        self._race, self._revised, self._settle = None, [], None
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None
@@ -316,6 +319,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, Hips
         """A frame that cannot be observed (an unreadable camera frame): not tracked, ``valid = False``; the
         next frame predicts from the last good pose without velocity."""
         self.previous = self.angles
+        self._settle = None  # the frames to track back end at a gap
         res = self._invalid()
         if self._race is not None:
             twin = self._race.twin
@@ -324,14 +328,15 @@ class MarkerlessTracker(StartMixin, RaceMixin, RecoveryMixin, BoneFitMixin, Hips
         return res
 
     def step(self, obs: VoxelObservation) -> FrameResult:
-        """Track one frame (initialising on the first frame with a person in it). A start race's end may revise
-        the frames before (:meth:`take_revised`)."""
+        """Track one frame (initialising on the first frame with a person in it). A start race's end, or the
+        track back from a settled track (``settle_back_s``), may revise the frames before (:meth:`take_revised`)."""
         racing = self._race is not None  # a race started by this frame's initialisation has scored it already
         res = self._step(obs)
         if racing:  # the twin races without a race of its own: its frame is its _step
             twin = self._race.twin
             version = twin.body_version
             self._race_step(obs, res, twin._step(obs), version)
+        self._settle_step(obs, res)
         return res
 
     def _step(self, obs: VoxelObservation) -> FrameResult:

@@ -69,7 +69,7 @@ class RaceMixin:
         from torchtrack.tracking.poses import turned_round
 
         twin = self._fork()
-        twin._twin = True
+        twin._twin, twin._settle = True, None
         twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
         twin.colour = None
         for _ in range(self.config.init_passes):
@@ -112,9 +112,9 @@ class RaceMixin:
                   race.moved_at, own, other, 1e3 * own_cost, 1e3 * other_cost)
         if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
                 other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
-            revised = race.results
+            revised, settle = race.results, self._settle
             self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
-            self._race, self._revised, self._twin = None, revised, False
+            self._race, self._revised, self._twin, self._settle = None, revised, False, settle
 
     def take_revised(self) -> list[tuple[FrameResult, int]]:
         """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
