@@ -63,6 +63,10 @@ START_MM = 50.0
 START_S = 1.0
 #: A frame is "in view" when every landmark projects inside at least this many images.
 IN_VIEW = 3
+#: The mean pace (m/s) at which the "cross" and "leave" paths carry the subject: a walker's (the smoothstep between
+#: waypoints peaks at 1.5 times it). The paths add to the motion's own gait, so a faster carry slides the feet of a
+#: walk: a path timed in fixed seconds carried the leave row's walker at up to 6.1 m/s.
+PATH_PACE_M_S = 1.2
 #: The issue's targets: MPJPE (mm) with 8 cameras and more, and with fewer; no invalid frame while in view.
 TARGET_MANY_MM, TARGET_FEW_MM = 40.0, 60.0
 
@@ -148,14 +152,13 @@ def synth_config(case: Case, duration: float, fps: float, background_frames: int
     starfish_s = 0.0 if start is None else 1.0
     t0 = starfish_s + 0.3
     heading = float(rng.uniform(0, 2 * math.pi))
-    if case.path == "cross":  # to 0.7 of the ring's radius, where only some cameras see the subject, and back
-        far = 0.7 * radius
-        path = ((t0, 0.0, 0.0), (t0 + 1.2, far * math.cos(heading), far * math.sin(heading)),
-                (t0 + 2.0, far * math.cos(heading), far * math.sin(heading)), (t0 + 3.2, 0.0, 0.0))
-    elif case.path == "leave":  # behind the cameras, out of the capture area, and back
-        far = radius + 1.2
-        path = ((t0, 0.0, 0.0), (t0 + 1.5, far * math.cos(heading), far * math.sin(heading)),
-                (t0 + 2.2, far * math.cos(heading), far * math.sin(heading)), (t0 + 3.7, 0.0, 0.0))
+    if case.path in ("cross", "leave"):
+        # cross: to 0.7 of the ring's radius, where only some cameras see the subject, a pause, and back; leave:
+        # behind the cameras, out of the capture area, and back; each way at PATH_PACE_M_S
+        far, pause = (0.7 * radius, 0.8) if case.path == "cross" else (radius + 1.2, 0.7)
+        way = far / PATH_PACE_M_S
+        x, y = far * math.cos(heading), far * math.sin(heading)
+        path = ((t0, 0.0, 0.0), (t0 + way, x, y), (t0 + way + pause, x, y), (t0 + 2 * way + pause, 0.0, 0.0))
     if path:
         duration = max(duration, path[-1][0] - starfish_s + 0.7)
     if case.motion.startswith("cmu:"):
