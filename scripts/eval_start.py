@@ -227,11 +227,13 @@ def main() -> None:
                 before.append(landmark_error_mm(first, truth.joints3d[t, idx]) <= WITHIN_MM)
                 if first.valid and (tracker.racing or tracker.settling):  # on until the race is decided and the
                     # frames since the start tracked back (or the sequence ends)
+                    since = 0
                     for fb in folder.iter_batches(1, t + 1, truth.num_frames, size_wh=(W, H)):
                         tracker.step(observer(fb.images, fb.valid)[0])
+                        since += 1
                         revised = tracker.take_revised()
-                        if revised:  # the frames since the start, the start frame first
-                            first = revised[0][0]
+                        if len(revised) > since:  # the revision reaches back to the start frame
+                            first = revised[-1 - since][0]
                         if not (tracker.racing or tracker.settling):
                             break
                 seconds.append(time.perf_counter() - t0)

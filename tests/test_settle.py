@@ -87,3 +87,37 @@ def test_a_wrong_reacquisition_is_mended_by_the_track_back(skel, monkeypatch):
     assert lengths == [30], lengths
     assert (settled[:2] < 0.015).all() and settled.max() < 0.04, settled
     np.testing.assert_allclose(settled[30:], plain[30:], atol=2e-3)
+
+
+def test_a_race_decided_on_the_frame_of_the_track_back_keeps_its_revision(skel, monkeypatch):
+    """The search's answer forced to face backwards on a walker who stands still for 1 s first: the start race waits
+    for the body to move, so it is decided on the frame where the start's frames are also tracked back
+    (settle_back_s 1 s < the race). The race's revision (the right way round) and the splice both reach the caller:
+    every frame within 50 mm of the truth (the walk's forward kinematics), none left turned round."""
+    import dataclasses
+
+    import torchtrack.tracking.search as search
+    from torchtrack.tracking.poses import turned_round
+
+    found = search.search_pose
+    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
+        r := found(obs, sk, *a, **k), angles=turned_round(sk, r.angles)))
+    subj = skel.scaled_to_height(1.8)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 1.5, 30, starfish_s=0.0)
+    walk = torch.cat([walk[:1].repeat(30, 1), walk])  # standing still for 1 s, then walking
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.5, settle_back_s=1.0))
+    tracker.set_frame_rate(30.0)
+    out, lengths = [], []
+    for t in range(walk.shape[0]):
+        out.append(tracker.step(_observation(subj, blobs, walk[t])))
+        late = tracker.take_revised()
+        for j, (res, _version) in enumerate(late):
+            out[t - len(late) + 1 + j] = res
+        if late:
+            lengths.append((t, len(late)))
+    assert len(lengths) == 1 and lengths[0][1] == lengths[0][0] + 1, lengths  # one revision, from the first frame
+    assert not tracker.racing and not tracker.settling
+    err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[t]).double()).norm(dim=-1).mean())
+                    for t, r in enumerate(out)])
+    assert err.max() < 0.05, err

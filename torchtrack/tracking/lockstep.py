@@ -78,8 +78,9 @@ class Lockstep:
                                  math.radians(first.config.max_root_rotation_deg))
             for (i, obs), tracker, res in zip(plain, trackers, first._results(stepped)):
                 try:
+                    version = tracker.body_version
                     out[i] = tracker.accept(obs, res)
-                    tracker._settle_step(obs, out[i])  # as step() does
+                    tracker._settle_step(obs, out[i], version)  # as step() does
                 except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
                     errors[i] = exc
         return dict(sorted(out.items())), errors

@@ -112,7 +112,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.hip_estimate: tuple[torch.Tensor, torch.Tensor] | None = None
         self.frame_rate: float | None = None  # the sequence's (set_frame_rate); None: velocity as configured
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
-        self._revised: list[tuple[FrameResult, int]] = []  # a won race's frames, for take_revised
+        self._revised: list[tuple[FrameResult, int]] = []  # a won race's or the track back's frames (take_revised)
         self._twin = False  # this tracker races another's start (it starts no race of its own)
         # settle_back_s: the frames since the last start or re-acquisition, each (observation, result, body version)
         self._settle: list[tuple[VoxelObservation, FrameResult, int]] | None = None
@@ -331,12 +331,13 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         """Track one frame (initialising on the first frame with a person in it). A start race's end, or the
         track back from a settled track (``settle_back_s``), may revise the frames before (:meth:`take_revised`)."""
         racing = self._race is not None  # a race started by this frame's initialisation has scored it already
+        version = self.body_version
         res = self._step(obs)
         if racing:  # the twin races without a race of its own: its frame is its _step
             twin = self._race.twin
             version = twin.body_version
             self._race_step(obs, res, twin._step(obs), version)
-        self._settle_step(obs, res)
+        self._settle_step(obs, res, version)
         return res
 
     def _step(self, obs: VoxelObservation) -> FrameResult:

@@ -69,7 +69,7 @@ class RaceMixin:
         from torchtrack.tracking.poses import turned_round
 
         twin = self._fork()
-        twin._twin, twin._settle = True, None
+        twin._twin = True
         twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
         twin.colour = None
         for _ in range(self.config.init_passes):
@@ -119,6 +119,7 @@ class RaceMixin:
     def take_revised(self) -> list[tuple[FrameResult, int]]:
         """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version
         it was tracked in (:attr:`body_version`), and forgets them: a start race the start turned round won
-        (``TrackerConfig.start_race_s``). Empty otherwise."""
+        (``TrackerConfig.start_race_s``), or the frames since a start tracked back from a settled track
+        (``settle_back_s``, :mod:`~torchtrack.tracking.settle`). Empty otherwise."""
         out, self._revised = self._revised, []
         return out

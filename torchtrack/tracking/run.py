@@ -174,7 +174,7 @@ class _Pass:
         """Store ``frame``'s result (and the frames a start race revised); log it."""
         k = frame.k
         self._put(k, res)
-        revised = self.tracker.take_revised()  # a start race won by the start turned round: its frames
+        revised = self.tracker.take_revised()  # a won start race's frames, or the frames tracked back
         for j, (r, v) in enumerate(revised):
             self._put(k - len(revised) + 1 + j, r)
             self.version[k - len(revised) + 1 + j] = v

@@ -34,29 +34,28 @@ class SettleMixin:
         (``TrackerConfig.settle_back_s``): :meth:`take_revised` may yet revise them."""
         return self._settle is not None
 
-    def _settle_step(self, obs: VoxelObservation, res: FrameResult) -> None:
+    def _settle_step(self, obs: VoxelObservation, res: FrameResult, version: int) -> None:
         """Called with each frame's result as the tracker returns it (:meth:`step`, or a lockstep driver after
-        :meth:`accept`): a start or re-acquisition opens the frames to track back, an invalid frame drops them (the
-        track did not hold), and once ``settle_back_s`` of them held and no start race is on, they are tracked back
-        (:meth:`_settle_back`). A start race's revision (:attr:`_revised`, the twin's frames up to this one) takes the
-        place of the frames it revises."""
+        :meth:`accept`) and the body version it was tracked in: a start or re-acquisition opens the frames to track
+        back, an invalid frame drops them (the track did not hold), and once ``settle_back_s`` of them held and no
+        start race is on, they are tracked back (:meth:`_settle_back`). A start race's revision (:attr:`_revised`,
+        the twin's frames up to this one) takes the place of the frames it revises."""
         if self._twin or self.config.settle_back_s <= 0:
             return
         if res.valid and res.reinitialised:
             self._settle = []
         if self._settle is None:
             return
-        if not res.valid:
+        entry = [(obs, res, version)]
+        if self._revised:  # the race's twin won: its results for the race's last frames, this one the last
+            m = min(len(self._revised), len(self._settle) + 1)  # the kept frames it revises, this one included
+            seen = [o for o, _, _ in self._settle[len(self._settle) - (m - 1):]] + [obs]
+            del self._settle[len(self._settle) - (m - 1):]
+            entry = [(o, r, v) for o, (r, v) in zip(seen, self._revised[-m:])]
+        if not all(r.valid for _, r, _ in entry):
             self._settle = None
             return
-        revised = self._revised
-        if revised:  # the race's twin won: its results for the race's frames, this one the last
-            n = len(revised) - 1
-            kept = self._settle[:len(self._settle) - n]
-            seen = [o for o, _, _ in self._settle[len(kept):]] + [obs]
-            self._settle = kept + [(o, r, v) for o, (r, v) in zip(seen, revised)]
-        else:
-            self._settle.append((obs, res, self.body_version))
+        self._settle += entry
         if self._race is None and len(self._settle) >= self._race_frames(self.config.settle_back_s):
             self._settle_back()
 
@@ -67,7 +66,7 @@ class SettleMixin:
         if len(frames) < 2:
             return
         fork: MarkerlessTracker = self._fork()
-        fork._twin, fork._race, fork._settle = True, None, None
+        fork._twin, fork._race, fork.hips = True, None, None  # the hips learn from the forward frames only
         fork.previous = fork.angles  # no velocity at the turn
         back = []
         for obs, _, _ in reversed(frames[:-1]):
@@ -92,5 +91,6 @@ class SettleMixin:
         k = n - int(total.flip(0).argmin())  # the latest k of the least total: no revision where it ties
         log.debug("settle-back over %d frames: mean fit cost forward %.1f mm, backward %.1f mm; the backward track "
                   "kept from frame %d of them", n, 1e3 * float(forward.mean()), 1e3 * float(backward.mean()), k)
-        if k < n:
-            self._revised = back[k:] + [(frames[-1][1], frames[-1][2])]
+        if k < n:  # on the frame a start race was decided, its revision stands before the splice
+            new = back[k:] + [(frames[-1][1], frames[-1][2])]
+            self._revised = self._revised[:max(0, len(self._revised) - len(new))] + new

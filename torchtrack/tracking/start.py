@@ -132,7 +132,11 @@ class StartMixin:
     def _fork(self) -> MarkerlessTracker:
         """A copy of this tracker's state that tracks on its own (the models and settings shared, read-only)."""
         shared = (self.generic, self.config, self.blob_specs, self.subject)
-        return copy.deepcopy(self, memo={id(x): x for x in shared})
+        settle, self._settle = self._settle, None  # the frames kept to track back stay with this tracker
+        try:
+            return copy.deepcopy(self, memo={id(x): x for x in shared})
+        finally:
+            self._settle = settle
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
