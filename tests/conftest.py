@@ -135,6 +135,24 @@ def track_voxelised(skel, motion, frames, tracker=None, edit=None):
     return tracker, np.array(errs), results
 
 
+def search_turned_round(monkeypatch) -> None:
+    """Force the start search's answers to face backwards (their states turned round), for the start race's tests."""
+    import dataclasses
+
+    import torchtrack.tracking.search as search
+    from torchtrack.tracking.poses import turned_round
+
+    found = search.search_pose
+    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
+        r := found(obs, sk, *a, **k), angles=turned_round(sk, r.angles)))
+
+
+def apply_revised(out: list, late: list) -> None:
+    """In place: a tracker's ``take_revised()`` results replace the last ``len(late)`` of the results ``out``."""
+    for j, (res, _version) in enumerate(late):
+        out[len(out) - len(late) + j] = res
+
+
 def facing_pair_rig(k1: float = 0.0, W: int = 64, H: int = 64):
     """Two cameras of W x H pixels 4 m from the origin, looking at it horizontally from +y and from -x; the second
     with radial distortion ``k1``."""

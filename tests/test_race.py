@@ -4,7 +4,6 @@ voxelised ground-truth bodies.
 
 from __future__ import annotations
 
-import dataclasses
 
 import numpy as np
 import pytest
@@ -17,7 +16,7 @@ from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 from torchtrack.tracking.poses import turned_round
 
-from conftest import landmarks_of as _landmarks, voxelised_observation as _observation
+from conftest import landmarks_of as _landmarks, search_turned_round, voxelised_observation as _observation
 
 torch.set_grad_enabled(False)
 
@@ -33,11 +32,7 @@ def test_a_start_turned_round_loses_the_start_race(skel, monkeypatch, race_s):
     start race tracks the right way round beside it and wins after start_race_s, its frames replacing the
     backwards ones (take_revised), landmarks within 50 mm of the truth from the first frame (ground truth: the
     walk's forward kinematics). With the race off the track stays backwards."""
-    import torchtrack.tracking.search as search
-
-    found = search.search_pose
-    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
-        r := found(obs, sk, *a, **k), angles=turned_round(sk, r.angles)))
+    search_turned_round(monkeypatch)
     subj = skel.scaled_to_height(1.8)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)

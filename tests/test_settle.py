@@ -15,7 +15,8 @@ from torchtrack.synth.motion import procedural_motion
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 
-from conftest import landmarks_of as _landmarks, voxelised_observation as _observation
+from conftest import apply_revised, landmarks_of as _landmarks, search_turned_round
+from conftest import voxelised_observation as _observation
 
 torch.set_grad_enabled(False)
 
@@ -94,14 +95,7 @@ def test_a_race_decided_on_the_frame_of_the_track_back_keeps_its_revision(skel, 
     for the body to move, so it is decided on the frame where the start's frames are also tracked back
     (settle_back_s 1 s < the race). The race's revision (the right way round) and the splice both reach the caller:
     every frame within 50 mm of the truth (the walk's forward kinematics), none left turned round."""
-    import dataclasses
-
-    import torchtrack.tracking.search as search
-    from torchtrack.tracking.poses import turned_round
-
-    found = search.search_pose
-    monkeypatch.setattr(search, "search_pose", lambda obs, sk, *a, **k: dataclasses.replace(
-        r := found(obs, sk, *a, **k), angles=turned_round(sk, r.angles)))
+    search_turned_round(monkeypatch)
     subj = skel.scaled_to_height(1.8)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 1.5, 30, starfish_s=0.0)
@@ -112,8 +106,7 @@ def test_a_race_decided_on_the_frame_of_the_track_back_keeps_its_revision(skel, 
     for t in range(walk.shape[0]):
         out.append(tracker.step(_observation(subj, blobs, walk[t])))
         late = tracker.take_revised()
-        for j, (res, _version) in enumerate(late):
-            out[t - len(late) + 1 + j] = res
+        apply_revised(out, late)
         if late:
             lengths.append((t, len(late)))
     assert len(lengths) == 1 and lengths[0][1] == lengths[0][0] + 1, lengths  # one revision, from the first frame
@@ -121,3 +114,17 @@ def test_a_race_decided_on_the_frame_of_the_track_back_keeps_its_revision(skel, 
     err = np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[t]).double()).norm(dim=-1).mean())
                     for t, r in enumerate(out)])
     assert err.max() < 0.05, err
+
+
+def test_the_splice_is_the_least_total_cost_against_a_plain_loop():
+    """splice_index against every k tried in a plain loop (the latest of equal totals), on random costs and ties."""
+    from torchtrack.tracking.settle import splice_index
+
+    gen = torch.Generator().manual_seed(3)
+    cases = [torch.rand(2, n, generator=gen, dtype=torch.float64) for n in (1, 2, 7, 30)]
+    cases.append(torch.tensor([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0]], dtype=torch.float64))  # ties: no revision
+    cases.append(torch.tensor([[5.0, 1.0], [2.0, 3.0]], dtype=torch.float64))
+    for f, b in cases:
+        totals = [float(f[:k].sum() + b[k:].sum()) for k in range(len(f) + 1)]
+        want = max(k for k, x in enumerate(totals) if x <= min(totals) + 1e-12)
+        assert splice_index(f, b) == want, (f, b, totals)

@@ -24,6 +24,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+def splice_index(forward: torch.Tensor, backward: torch.Tensor) -> int:
+    """The splice of two tracks' per-frame costs ``forward``, ``backward`` (n,): the k in 0..n of the least
+    ``sum(forward[:k]) + sum(backward[k:])``, the latest of equal ones (n: the forward track throughout)."""
+    # sum(forward[:k]) + sum(backward[k:]) = sum(backward) + sum((forward - backward)[:k])
+    total = torch.cat([forward.new_zeros(1), (forward - backward).cumsum(0)])
+    return len(forward) - int(total.flip(0).argmin())
+
+
 class SettleMixin:
     """The settle-back's methods of :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its state: the
     frames since the last start, ``_settle``)."""
@@ -85,10 +93,7 @@ class SettleMixin:
         # backward track may lose a limb near the volume's edge that the forward one had, and the other way round)
         forward = torch.tensor([self._fit_cost(r) for _, r, _ in ahead], dtype=torch.float64)
         backward = torch.tensor([self._fit_cost(r) for r, _ in back], dtype=torch.float64)
-        n = len(back)
-        total = torch.cat([forward.new_zeros(1), forward.cumsum(0)]) + torch.cat(
-            [backward.flip(0).cumsum(0).flip(0), backward.new_zeros(1)])  # (n + 1,): k = 0 .. n
-        k = n - int(total.flip(0).argmin())  # the latest k of the least total: no revision where it ties
+        n, k = len(back), splice_index(forward, backward)
         log.debug("settle-back over %d frames: mean fit cost forward %.1f mm, backward %.1f mm; the backward track "
                   "kept from frame %d of them", n, 1e3 * float(forward.mean()), 1e3 * float(backward.mean()), k)
         if k < n:  # on the frame a start race was decided, its revision stands before the splice
