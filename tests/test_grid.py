@@ -68,10 +68,10 @@ def test_points_in_messages_are_rounded():
     assert format_point((0.12345, -3.0, 10.0)) == "(0.123, -3, 10)"
 
 
-def test_capture_views_all_but_two_at_least_three_and_all_for_the_hull():
+def test_capture_views_half_at_least_three_and_all_for_the_hull():
     from torchtrack.occupancy import capture_views
 
-    assert [capture_views(c) for c in (1, 2, 3, 4, 5, 6, 8, 12)] == [1, 2, 3, 3, 3, 4, 6, 10]
+    assert [capture_views(c) for c in (1, 2, 3, 4, 5, 6, 7, 8, 12, 13)] == [1, 2, 3, 3, 3, 3, 4, 4, 6, 7]
     assert [capture_views(c, "hull") for c in (4, 8)] == [4, 8]
 
 

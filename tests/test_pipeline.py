@@ -121,7 +121,7 @@ def test_the_observation_section_sets_the_grid_sensor_model(seq):
     assert (given.grid.config.pd, given.grid.config.window, given.grid.config.min_views) == (0.9, 3, 4)
     default = observer_from_config(folder.rig, bg, {}, "bayes", 0.05)
     assert folder.rig.num_cameras == 4 and default.grid.config.pd == 0.99
-    assert default.grid.config.min_views == default.min_views == 3  # all but two, at least three
+    assert default.grid.config.min_views == default.min_views == 3  # half of them, at least three
     tracking = load_config("markerless.yaml")["observation"]
     assert tracking["bayes"]["pd"] is None  # the rig's: 0.99 for these 4 cameras (tests/test_bayes.py: 7 and more)
     assert observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).grid.config.pd == 0.99

@@ -35,7 +35,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         "(default: %(default)s)")
     p.add_argument("--min-views", type=int, default=None, metavar="N",
                    help="cameras that must see a voxel; the volume is the floor that many see, up to 2.1 m "
-                        "(default: Bayesian grid all but two, at least three; hull all)")
+                        "(default: Bayesian grid half of them, at least three; hull all)")
     p.add_argument("--start", type=int, default=0, metavar="FRAME",
                    help="first frame to process, a 0-based frame index (default: %(default)s)")
     p.add_argument("--stop", type=int, default=None, metavar="FRAME",

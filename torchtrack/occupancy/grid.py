@@ -78,16 +78,17 @@ def format_point(p: tuple[float, ...], digits: int = 3) -> str:
 def capture_views(num_cameras: int, model: str = "bayes") -> int:
     """How many cameras must see a point for it to be in the capture volume by default.
 
-    The Bayesian grid: all but two, at least three (all of a rig of three or fewer). All of them would shrink the
-    volume to what the narrowest views share, where a subject near the edge of the area (or a starfish's hand) is
-    lost; fewer than three leaves the two-view voxels, whose silhouette cones cross far from the body. The colour
+    The Bayesian grid: half of them, at least three (all of a rig of three or fewer). More would shrink the volume
+    to what the narrowest views share, where a subject who walks towards the edge of the area (or a starfish's hand)
+    is lost; fewer than three leaves the two-view voxels, whose silhouette cones cross far from the body, and on a
+    large ring three of eight views let the phantom volume of a few near-parallel cones pull the track. The colour
     hull and silhouette carving: all of them (fewer cost the hull much of its accuracy). docs/results.md, "The
     capture volume", has the figures for both."""
     if num_cameras < 1:
         raise InputError(f"capture_views: need at least one camera, got {num_cameras}")
     if model != "bayes":  # the hull and silhouette carving
         return num_cameras
-    return max(min(num_cameras, 3), num_cameras - 2)
+    return max(min(num_cameras, 3), -(-num_cameras // 2))
 
 
 def grid_from_rig(rig: nn.Module, voxel_size_m: float, floor_z_m: float = 0.0, top_z_m: float = 2.1,

@@ -45,7 +45,7 @@ class Observer(nn.Module):
             floor to 2.1 m).
         threshold: occupancy probability above which a Bayesian voxel is kept.
         min_views: a voxel counts where at least this many cameras see it (None:
-            :func:`~torchtrack.occupancy.capture_views`: for the grid all but two and at least three, for the hull
+            :func:`~torchtrack.occupancy.capture_views`: for the grid half of them and at least three, for the hull
             all).
 
         bayes, hull: optional model configs (their volume and voxel fields are overridden).
