@@ -216,3 +216,38 @@ def bg_frame(bg) -> torch.Tensor:
     yuv = bg.mean_yuv.numpy()
     rgb = np.einsum("ij,cjhw->cihw", np.linalg.inv(RGB2YUV), yuv)
     return torch.from_numpy(rgb)[None]
+
+
+@pytest.mark.parametrize("cfg, threshold", [(BayesConfig(pd=None), 0.5), (BayesConfig(), 0.5),
+                                            (BayesConfig(pd=0.8, pfa=0.2, prior=0.3, window=3), 0.3),
+                                            (BayesConfig(pd=0.95, shadow_layer_m=0.0), 0.7)])
+def test_occupied_voxels_equal_the_dense_grid(cfg, threshold):
+    """The grid's voxels above a threshold, found from the first views' evidence and a bound on the rest
+    (``occupied_voxels``), are those of the grid summed over every camera at every voxel (``from_log_likelihood``,
+    itself checked against Algorithm 1 above), with the same probabilities: an 8-camera ring with a box of random
+    colours in every view (its cones cross where the box's voxels are, and near-misses abound at ``pd`` 0.95,
+    where one view's background is outvoted), a floor shadow, and one camera's frame unreadable."""
+    g = torch.Generator().manual_seed(3)
+    rig = make_ring_rig(RigConfig(num_cameras=8, width=48, height=36, radius_m=3.0, k1=-0.05))
+    empty = 0.2 + 0.6 * torch.rand(1, 8, 3, 36, 48, generator=g, dtype=torch.float64)
+    empty = empty + 0.01 * torch.randn(6, 8, 3, 36, 48, generator=g, dtype=torch.float64)
+    bg = BackgroundModel.from_frames(empty.clamp(0, 1), BackgroundConfig(compensate_gain=False, shadow_min_gain=0.4,
+                                                                          shadow_min_ncc=0.0))
+    images = empty[:3].clone()
+    images[:, :, :, 12:26, 18:30] = torch.rand(3, 8, 3, 14, 12, generator=g, dtype=torch.float64)  # the "body"
+    images[:, :, :, 28:36, 10:30] *= 0.6  # a "shadow"
+    images[2, 5] = float("nan")  # an unreadable frame: no evidence from that camera
+    spec = GridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 1.8), 0.1)
+    grid = BayesianGrid(rig, spec, bg, cfg)
+    assert grid.first_flat.shape[0] == 3 and grid.observed_floor < grid.observed_index.numel() <= spec.num_voxels
+    assert (grid.observed_floor > 0) == (cfg.shadow_layer_m > 0)  # the floor layer's own bound is exercised
+    lit, shadowed, _ = bg.log_likelihood_and_yuv(images, shadows=cfg.shadow_layer_m > 0)
+    dense = grid.from_log_likelihood(lit, shadowed).probability()  # (B, V)
+    sparse = grid.occupied_voxels(lit, shadowed, threshold)
+    for b, (idx, p) in enumerate(sparse):
+        ref = (dense[b] > threshold).nonzero()[:, 0]
+        assert 0 < ref.numel() < spec.num_voxels // 4  # some voxels kept, most not
+        assert torch.equal(idx, ref)
+        np.testing.assert_allclose(p.numpy(), dense[b, ref].numpy(), rtol=0, atol=1e-12)
+    with pytest.raises(InputError, match="threshold"):
+        grid.occupied_voxels(lit, shadowed, 1.0)

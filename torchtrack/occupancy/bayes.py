@@ -11,8 +11,9 @@ and the posterior log-odds of voxel X sum, over cameras and over the k x k windo
 the per-pixel ratio log p(I|G=1) - log p(I|G=0) (Algorithm 1: the product of the window's pixel terms).
 Everything inside the sum depends on the pixel alone, so it is computed once per image, box-summed over the
 window, and gathered at each voxel's pixel through a lookup table fixed for the rig: one gather per voxel
-and camera. Voxels outside a camera's image get nothing from it; voxels that fewer than ``min_views``
-cameras see are reported unobserved.
+and camera (the tracker's :meth:`BayesianGrid.occupied_voxels` gathers three cameras first, and the rest only
+where those leave the voxel a chance). Voxels outside a camera's image get nothing from it; voxels that fewer
+than ``min_views`` cameras see are reported unobserved.
 """
 
 from __future__ import annotations
@@ -41,6 +42,15 @@ PD_MANY_CAMERAS = 0.95
 #: The fewest cameras for ``PD_MANY_CAMERAS``: at 0.95 a single miss is outvoted where six or more views see
 #: foreground, so a rig of seven is the first where a voxel seen by every camera can have one view miss it.
 MANY_CAMERAS = 7
+#: :meth:`BayesianGrid.occupied_voxels` sums each voxel's evidence over this many of the cameras that see it first
+#: (spread round the rig), and the rest only where those leave it a chance: at the default sensor models two views'
+#: strong background outweighs the foreground of up to ten others, so most of a wide volume is settled by three
+#: gathers instead of one per camera (scripts/bench_capture_volume.py; docs/results.md, "Speed").
+FIRST_VIEWS = 3
+#: :meth:`BayesianGrid.occupied_voxels` sums every camera where the first views' bound comes within this of the
+#: threshold's log-odds: far above the rounding of a float32 sum of a few terms, so that the rounding never drops a
+#: voxel that the full sum keeps.
+BOUND_MARGIN = 1e-3
 
 
 def default_pd(num_cameras: int) -> float:
@@ -198,6 +208,39 @@ class BayesianGrid(nn.Module):
         low = spec.centres(dtype=torch.float64)[:, 2] < spec.lower_m[2] + config.shadow_layer_m  # (V,)
         self.register_buffer("floor_layer", low.to(self.observed.device), persistent=False)
         self.register_buffer("floor_index", low.nonzero()[:, 0].to(self.observed.device), persistent=False)
+        self._first_views(rig)
+
+    def _first_views(self, rig: nn.Module) -> None:
+        """Buffers of :meth:`occupied_voxels`: the observed voxels (``observed_index``, (O,), the floor layer's
+        first: ``observed_floor`` of them), the flat pixel index (:attr:`VoxelLookup.flat_index`) of each one's
+        first ``FIRST_VIEWS`` cameras that see it (``first_flat``, (k, O), the fill entry where fewer see it) and
+        how many other cameras see it (``other_views``, (O,)). The cameras are taken in farthest-point order of
+        their centres, so the first views of a voxel look at it from far apart and their cones cross in little
+        volume."""
+        C, V = len(self.camera_names), self.spec.num_voxels
+        centres = rig.centers().detach().double().cpu()  # (C, 3)
+        order = [0]
+        while len(order) < C:  # farthest-point order: each next camera the farthest from those taken
+            d = torch.cdist(centres, centres[order]).min(dim=1).values
+            d[order] = -1.0
+            order.append(int(d.argmax()))
+        low = (self.observed & self.floor_layer).nonzero()[:, 0]
+        index = torch.cat([low, (self.observed & ~self.floor_layer).nonzero()[:, 0]])  # (O,)
+        seen = self.lookup.pixel_index[order][:, index] >= 0  # (C, O) in that order
+        rank = seen.long().cumsum(0) - 1  # (C, O) place of each seeing camera among the voxel's
+        k = min(FIRST_VIEWS, C)
+        camera = torch.full((k, index.numel()), -1, dtype=torch.long, device=index.device)
+        for j, c in enumerate(order):  # C small: one masked write per camera
+            for slot in range(k):
+                camera[slot] = torch.where(seen[j] & (rank[j] == slot), c, camera[slot])
+        flat = self.lookup.flat_index.view(C, V)
+        fill = flat.new_full((), C * self.image_size_wh[0] * self.image_size_wh[1])
+        self.observed_floor = int(low.numel())
+        self.register_buffer("observed_index", index, persistent=False)
+        self.register_buffer("first_flat", torch.where(camera >= 0, flat[camera.clamp(min=0), index[None]], fill),
+                             persistent=False)
+        self.register_buffer("other_views", (self.lookup.num_views[index] - (camera >= 0).sum(0)).to(
+            self.lookup.pixel_index.device, torch.get_default_dtype()), persistent=False)
 
     def evidence(self, images: torch.Tensor) -> torch.Tensor:
         """(B, C, 3, H, W) RGB -> (B, C, H, W) window-summed per-pixel log ratio; 0 for unreadable pixels."""
@@ -240,9 +283,84 @@ class BayesianGrid(nn.Module):
         prior = math.log(self.config.prior / (1 - self.config.prior))
         log_odds = self.lookup.gather_sum(self.pixel_evidence(log_bg)) + prior  # (B, V)
         if log_bg_shadows is not None and self.floor_index.numel():
-            lit, shadowed = self.floor_evidence(log_bg), self.floor_evidence(log_bg_shadows)
-            votes, seeing = shadow_votes(lit, shadowed)
-            use = votes >= self.config.shadow_min_share * seeing  # the shadow's evidence where enough cameras agree
-            low = torch.where(use, shadowed.sum(1), lit.sum(1))
-            log_odds = log_odds.index_copy(1, self.floor_index, low + prior)
+            log_odds = log_odds.index_copy(1, self.floor_index, self._floor_sum(log_bg, log_bg_shadows) + prior)
         return Occupancy(log_odds, self.observed, self.spec)
+
+    def _floor_sum(self, log_bg: torch.Tensor, log_bg_shadows: torch.Tensor | None) -> torch.Tensor:
+        """(B, L) the floor layer's evidence summed over the cameras: with ``log_bg_shadows``, the shadow test's
+        where enough of the cameras that see foreground there see a shadow (``shadow_min_share``)."""
+        lit = self.floor_evidence(log_bg)  # (B, C, L)
+        if log_bg_shadows is None:
+            return lit.sum(1)
+        shadowed = self.floor_evidence(log_bg_shadows)
+        votes, seeing = shadow_votes(lit, shadowed)
+        use = votes >= self.config.shadow_min_share * seeing  # the shadow's evidence where enough cameras agree
+        return torch.where(use, shadowed.sum(1), lit.sum(1))
+
+    def _flat_evidence(self, log_bg: torch.Tensor) -> torch.Tensor:
+        """(B, C, H, W) background log-likelihood -> (B, C*H*W + 1) :meth:`pixel_evidence` of every camera's
+        pixels in a row and the fill entry (0) last, as :attr:`VoxelLookup.flat_index` indexes it."""
+        ev = self.pixel_evidence(log_bg)
+        return torch.cat([ev.reshape(ev.shape[0], -1), ev.new_zeros(ev.shape[0], 1)], dim=1)
+
+    def first_views_bound(self, flat: torch.Tensor, floor_only: bool = False) -> torch.Tensor:
+        """(B, C*H*W + 1) evidence as :meth:`_flat_evidence` gives it -> (B, O) an upper bound of the summed
+        evidence of each observed voxel (``observed_index``; the prior not included): its first ``FIRST_VIEWS``
+        views' evidence plus, for each other camera that sees it, the largest pixel evidence of any camera in the
+        frame. ``floor_only``: the floor layer's voxels alone, (B, ``observed_floor``)."""
+        C = len(self.camera_names)
+        n = self.observed_floor if floor_only else self.observed_index.numel()
+        most = flat[:, :-1].reshape(flat.shape[0], C, -1).amax(2).clamp(min=0).amax(1)  # (B,)
+        bound = flat[:, self.first_flat[0, :n]]  # (B, n)
+        for slot in range(1, self.first_flat.shape[0]):
+            bound += flat[:, self.first_flat[slot, :n]]
+        return bound.add_(most[:, None] * self.other_views[:n])
+
+    def occupied_voxels(self, log_bg: torch.Tensor, log_bg_shadows: torch.Tensor | None = None,
+                        threshold: float = 0.5) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The voxels whose P(occupied) exceeds ``threshold``, as :meth:`from_log_likelihood` gives them, without
+        summing every camera at every voxel: a voxel is dropped where its bound (:meth:`first_views_bound`: its
+        first ``FIRST_VIEWS`` views' evidence and the most the others could add; in the floor layer, under both
+        the plain and the shadow test's evidence) cannot reach the threshold, and the voxels left are summed over
+        every camera. The bound holds for any evidence, so the voxels are :meth:`from_log_likelihood`'s and their
+        probabilities agree to rounding (the last place: the sigmoid's vector lanes fall elsewhere).
+
+        Args:
+            log_bg, log_bg_shadows: as :meth:`from_log_likelihood`, ``(B, C, H, W)``.
+            threshold: in (0, 1).
+
+        Returns:
+            per frame: (indices into the grid's voxels (n,), their P(occupied) (n,)), the indices ascending.
+        """
+        if not 0.0 < threshold < 1.0:
+            raise InputError(f"occupied_voxels: threshold must be in (0, 1), got {threshold}")
+        B, C = log_bg.shape[:2]
+        prior = math.log(self.config.prior / (1 - self.config.prior))
+        cut = math.log(threshold / (1 - threshold))
+        least = cut - prior - BOUND_MARGIN
+        lit = self._flat_evidence(log_bg)  # (B, C*H*W + 1)
+        maybe = self.first_views_bound(lit) > least  # (B, O)
+        L = self.observed_floor
+        shadows = log_bg_shadows is not None and L > 0
+        if shadows:  # the floor layer takes the shadow test's evidence where the cameras' vote says so
+            shadowed = self._flat_evidence(log_bg_shadows)
+            maybe[:, :L] |= self.first_views_bound(shadowed, floor_only=True) > least
+        rows, cols = maybe.nonzero(as_tuple=True)  # (n,) each, rows ascending
+        full = self.lookup.flat_index.view(C, -1)[:, self.observed_index[cols]]  # (C, n)
+        ev = lit[rows[None], full]  # (C, n) every camera's evidence
+        total = ev.sum(0)
+        if shadows:
+            low = (cols < L).nonzero()[:, 0]
+            ev_shadowed = shadowed[rows[low][None], full[:, low]]  # (C, m)
+            votes, seeing = shadow_votes(ev[:, low].T[:, :, None], ev_shadowed.T[:, :, None])  # (m, 1) each
+            use = (votes >= self.config.shadow_min_share * seeing)[:, 0]
+            total[low] = torch.where(use, ev_shadowed.sum(0), total[low])
+        p = torch.sigmoid(total + prior)
+        keep = p > threshold
+        rows, vox, p = rows[keep], self.observed_index[cols[keep]], p[keep]
+        counts = torch.bincount(rows, minlength=B).tolist()
+        out = []
+        for idx, pb in zip(vox.split(counts), p.split(counts)):
+            order = idx.argsort()
+            out.append((idx[order], pb[order]))
+        return out

@@ -100,8 +100,7 @@ class Observer(nn.Module):
                                             volume_m=self.hull_config.covered_box()))
             return out
         lit, shadowed, yuv = self.background.log_likelihood_and_yuv(images, shadows=True)  # (B, C, H, W) x2, YUV
-        prob = self.grid.from_log_likelihood(lit, shadowed).probability()  # (B, V)
-        out = self.from_probability(prob, yuv, cameras_valid)
+        out = self._voxels(self.grid.occupied_voxels(lit, shadowed, self.threshold), yuv, cameras_valid)
         if self.silhouettes:
             ev = self.grid.pixel_evidence(lit)  # (B, C, H, W), without the shadow test
             out = [replace(o, silhouettes=ViewSilhouettes.from_evidence(ev[b], self.rig)) for b, o in enumerate(out)]
@@ -115,18 +114,23 @@ class Observer(nn.Module):
         if self.model != "bayes":
             raise InputError(f"Observer.from_probability needs the Bayesian grid's voxels, not model {self.model!r}")
         keep = prob > self.threshold
+        kept = [(keep[b].nonzero()[:, 0], prob[b][keep[b]]) for b in range(prob.shape[0])]
+        return self._voxels(kept, yuv, cameras_valid)
+
+    def _voxels(self, kept: list[tuple[torch.Tensor, torch.Tensor]], yuv: torch.Tensor, cameras_valid: torch.Tensor
+                ) -> list[VoxelObservation]:
+        """Per frame (grid voxel indices (n,), their P(occupied) (n,)) -> observations coloured from ``yuv``."""
         s = self.spec.voxel_size_m
         cams = self.rig.centers()  # the cameras' centres
         out = []
-        for b in range(prob.shape[0]):
-            idx = keep[b].nonzero()[:, 0]
+        for b, (idx, p) in enumerate(kept):
             pts = self.centres[idx]
             pix = self.grid.lookup.pixel_index[:, idx]  # (C, n)
             flat = yuv[b].flatten(2)  # (C, 3, H*W)
             col = flat.gather(2, pix.clamp(min=0)[:, None, :].expand(-1, 3, -1))  # (C, 3, n)
             col = torch.where((pix >= 0)[:, None, :], col, torch.nan).permute(2, 0, 1)  # (n, C, 3)
             sizes = torch.full_like(pts[:, 0], s)
-            out.append(VoxelObservation(pts, sizes, prob[b, idx] * s ** 3, col, cameras_valid[b],
+            out.append(VoxelObservation(pts, sizes, p * s ** 3, col, cameras_valid[b],
                                         camera_centres=cams.to(pts.dtype),
                                         volume_m=self.spec.covered_box()))
         return out
