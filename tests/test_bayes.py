@@ -241,6 +241,19 @@ def test_occupied_voxels_equal_the_dense_grid(cfg, threshold):
     grid = BayesianGrid(rig, spec, bg, cfg)
     assert grid.first_flat.shape[0] == 3 and grid.observed_floor < grid.observed_index.numel() <= spec.num_voxels
     assert (grid.observed_floor > 0) == (cfg.shadow_layer_m > 0)  # the floor layer's own bound is exercised
+    # each voxel's first views, against a plain loop: the first 3 cameras that see it in farthest-point order
+    centres = rig.centers().double()
+    order = [0]
+    while len(order) < 8:
+        order.append(max((c for c in range(8) if c not in order),
+                         key=lambda c: min(float((centres[c] - centres[o]).norm()) for o in order)))
+    C, V = 8, spec.num_voxels
+    for j in range(0, grid.observed_index.numel(), 97):
+        v = int(grid.observed_index[j])
+        cams = [c for c in order if int(grid.lookup.pixel_index[c, v]) >= 0][:3]
+        want = [int(grid.lookup.flat_index.view(C, V)[c, v]) for c in cams] + [C * 48 * 36] * (3 - len(cams))
+        assert grid.first_flat[:, j].tolist() == want
+        assert int(grid.other_views[j]) == int(grid.lookup.num_views[v]) - len(cams)
     lit, shadowed, _ = bg.log_likelihood_and_yuv(images, shadows=cfg.shadow_layer_m > 0)
     dense = grid.from_log_likelihood(lit, shadowed).probability()  # (B, V)
     sparse = grid.occupied_voxels(lit, shadowed, threshold)

@@ -229,10 +229,10 @@ class BayesianGrid(nn.Module):
         seen = self.lookup.pixel_index[order][:, index] >= 0  # (C, O) in that order
         rank = seen.long().cumsum(0) - 1  # (C, O) place of each seeing camera among the voxel's
         k = min(FIRST_VIEWS, C)
-        camera = torch.full((k, index.numel()), -1, dtype=torch.long, device=index.device)
-        for j, c in enumerate(order):  # C small: one masked write per camera
-            for slot in range(k):
-                camera[slot] = torch.where(seen[j] & (rank[j] == slot), c, camera[slot])
+        slot = torch.where(seen & (rank < k), rank, k)  # (C, O): row k takes every camera past the first k
+        camera = torch.full((k + 1, index.numel()), -1, dtype=torch.long, device=index.device)
+        order_t = torch.tensor(order, device=index.device)[:, None].expand_as(slot)
+        camera = camera.scatter_(0, slot, order_t)[:k]  # (k, O) each voxel's first k seeing cameras, -1: none
         flat = self.lookup.flat_index.view(C, V)
         fill = flat.new_full((), C * self.image_size_wh[0] * self.image_size_wh[1])
         self.observed_floor = int(low.numel())
