@@ -37,12 +37,29 @@ class C3D:
     positions: np.ndarray
     rate_hz: float
     source: str
+    outputs: frozenset[str] = frozenset()
+
+    def markers(self) -> list[int]:
+        """The points that are skin markers: not a model's outputs (listed in the POINT group's ANGLES, FORCES,
+        MOMENTS, POWERS, SCALARS or REACTIONS, or named as Plug-in-Gait's segment axes and centre of mass)."""
+        return [i for i, n in enumerate(self.labels) if n not in self.outputs and not _modelled(n)]
 
     def index(self, label: str) -> int:
         try:
             return self.labels.index(label)
         except ValueError:
             raise InputError(f"{self.source}: no point {label!r}; it has {self.labels}") from None
+
+
+#: The POINT parameters that list a model's outputs stored as points (Vicon's and others' writers).
+_OUTPUT_GROUPS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
+#: Plug-in-Gait's segments, whose axes it writes as points named segment + O (origin), A, L or P (its axes' ends).
+_PIG_SEGMENTS = ("HED", "TRX", "PEL", "LCL", "RCL", "LHU", "RHU", "LRA", "RRA", "LHN", "RHN", "LFE", "RFE", "LTI",
+                 "RTI", "LFO", "RFO", "LTO", "RTO")
+
+
+def _modelled(label: str) -> bool:
+    return (len(label) == 4 and label[:3] in _PIG_SEGMENTS and label[3] in "OALP") or label.startswith("CentreOfMass")
 
 
 def strip_prefix(label: str) -> str:
@@ -83,6 +100,8 @@ def read_c3d(path: str | Path) -> C3D:
         units = str(np.asarray(point["UNITS"]["value"]).ravel()[0]).strip().lower() if "UNITS" in point else "mm"
         data = np.asarray(c["data"]["points"], dtype=np.float64)  # (4, M, T)
         residual = np.asarray(c["data"]["meta_points"]["residuals"], dtype=np.float64)  # (1, M, T)
+        outputs = frozenset(strip_prefix(str(n)) for g in _OUTPUT_GROUPS if g in point
+                            for n in np.asarray(point[g]["value"]).ravel())
     except InputError:
         raise
     except Exception as exc:  # ezc3d raises plain exceptions (RuntimeError, IndexError, ...) on bad headers
@@ -103,4 +122,4 @@ def read_c3d(path: str | Path) -> C3D:
         pos = np.stack([pos[..., a], pos[..., b], pos[..., axis]], -1)
         if sign < 0:
             pos[..., 1:] *= -1.0
-    return C3D(labels, pos, rate, str(path))
+    return C3D(labels, pos, rate, str(path), outputs)

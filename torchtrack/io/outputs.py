@@ -40,8 +40,8 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OutputKind", "TRACK_DIR", "OBSERVE_DIR", "SEQUENCE_DIR", "EASYMOCAP_FILE", "POSES_FILE", "JSON_REPORT",
-           "CALIBRATION_FILE", "check_output", "replacing",
+__all__ = ["OutputKind", "TRACK_DIR", "OBSERVE_DIR", "SEQUENCE_DIR", "MARKERS_DIR", "EASYMOCAP_FILE", "POSES_FILE",
+           "JSON_REPORT", "CALIBRATION_FILE", "check_output", "replacing",
            "script_work_folder"]
 
 
@@ -157,6 +157,8 @@ SEQUENCE_DIR = OutputKind("synthetic sequence", True,
                           frozenset({"calibration.toml", "video", "frames", "background", "gt.npz", "meta.toml",
                                      "body.urdf"}),
                           _synth_sequence)
+MARKERS_DIR = OutputKind("simulated marker capture", True, frozenset({"calibration.toml", "markers2d.npz", "gt.npz"}),
+                         lambda folder: _npz_with({"uv", "marker_names"})(folder / "markers2d.npz"))
 EASYMOCAP_FILE = OutputKind("EasyMocap calibration file", False, is_own=_opencv_yaml)
 POSES_FILE = OutputKind("poses file", False, is_own=_npz_with({"joint_names", "joints3d", "valid"}))
 JSON_REPORT = OutputKind("evaluation report", False, is_own=_json_with({"pred", "gt"}))

@@ -25,7 +25,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import on_the_floor, with_starfish_start
 from torchtrack.synth.retarget import RetargetResult, retarget_positions
 
-__all__ = ["C3D_JOINT_MAP", "c3d_motion", "c3d_world_positions", "joint_centres", "retarget_c3d"]
+__all__ = ["C3D_JOINT_MAP", "c3d_motion", "c3d_resampled", "c3d_world_positions", "joint_centres", "retarget_c3d"]
 
 log = logging.getLogger(__name__)
 
@@ -142,10 +142,17 @@ def c3d_world_positions(path: str | Path, fps: float, duration_s: float | None =
                         ) -> tuple[list[str], torch.Tensor]:
     """Joint centres of a C3D capture resampled to ``fps`` (nearest frames), centred so that the hips' path
     mid-range is over the origin. Returns names (J,) and positions (T, J, 3) float64."""
-    c3d = read_c3d(path)
+    names, pos, _, _ = c3d_resampled(read_c3d(path), fps, duration_s)
+    return names, pos
+
+
+def c3d_resampled(c3d: C3D, fps: float, duration_s: float | None = None
+                  ) -> tuple[list[str], torch.Tensor, np.ndarray, np.ndarray]:
+    """:func:`c3d_world_positions` of a read file, with the file's frames it took ``(T,)`` and the horizontal
+    shift ``(2,)`` it applied (m), so that the file's markers can be placed with the joint centres."""
     step = c3d.rate_hz / fps
     if step < 1 - 1e-6:
-        raise InputError(f"{path}: recorded at {c3d.rate_hz:.1f} fps; cannot resample up to {fps} fps")
+        raise InputError(f"{c3d.source}: recorded at {c3d.rate_hz:.1f} fps; cannot resample up to {fps} fps")
     centres = joint_centres(c3d)
     T = c3d.positions.shape[0]
     n = int(np.floor((T - 1) / step)) + 1
@@ -155,13 +162,16 @@ def c3d_world_positions(path: str | Path, fps: float, duration_s: float | None =
     names = sorted(centres)
     pos = torch.from_numpy(np.stack([centres[k][frames] for k in names], 1))
     hips = pos[:, [names.index("LHIP"), names.index("RHIP")]].mean(1)
-    pos[..., :2] -= 0.5 * (hips[:, :2].min(0).values + hips[:, :2].max(0).values)
-    return names, pos
+    shift = 0.5 * (hips[:, :2].min(0).values + hips[:, :2].max(0).values)
+    pos[..., :2] -= shift
+    return names, pos, frames, shift.numpy()
 
 
-def retarget_c3d(path: str | Path, skel: Skeleton, fps: float, duration_s: float | None = None) -> RetargetResult:
-    """A C3D capture's joint centres retargeted to ``skel`` (:func:`~torchtrack.synth.retarget.retarget_positions`)."""
-    names, pos = c3d_world_positions(path, fps, duration_s)
+def retarget_c3d(path: str | Path, skel: Skeleton, fps: float, duration_s: float | None = None,
+                 positions: tuple[list[str], torch.Tensor] | None = None) -> RetargetResult:
+    """A C3D capture's joint centres retargeted to ``skel`` (:func:`~torchtrack.synth.retarget.retarget_positions`);
+    ``positions``: its :func:`c3d_world_positions` where the caller has them already."""
+    names, pos = c3d_world_positions(path, fps, duration_s) if positions is None else positions
     mapping = {ours: src for ours, src in C3D_JOINT_MAP.items() if all(s in names for s in src)}
     result = retarget_positions(skel, pos, names, mapping)
     log.info("%s: %d frames retargeted, mean joint-centre distance %.1f mm", Path(path).name,

@@ -12,7 +12,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("synth", help="render a synthetic multi-camera sequence with ground truth",
                        description="Render a body of ellipsoids moving in a textured room, seen by a ring of "
                                    "cameras, into a sequence folder (calibration.toml, background/, video/, "
-                                   "gt.npz, meta.toml).")
+                                   "gt.npz, meta.toml). `synth markers`: project a C3D capture's real markers "
+                                   "into a calibrated rig through a simulated detector instead (calibration.toml, "
+                                   "markers2d.npz, gt.npz).")
+    p.add_argument("kind", nargs="?", choices=("video", "markers"), default="video",
+                   help="video: a rendered sequence; markers: 2D marker detections of a C3D capture (--motion "
+                        "FILE.c3d) in a real rig (default: %(default)s)")
     p.add_argument("--out", required=True, metavar="DIR",
                    help="sequence folder to write, written whole or not at all: new, empty, or an earlier "
                         "synthetic sequence (with --overwrite or --reuse)")
@@ -53,11 +58,55 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, metavar="N",
                    help="seed of the sensor noise and the room textures (default: %(default)s)")
     p.add_argument("--device", default="cpu", help="torch device to render on: cpu or cuda (default: %(default)s)")
+    m = p.add_argument_group("markers (synth markers)")
+    m.add_argument("--calibration", metavar="TOML",
+                   help="the rig the markers are seen by (default: the Qualisys rig of ../shared/data/pose2sim_demo)")
+    m.add_argument("--p-miss", type=float, default=0.2, metavar="P",
+                   help="probability that a marker a camera sees is not detected (default: %(default)s)")
+    m.add_argument("--false-rate", type=float, default=0.1, metavar="N",
+                   help="false detections per view and frame, Poisson mean (default: %(default)s)")
+    m.add_argument("--sigma", type=float, default=2.0, metavar="PX",
+                   help="pixel noise of each detection, standard deviation per axis (default: %(default)s)")
     p.add_argument("--reuse", action="store_true",
                    help="keep DIR as it is when it already holds this sequence: rendered with these settings and "
                         "today's configs/body.urdf and blobs.yaml (meta.toml's [synth] table); render it otherwise, "
                         "replacing an earlier synthetic sequence there")
     p.set_defaults(func=run)
+
+
+#: ``synth markers``' default rig: the real Qualisys rig of the Pose2Sim demo, as the repository's data holds it.
+DEFAULT_MARKER_RIG = "../shared/data/pose2sim_demo/calibration/Calib_qualisys_pose2sim.toml"
+
+
+def run_markers(args: argparse.Namespace) -> int:
+    """``torchtrack synth markers``: the folder of :func:`~torchtrack.markers.capture.simulated_capture`."""
+    from pathlib import Path
+
+    from torchtrack.cameras import load_calibration, save_calibration
+    from torchtrack.checks import InputError
+    from torchtrack.io.markers2d import save_markers2d
+    from torchtrack.io.outputs import MARKERS_DIR, check_output, replacing
+    from torchtrack.io.poses import save_poses
+    from torchtrack.markers.capture import simulated_capture
+    from torchtrack.markers.simulate import DetectorModel
+
+    if Path(args.motion).suffix.lower() != ".c3d":
+        raise InputError(f"synth markers: --motion {args.motion}: give a .c3d marker capture")
+    calib = Path(args.calibration or DEFAULT_MARKER_RIG)
+    if not calib.is_file():
+        raise InputError(f"synth markers: --calibration {calib}: no such file"
+                         + ("" if args.calibration else " (the default rig; pass --calibration TOML)"))
+    model = DetectorModel(p_miss=args.p_miss, false_rate=args.false_rate, sigma_px=args.sigma)
+    check_output(args.out, MARKERS_DIR, args.overwrite)
+    rig = load_calibration(calib, warn_units=False)
+    detections, truth = simulated_capture(args.motion, rig, args.fps, args.duration, model, args.seed)
+    with replacing(args.out, MARKERS_DIR) as out:
+        save_calibration(rig, out / "calibration.toml")
+        save_markers2d(detections, out / "markers2d.npz")
+        save_poses(truth, out / "gt.npz")
+    T, C, M = detections.uv.shape[:3]
+    print(f"wrote {T} frames of {M} markers in {C} cameras to {args.out}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
@@ -66,6 +115,8 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.synth.scene import SceneConfig
     from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 
+    if args.kind == "markers":
+        return run_markers(args)
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:

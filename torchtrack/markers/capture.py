@@ -1,0 +1,90 @@
+"""A simulated marker capture: a C3D file's real markers, with its subject's body as the occluder, placed in a
+calibrated rig's capture area and seen through the simulated detector (:mod:`torchtrack.markers.simulate`).
+``torchtrack synth markers`` writes it as a folder: ``calibration.toml``, ``markers2d.npz`` and ``gt.npz`` (the
+retargeted body's joints and the 3D markers)."""
+
+from __future__ import annotations
+
+import copy
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from torchtrack.blobs import BlobModel
+from torchtrack.checks import InputError
+from torchtrack.io.c3d import read_c3d
+from torchtrack.io.markers2d import Markers2D
+from torchtrack.io.poses import Poses
+from torchtrack.markers.simulate import DetectorModel, marker_visibility, simulate_detections
+from torchtrack.occupancy import capture_views, grid_from_rig
+from torchtrack.skeleton import Skeleton
+from torchtrack.synth.c3d_motion import c3d_resampled, retarget_c3d
+
+__all__ = ["capture_centre", "simulated_capture"]
+
+log = logging.getLogger(__name__)
+
+
+def capture_centre(rig: nn.Module) -> torch.Tensor:
+    """(2,) the middle of the floor area that every camera sees (or, where none is, half of them), in x and y."""
+    for need in (rig.num_cameras, capture_views(rig.num_cameras)):
+        try:
+            spec = grid_from_rig(rig, 0.05, min_views=need)
+        except InputError:
+            continue
+        return torch.tensor([0.5 * (spec.lower_m[i] + spec.upper_m[i]) for i in range(2)], dtype=torch.float64)
+    raise InputError(f"no floor area is seen by {capture_views(rig.num_cameras)} of the rig's {rig.num_cameras} "
+                     "cameras: nowhere to place the capture")
+
+
+def simulated_capture(path: str | Path, rig: nn.Module, fps: float | None = None, duration_s: float | None = None,
+                      model: DetectorModel = DetectorModel(), seed: int = 0) -> tuple[Markers2D, Poses]:
+    """The markers of the C3D file ``path`` seen by ``rig`` through the detector ``model``.
+
+    The capture is resampled to ``fps`` (None: the file's rate) and cut to ``duration_s`` (None: all of it); its
+    joint centres are retargeted onto our skeleton, whose blob ellipsoids hide the markers behind the body; the
+    hips' path is centred over the rig's capture area (:func:`capture_centre`). Random draws from a
+    ``torch.Generator`` seeded with ``seed``.
+
+    Returns:
+        the detections (``extra``: ``true_index (T, C, M)`` and ``visible (T, C, M)``) and the truth as poses
+        (joints of the retargeted body, ``marker_names`` and ``markers3d``).
+    """
+    c3d = read_c3d(path)
+    fps = c3d.rate_hz if fps is None else float(fps)
+    names, pos, frames, shift = c3d_resampled(c3d, fps, duration_s)
+    ret = retarget_c3d(path, Skeleton.from_urdf(), fps, duration_s, positions=(names, pos))
+    body = ret.skeleton
+    blobs = BlobModel.from_config(body)
+    rig = copy.deepcopy(rig).double()  # .double() converts in place: never the caller's rig
+    place = capture_centre(rig)
+    keep = c3d.markers()
+    if not keep:
+        raise InputError(f"{path}: no skin markers among its points (only a model's outputs)")
+    labels = [c3d.labels[i] for i in keep]
+    markers = torch.from_numpy(c3d.positions[frames][:, keep]).double()
+    markers[..., :2] += place - torch.from_numpy(shift)
+    with torch.no_grad():
+        fk = body(ret.angles.double())
+        centres, R = blobs.ellipsoids(fk.bone_frames)
+    centres = centres + place.new_tensor([*place.tolist(), 0.0])
+    joints = fk.output_points + place.new_tensor([*place.tolist(), 0.0])
+    uv, visible = marker_visibility(markers, rig, centres, R, blobs.semi_axes.double(), model.skin_m)
+    gen = torch.Generator().manual_seed(int(seed))
+    det = simulate_detections(uv, visible, rig.image_size_wh, model, gen)
+    T, C, M = visible.shape
+    log.info("%s: %d frames, %d markers, %d cameras: %.1f %% of the markers seen, %.1f %% detected", Path(path).name,
+             T, M, C, 100.0 * float(visible.double().mean()), 100.0 * float((det.true_index >= 0).double().mean()))
+    angles = ret.angles.clone()
+    for i, n in enumerate(("root_tx", "root_ty")):  # the body placed with the markers
+        angles[:, body.dof_names.index(n)] += float(place[i])
+    detections = Markers2D(fps, np.arange(T), list(rig.names), labels, det.uv.float().numpy(),
+                           extra={"true_index": det.true_index.numpy(), "visible": visible.numpy()})
+    truth = Poses(fps=fps, frame_index=np.arange(T), joint_names=list(body.output_names),
+                  joints3d=joints.float().numpy(), dof_names=list(body.dof_names), angles=angles.float().numpy(),
+                  valid=np.ones(T, dtype=bool), confidence=np.ones((T, len(body.output_names)), dtype=np.float32),
+                  marker_names=labels, markers3d=markers.float().numpy())
+    return detections, truth
