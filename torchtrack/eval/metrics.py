@@ -23,6 +23,8 @@ from torchtrack.conventions import LANDMARKS
 from torchtrack.io.poses import Poses
 
 DEFAULT_PCK_THRESHOLDS_M: tuple[float, ...] = (0.05, 0.10, 0.15)
+#: MMTA's threshold (Canton-Ferrer's T): a marker estimate within 5 cm of the truth matches.
+DEFAULT_MARKER_THRESHOLD_M = 0.05
 
 
 class MPJPE(NamedTuple):
@@ -141,6 +143,7 @@ class EvalReport:
     frame_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (F,) evaluated frames
     per_frame_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (F,) mean error of each
     lost_frame_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # (frames_lost,)
+    markers: MarkerAccuracy | None = None  # both files have markers3d
 
     @property
     def lost_fraction(self) -> float:
@@ -165,6 +168,11 @@ class EvalReport:
         for thr, frac in zip(self.pck_thresholds_m, self.pck):
             value = "n/a" if np.isnan(frac) else f"{100 * frac:.1f}%"
             lines.append(f"{f'PCK@{1000 * thr:g}mm':<{width}}  {value:>8}")
+        if self.markers is not None:
+            m = self.markers
+            lines += ["", f"markers: {m.markers} in both, {m.frames} frames",
+                      f"{f'MMTA@{1000 * m.threshold_m:g}mm':<{width}}  {100 * m.mmta:7.2f}%",
+                      f"{'MMTP':<{width}}  {_mm(m.mmtp_mm)}"]
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
@@ -181,12 +189,54 @@ class EvalReport:
             "frame_index": [int(i) for i in self.frame_index],
             "per_frame_mm": [_num(v) for v in self.per_frame_mm],
             "lost_frame_index": [int(i) for i in self.lost_frame_index],
+            **({} if self.markers is None else {"markers": {
+                "threshold_m": self.markers.threshold_m, "mmta": _num(self.markers.mmta),
+                "mmtp_mm": _num(self.markers.mmtp_mm), "markers": self.markers.markers,
+                "frames": self.markers.frames}}),
         }
+
+
+@dataclass(frozen=True)
+class MarkerAccuracy:
+    """Canton-Ferrer's marker figures (§4.1): a marker estimate matches where it lies within ``threshold_m`` of the
+    truth; MMTA is the share of matched markers, MMTP their mean error (mm), each per frame and averaged over the
+    frames. A marker the prediction does not give counts as unmatched."""
+
+    threshold_m: float
+    mmta: float
+    mmtp_mm: float
+    markers: int  # markers named in both files
+    frames: int  # frames evaluated
+
+
+def marker_accuracy(pred: Poses, truth: Poses, pred_idx: np.ndarray, truth_idx: np.ndarray, frames_ok: np.ndarray,
+                    threshold_m: float = DEFAULT_MARKER_THRESHOLD_M) -> MarkerAccuracy | None:
+    """MMTA and MMTP of the common markers (by name) on the common frames ``pred_idx`` / ``truth_idx`` where
+    ``frames_ok``; None where either file has no markers or none in common."""
+    if pred.markers3d is None or truth.markers3d is None:
+        return None
+    names = [n for n in truth.marker_names if n in set(pred.marker_names)]
+    if not names:
+        return None
+    p = pred.markers3d[pred_idx][:, [pred.marker_names.index(n) for n in names]].astype(np.float64)
+    t = truth.markers3d[truth_idx][:, [truth.marker_names.index(n) for n in names]].astype(np.float64)
+    p, t = p[frames_ok], t[frames_ok]
+    has = np.isfinite(t).all(-1)  # (F, M) the truth has the marker
+    err = np.linalg.norm(p - t, axis=-1)  # NaN where the prediction lacks it
+    match = has & (err <= threshold_m)
+    rows = has.any(1)
+    share = match.sum(1)[rows] / has.sum(1)[rows]
+    with np.errstate(invalid="ignore"):
+        prec = np.where(match, err, 0.0).sum(1)[rows] / match.sum(1)[rows]
+    return MarkerAccuracy(float(threshold_m), float(share.mean()) if share.size else float("nan"),
+                          1000 * float(np.nanmean(prec)) if np.isfinite(prec).any() else float("nan"),
+                          len(names), int(rows.sum()))
 
 
 def evaluate(pred: Poses, truth: Poses, landmarks: Sequence[str] | None = None,
              pck_thresholds_m: Sequence[float] = DEFAULT_PCK_THRESHOLDS_M, root: str | None = "pelvis",
-             pred_name: str = "prediction", truth_name: str = "ground truth") -> EvalReport:
+             pred_name: str = "prediction", truth_name: str = "ground truth",
+             marker_threshold_m: float = DEFAULT_MARKER_THRESHOLD_M) -> EvalReport:
     """Compare ``pred`` with ``truth`` on their common frames (matched by frame number).
 
     Args:
@@ -195,10 +245,13 @@ def evaluate(pred: Poses, truth: Poses, landmarks: Sequence[str] | None = None,
         pck_thresholds_m: PCK thresholds in metres.
         root: joint subtracted from both for the root-aligned MPJPE (None: skip that figure).
         pred_name, truth_name: how error messages name the two (file paths in the CLI).
+        marker_threshold_m: MMTA's threshold where both have markers (:class:`MarkerAccuracy`).
 
     Raises:
         InputError: no common frame, a landmark missing from either, bad thresholds.
     """
+    if not marker_threshold_m > 0:
+        raise InputError(f"the marker threshold must be > 0 m, got {marker_threshold_m}")
     names = list(dict.fromkeys(LANDMARKS if landmarks is None else landmarks))
     thresholds = tuple(float(t) for t in pck_thresholds_m)
     pred_idx, truth_idx = match_frames(pred, truth, pred_name, truth_name)
@@ -232,7 +285,8 @@ def evaluate(pred: Poses, truth: Poses, landmarks: Sequence[str] | None = None,
         frames_evaluated=int(evaluated.sum()), frames_lost=int(lost.sum()),
         frames_without_reference=int((~has_ref).sum()), frames_truth_only=truth.num_frames - len(truth_idx),
         root=root, root_aligned_mpjpe_mm=root_mm, frame_index=frames[evaluated].astype(np.int64),
-        per_frame_mm=per_frame_mm, lost_frame_index=frames[lost].astype(np.int64))
+        per_frame_mm=per_frame_mm, lost_frame_index=frames[lost].astype(np.int64),
+        markers=marker_accuracy(pred, truth, pred_idx, truth_idx, evaluated, marker_threshold_m))
 
 
 def _select(poses: Poses, names: list[str], source: str) -> np.ndarray:

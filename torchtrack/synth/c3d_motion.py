@@ -73,8 +73,9 @@ def _bell_hips(asis_l: np.ndarray, asis_r: np.ndarray, psis_l: np.ndarray, psis_
     return base + 0.36 * d * y, base - 0.36 * d * y
 
 
-def joint_centres(c3d: C3D) -> dict[str, np.ndarray]:
-    """The derived joint centres (``C3D_JOINT_MAP``'s source names) of a capture, each (T, 3), gaps filled.
+def joint_centres(c3d: C3D, min_present: float = MIN_PRESENT) -> dict[str, np.ndarray]:
+    """The derived joint centres (``C3D_JOINT_MAP``'s source names) of a capture, each (T, 3), gaps filled; a
+    point counts where the capture has it in at least ``min_present`` of the frames.
 
     Raises:
         InputError: a centre cannot be had from the file's labels, naming it and what was looked for.
@@ -86,7 +87,7 @@ def joint_centres(c3d: C3D) -> dict[str, np.ndarray]:
         if i is None:
             return None
         p = c3d.positions[:, i]
-        return p if np.isfinite(p).all(-1).mean() >= MIN_PRESENT else None
+        return p if np.isfinite(p).all(-1).mean() >= min_present else None
 
     def mean_of(*names: str) -> Callable[[], np.ndarray | None]:
         def get() -> np.ndarray | None:
@@ -133,7 +134,7 @@ def joint_centres(c3d: C3D) -> dict[str, np.ndarray]:
     missing = [n for n in _REQUIRED if out.get(n) is None]
     if missing:
         raise InputError(f"{c3d.source}: cannot place the joint centres {missing} from its points (present in at "
-                         f"least {MIN_PRESENT:.0%} of the frames: none of the Plug-in-Gait origins, the CMU or "
+                         f"least {min_present:.0%} of the frames: none of the Plug-in-Gait origins, the CMU or "
                          f"Plug-in-Gait markers they are taken from); it has {c3d.labels}")
     return {n: p for n, p in out.items() if p is not None}
 

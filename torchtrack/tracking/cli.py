@@ -59,6 +59,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("seq", type=Path, nargs="+", metavar="SEQ",
                    help="sequence folder (calibration.toml, video/ or frames/, background/); several are tracked "
                         "together in lockstep, --batch-size at a time, each into DIR/<its folder's name>")
+    p.add_argument("--mode", choices=("auto", "markerless", "markers"), default="auto",
+                   help="markerless: from the videos; markers: from markers2d.npz, marker detections, by the "
+                        "annealed particle filter; auto: markers where SEQ has markers2d.npz and no video/ or "
+                        "frames/ (default: %(default)s)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR",
                    help="output folder: new, empty, or an earlier track's (with --overwrite); with several SEQ, "
                         "the folder of their output folders")
@@ -128,6 +132,14 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.io.poses import save_poses
     from torchtrack.tracking.pipeline import NothingTracked, track
 
+    from torchtrack.checks import InputError
+    from torchtrack.markers.track import is_marker_folder
+
+    markers = [args.mode == "markers" or (args.mode == "auto" and is_marker_folder(s)) for s in args.seq]
+    if any(markers):
+        if len(args.seq) > 1:
+            raise InputError("marker mode tracks one folder at a time: give one SEQ")
+        return _run_markers(args)
     if len(args.seq) > 1:
         return _run_many(args)
     args.seq = args.seq[0]
@@ -152,6 +164,30 @@ def run(args: argparse.Namespace) -> int:
         print(f"torchtrack track: error: {exc}; no poses.npz written; {kept}", file=sys.stderr)
         return EXIT_NOTHING_TRACKED
     print(_summary(args.out, result))
+    return 0
+
+
+def _run_markers(args: argparse.Namespace) -> int:
+    """``--mode markers``: the annealed particle filter on SEQ's marker detections into OUT/poses.npz."""
+    import torch
+
+    from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
+    from torchtrack.io.poses import save_poses
+    from torchtrack.markers.track import track_markers
+
+    seq = args.seq[0]
+    check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
+    torch.set_num_threads(max(1, args.threads))
+    try:
+        with replacing(args.out, TRACK_DIR):
+            result = track_markers(seq, start=args.start, stop=args.stop)
+            save_poses(result.poses, args.out / "poses.npz")
+    except KeyboardInterrupt:
+        print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
+        return 130
+    T, M = result.poses.num_frames, len(result.poses.marker_names)
+    print(f"wrote {args.out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter; "
+          f"{result.seconds:.0f} s wall clock, {T / result.seconds:.2f} frames/s")
     return 0
 
 

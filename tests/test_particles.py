@@ -1,0 +1,238 @@
+"""The annealed particle filter's parts against independent references: the epipolar cost against a plain loop of
+the closed-form point-to-epiline distances, the resampler and the truncated Gaussian by their distributions over
+many draws, the annealing exponent against its definition; the marker set's fit on a body with known markers; and
+the filter tracking a capture's markers seen through the simulated detector."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from conftest import shared_data
+from torchtrack.cameras import load_calibration
+from torchtrack.checks import InputError
+from torchtrack.markers.model import MarkerSet, assign_markers, fit_marker_set
+from torchtrack.skeleton import Skeleton
+from torchtrack.tracking.particles import (APFConfig, annealing_beta, epipolar_cost, fundamental_matrices,
+                                           pinhole_pixels, projection_matrices, resample, truncated_normal)
+
+RIG = ("pose2sim_demo", "calibration", "Calib_qualisys_pose2sim.toml")
+
+
+def real_rig():
+    return load_calibration(shared_data(*RIG), warn_units=False).double()
+
+
+def test_epipolar_cost_matches_a_plain_loop():
+    rig = real_rig()
+    gen = torch.Generator().manual_seed(0)
+    C, M, K, B, tau = rig.num_cameras, 6, 3, 4, 20.0
+    truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
+        [-1.6, -0.5, 0.2])
+    P = projection_matrices(rig)
+    h = torch.cat([truth, torch.ones(M, 1, dtype=torch.float64)], -1)
+    uv = torch.einsum("cij,mj->cmi", P, h)
+    uv = uv[..., :2] / uv[..., 2:]  # (C, M, 2) pinhole pixels
+    det = uv[:, :, None].repeat(1, 1, K, 1) + 3 * torch.randn(C, M, K, 2, generator=gen, dtype=torch.float64)
+    det[:, :, 1:] += 200 * torch.randn(C, M, K - 1, 2, generator=gen, dtype=torch.float64)  # false candidates
+    det[0, 0] = math.nan  # marker 0 unseen in view 0
+    det[1, 2, 0] = math.nan  # one candidate missing
+    points = truth[None] + 0.01 * torch.randn(B, M, 3, generator=gen, dtype=torch.float64)
+    F = fundamental_matrices(rig)
+    got = epipolar_cost(points, det, P, F, tau)
+    Pn, Fn, zn = P.numpy(), F.numpy(), det.numpy()
+    for b in range(B):
+        total = 0.0
+        for m in range(M):
+            X = np.append(points[b, m].numpy(), 1.0)
+            for i in range(C):
+                cands = [z for z in zn[i, m] if np.isfinite(z).all()]
+                if not cands:
+                    continue
+                for j in range(C):
+                    if i == j:
+                        continue
+                    y = Pn[j] @ X
+                    y = np.append(y[:2] / y[2], 1.0)
+                    best = math.inf
+                    for z in cands:
+                        z = np.append(z, 1.0)
+                        line_j = Fn[i, j] @ z  # z's epiline in view j
+                        line_i = Fn[i, j].T @ y  # the epiline of y in view i
+                        d = (y @ line_j) ** 2 / (line_j[0] ** 2 + line_j[1] ** 2) + (z @ line_i) ** 2 / (
+                            line_i[0] ** 2 + line_i[1] ** 2)
+                        best = min(best, d)
+                    total += min(best, tau ** 2)
+        assert float(got[b]) == pytest.approx(total, rel=1e-6)
+    # a point on the markers' rays costs nothing: the true points against exact detections
+    exact = epipolar_cost(truth[None], uv[:, :, None], P, F, tau)
+    assert float(exact[0]) < 1e-12
+
+
+def test_pinhole_pixels_undo_the_lens():
+    rig = real_rig()
+    pts = torch.tensor([[-1.0, 0.0, 1.0], [-0.5, 0.3, 0.2]], dtype=torch.float64)
+    distorted, _ = rig.project(pts)  # (C, 2, 2)
+    h = torch.cat([pts, torch.ones(2, 1, dtype=torch.float64)], -1)
+    pin = torch.einsum("cij,mj->cmi", projection_matrices(rig), h)
+    # the undistortion is iterative: within a thousandth of a pixel
+    torch.testing.assert_close(pinhole_pixels(rig, distorted), pin[..., :2] / pin[..., 2:], atol=1e-3, rtol=0)
+    assert torch.isnan(pinhole_pixels(rig, torch.full((rig.num_cameras, 1, 2), math.nan))).all()
+
+
+def test_resampling_draws_in_proportion_to_the_weights():
+    gen = torch.Generator().manual_seed(1)
+    w = torch.rand(40, generator=gen, dtype=torch.float64) * 7.0  # unnormalised
+    w[5] = 0.0
+    N, draws = w.numel(), 2000
+    counts = torch.zeros(N, dtype=torch.float64)
+    for _ in range(draws):
+        idx = resample(w, gen)
+        c = torch.bincount(idx, minlength=N).double()
+        assert ((c - w / w.sum() * N).abs() < 1).all()  # systematic: within one copy of N w
+        counts += c
+    expected = (w / w.sum() * N * draws).numpy()
+    assert counts[5] == 0
+    keep = expected > 0
+    # systematic resampling's counts vary less than multinomial ones: the mean of each count must match
+    z = (counts.numpy()[keep] - expected[keep]) / np.sqrt(draws * 0.25)  # a count's spread is at most 1/2 a draw
+    assert np.abs(z).max() < 5
+
+
+@pytest.mark.parametrize("mean, std, lo, hi", [(0.0, 1.0, -0.5, 2.0), (1.0, 0.3, 1.2, 1.5), (0.0, 2.0, -1.0, 1.0)])
+def test_truncated_normal_has_its_distribution(mean, std, lo, hi):
+    gen = torch.Generator().manual_seed(2)
+    x = truncated_normal(torch.full((20000, 1), mean, dtype=torch.float64), torch.tensor([std], dtype=torch.float64),
+                         torch.tensor([lo]), torch.tensor([hi]), gen).numpy().ravel()
+    assert x.min() >= lo and x.max() <= hi
+    ref = stats.truncnorm((lo - mean) / std, (hi - mean) / std, loc=mean, scale=std)
+    assert stats.kstest(x, ref.cdf).pvalue > 1e-3
+
+
+def test_annealing_beta_hits_the_survival_rate():
+    gen = torch.Generator().manual_seed(3)
+    cost = torch.rand(500, generator=gen, dtype=torch.float64) ** 2 * 1e4
+    for target in (0.2, 0.5, 0.8):
+        beta = annealing_beta(cost, target)
+        w = torch.exp(-beta * (cost - cost.min()))
+        assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(target, abs=1e-3)
+    assert annealing_beta(torch.zeros(10), 0.5) == 0.0
+
+
+def test_bad_filter_settings_are_refused():
+    with pytest.raises(InputError):
+        APFConfig(survival=1.5)
+    with pytest.raises(InputError):
+        APFConfig(particles=1)
+
+
+def test_marker_set_recovers_known_markers():
+    """Markers placed on known bones at known offsets, poses random within the limits: each marker is given back
+    to its bone at its offset, and the poses fitted to the markers from a perturbed start find them again."""
+    skel = Skeleton.from_urdf().double()
+    gen = torch.Generator().manual_seed(4)
+    T, M = 12, 9
+    D = skel.num_dofs
+    rest = skel.rest_angles().double()
+    angles = rest + 0.4 * (torch.rand(T, D, generator=gen, dtype=torch.float64) - 0.5)
+    angles[:, 3] = torch.rand(T, generator=gen, dtype=torch.float64) * 6  # any heading
+    angles = skel.clamp(angles)
+    bones = torch.tensor([0, 1, 2, 3, 4, 9, 10, 12, 14])
+    offsets = 0.06 * torch.randn(M, 3, generator=gen, dtype=torch.float64)
+    truth = MarkerSet(tuple(f"m{i}" for i in range(M)), bones, offsets)
+    markers = truth.positions(skel.forward(angles).bone_frames)
+    markers[3, 2] = math.nan  # a missing sample
+    found, spread = assign_markers(skel, angles, markers, truth.names)
+    assert torch.equal(found.bone, bones)
+    torch.testing.assert_close(found.offset.double(), offsets, atol=1e-5, rtol=0)
+    assert float(spread.max()) < 1e-5
+    start = skel.clamp(angles + 0.05 * torch.randn(T, D, generator=gen, dtype=torch.float64))
+    fitted_set, fitted = fit_marker_set(skel, start, markers, truth.names, rounds=2)
+    err = (fitted_set.positions(skel.forward(fitted).bone_frames) - markers).norm(dim=-1)
+    assert float(err.nanmean()) < 0.01
+    with pytest.raises(InputError, match="m0"):
+        bad = markers.clone()
+        bad[1:, 0] = math.nan
+        assign_markers(skel, angles, bad, truth.names)
+
+
+def test_mmta_and_mmtp_against_a_plain_loop():
+    from torchtrack.eval.metrics import evaluate
+    from torchtrack.io.poses import Poses
+
+    rng = np.random.default_rng(6)
+    T, M, J = 5, 4, 16
+    from torchtrack.conventions import LANDMARKS
+
+    def poses(markers, names):
+        return Poses(30.0, np.arange(T), list(LANDMARKS), np.zeros((T, J, 3), np.float32), ["x"],
+                     np.zeros((T, 1), np.float32), np.ones(T, bool), np.ones((T, J), np.float32),
+                     marker_names=names, markers3d=markers.astype(np.float32))
+    truth = rng.normal(size=(T, M, 3))
+    truth[2, 1] = np.nan  # the truth lacks one sample
+    pred = truth + rng.normal(scale=0.04, size=(T, M, 3))
+    pred[3, 0] = np.nan  # the prediction lacks one: a miss
+    names = ["a", "b", "c", "d"]
+    rep = evaluate(poses(pred[:, ::-1], names[::-1]), poses(truth, names), marker_threshold_m=0.05).markers
+    shares, precs = [], []
+    for t in range(T):
+        hits, errs, total = 0, [], 0
+        for m in range(M):
+            if not np.isfinite(truth[t, m]).all():
+                continue
+            total += 1
+            e = np.linalg.norm(pred[t, m] - truth[t, m])
+            if np.isfinite(e) and e <= 0.05:
+                hits += 1
+                errs.append(e)
+        shares.append(hits / total)
+        if errs:
+            precs.append(np.mean(errs))
+    assert rep.mmta == pytest.approx(np.mean(shares)) and rep.mmtp_mm == pytest.approx(1000 * np.mean(precs))
+    assert rep.markers == 4 and rep.frames == T
+
+
+def test_track_markers_follows_a_simulated_capture(tmp_path, capsys):
+    """`torchtrack track` on a simulated Plug-in-Gait capture (real markers, the real 4-camera rig, misses, false
+    detections and noise) picks marker mode, fits the subject from the triangulated detections alone and tracks
+    it: the markers against the capture's own."""
+    from torchtrack.cli import main
+
+    cap, out = tmp_path / "cap", tmp_path / "track"
+    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+                 "--duration", "1.2"]) == 0
+    assert main(["track", str(cap), "--out", str(out)]) == 0
+    assert main(["eval", str(out / "poses.npz"), str(cap / "gt.npz")]) == 0
+    text = capsys.readouterr().out
+    mmta = float(text.split("MMTA@50mm")[1].split("%")[0])
+    mmtp = float(text.split("MMTP")[1].split()[0])
+    assert mmta >= 95.0 and mmtp <= 15.0, text
+
+
+def test_triangulation_ignores_false_candidates():
+    """Points seen by every view with a false candidate beside each true one: the triangulation finds the points
+    (against their truth) and says how many views agree; a marker in one view only is NaN."""
+    from torchtrack.markers.triangulate import triangulate_candidates
+
+    rig = real_rig()
+    gen = torch.Generator().manual_seed(7)
+    T, M, C = 3, 5, rig.num_cameras
+    X = torch.rand(T, M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
+        [-1.6, -0.5, 0.2])
+    P = projection_matrices(rig)
+    h = torch.cat([X, torch.ones(T, M, 1, dtype=torch.float64)], -1)
+    uv = torch.einsum("cij,tmj->tcmi", P, h)
+    uv = uv[..., :2] / uv[..., 2:]  # (T, C, M, 2)
+    false = uv + torch.tensor([150.0, -90.0], dtype=torch.float64)
+    det = torch.stack([false, uv + 0.5 * torch.randn(T, C, M, 2, generator=gen, dtype=torch.float64)], 3)
+    det[:, 1:, 0] = math.nan  # marker 0 in view 0 only
+    det[:, 2, 1] = math.nan  # marker 1 not in view 2
+    got, views = triangulate_candidates(det, P)
+    assert torch.isnan(got[:, 0]).all() and (views[:, 0] == 0).all()
+    assert float((got[:, 1:] - X[:, 1:]).norm(dim=-1).max()) < 0.01
+    assert (views[:, 1] == C - 1).all() and (views[:, 2:] == C).all()

@@ -1,0 +1,145 @@
+"""A subject's marker set: each marker fixed to one bone of the skeleton at an offset in the bone's frame.
+
+Fitted from 3D markers over some frames (a static trial or a capture's first frames) and the skeleton's poses in
+them: each marker is given to the bone it moves with most rigidly (the least spread of its position in the bone's
+frame over the frames), at its mean position there; then the poses are fitted to the markers (inverse kinematics
+on all frames at once) and the markers given again, a few rounds. No marker-set template is needed: any labelled
+set works.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+
+from torchtrack.checks import InputError, check_shape
+from torchtrack.skeleton.model import Skeleton
+
+__all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_markers", "subject_from_markers"]
+
+#: A marker takes part in the joint centres where it is seen in at least this share of the fitting frames (markers
+#: triangulated from detections are missing wherever fewer than two views found them; gaps are interpolated).
+MIN_PRESENT = 0.2
+
+
+@dataclass(frozen=True)
+class MarkerSet:
+    """M markers on a skeleton's bones.
+
+    Attributes:
+        names: (M,) labels. bone: (M,) int64 index into ``Skeleton.bone_names``. offset: (M, 3) position in the
+        bone's frame (m).
+    """
+
+    names: tuple[str, ...]
+    bone: torch.Tensor
+    offset: torch.Tensor
+
+    @property
+    def num_markers(self) -> int:
+        return len(self.names)
+
+    def positions(self, bone_frames: torch.Tensor) -> torch.Tensor:
+        """(B, nb, 4, 4) bone-to-world transforms (``Skeleton.forward(...).bone_frames``) -> (B, M, 3) markers."""
+        check_shape(bone_frames, ("B", None, 4, 4), "bone_frames")
+        T = bone_frames[:, self.bone.to(bone_frames.device)]  # (B, M, 4, 4)
+        return (T[..., :3, :3] @ self.offset.to(T)[..., None])[..., 0] + T[..., :3, 3]
+
+
+def assign_markers(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tensor, names: Sequence[str]
+                   ) -> tuple[MarkerSet, torch.Tensor]:
+    """Each marker to the bone in whose frame it moves least over the frames, at its mean position there.
+
+    Args:
+        angles: (T, D) the skeleton's poses. markers: (T, M, 3) world positions, NaN where missing.
+        names: (M,) labels.
+
+    Returns:
+        the marker set and each marker's RMS spread in its bone's frame ``(M,)`` (m).
+
+    Raises:
+        InputError: a marker present in fewer than 2 frames.
+    """
+    T, M = markers.shape[:2]
+    check_shape(angles, (T, skeleton.num_dofs), "angles")
+    check_shape(markers, (T, len(names), 3), "markers")
+    seen = torch.isfinite(markers).all(-1)  # (T, M)
+    few = [n for n, k in zip(names, seen.sum(0).tolist()) if k < 2]
+    if few:
+        raise InputError(f"marker set: markers {few} are present in fewer than 2 frames")
+    frames = skeleton.forward(angles.to(skeleton.lower.device, torch.float64)).bone_frames  # (T, nb, 4, 4)
+    R, p = frames[..., :3, :3], frames[..., :3, 3]
+    x = torch.nan_to_num(markers.to(frames))
+    local = torch.einsum("tbji,tbmj->tbmi", R, x[:, None] - p[:, :, None])  # (T, nb, M, 3) in each bone's frame
+    w = seen.to(frames)[:, None, :, None]  # (T, 1, M, 1)
+    n = seen.sum(0).to(frames)  # (M,)
+    mean = (local * w).sum(0) / n[None, :, None]  # (nb, M, 3)
+    spread = (((local - mean) ** 2) * w).sum((0, 3)) / n  # (nb, M) mean squared distance from the mean
+    best = spread.argmin(0)  # (M,)
+    idx = torch.arange(M)
+    return (MarkerSet(tuple(names), best.cpu(), mean[best, idx].float().cpu()),
+            spread[best, idx].sqrt().float().cpu())
+
+
+def fit_poses_to_markers(skeleton: Skeleton, marker_set: MarkerSet, angles: torch.Tensor, markers: torch.Tensor,
+                         iterations: int = 200, lr: float = 0.02) -> torch.Tensor:
+    """Inverse kinematics of every frame at once: the poses ``(T, D)`` from ``angles`` whose markers lie nearest
+    ``markers (T, M, 3)`` (NaN: missing) in the least-squares sense, within the joint limits (Adam, projected)."""
+    seen = torch.isfinite(markers).all(-1).to(torch.float64)  # (T, M)
+    target = torch.nan_to_num(markers.double())
+    lower, upper = skeleton.lower.double(), skeleton.upper.double()
+    theta = angles.detach().double().clone().requires_grad_(True)
+    opt = torch.optim.Adam([theta], lr=lr)
+    with torch.enable_grad():
+        for it in range(iterations):
+            opt.zero_grad()
+            pred = marker_set.positions(skeleton.forward(theta).bone_frames)  # (T, M, 3)
+            loss = (((pred - target) ** 2).sum(-1) * seen).sum() / seen.sum().clamp(min=1)
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                theta.copy_(torch.clamp(theta, lower, upper))
+            if it == iterations // 2:
+                for group in opt.param_groups:
+                    group["lr"] = lr / 3
+    return theta.detach().to(angles.dtype)
+
+
+def fit_marker_set(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tensor, names: Sequence[str],
+                   rounds: int = 3) -> tuple[MarkerSet, torch.Tensor]:
+    """The marker set of ``markers (T, M, 3)`` on ``skeleton`` from first poses ``angles (T, D)`` (e.g. retargeted
+    from the markers' joint centres): :func:`assign_markers`, then :func:`fit_poses_to_markers`, ``rounds`` times.
+    Returns the marker set and the fitted poses ``(T, D)``."""
+    if rounds < 1:
+        raise InputError(f"fit_marker_set: rounds must be >= 1, got {rounds}")
+    marker_set, _ = assign_markers(skeleton, angles, markers, names)
+    for _ in range(rounds):
+        angles = fit_poses_to_markers(skeleton, marker_set, angles, markers)
+        marker_set, _ = assign_markers(skeleton, angles, markers, names)
+    return marker_set, angles
+
+
+def subject_from_markers(markers: torch.Tensor, names: Sequence[str], fps: float, rounds: int = 3,
+                         source: str = "the markers") -> tuple[Skeleton, MarkerSet, torch.Tensor]:
+    """A subject from its labelled 3D markers over some frames ``(T, M, 3)`` (world, m; NaN where missing): the
+    skeleton scaled to the joint centres that the common marker sets give (CMU, Plug-in-Gait, Motion Analysis:
+    :func:`~torchtrack.synth.c3d_motion.joint_centres`), its poses retargeted onto them, then the marker set
+    (:func:`fit_marker_set`). Returns the skeleton, the marker set and the frames' poses ``(T, D)``; errors name
+    ``source``."""
+    import numpy as np
+
+    from torchtrack.io.c3d import C3D
+    from torchtrack.synth.c3d_motion import C3D_JOINT_MAP, joint_centres
+    from torchtrack.synth.retarget import retarget_positions
+
+    check_shape(markers, ("T", len(names), 3), "markers")
+    centres = joint_centres(C3D(list(names), markers.double().numpy(), float(fps), source),
+                            min_present=MIN_PRESENT)
+    cnames = sorted(centres)
+    pos = torch.from_numpy(np.stack([centres[k] for k in cnames], 1))
+    mapping = {ours: src for ours, src in C3D_JOINT_MAP.items() if all(s in cnames for s in src)}
+    ret = retarget_positions(Skeleton.from_urdf(), pos, cnames, mapping)
+    marker_set, angles = fit_marker_set(ret.skeleton, ret.angles.double(), markers.double(), names, rounds)
+    return ret.skeleton, marker_set, angles

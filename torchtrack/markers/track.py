@@ -1,0 +1,118 @@
+"""Marker-based tracking of a folder with ``calibration.toml`` and ``markers2d.npz`` (``torchtrack track --mode
+markers``): the subject from the first frames' triangulated markers, then the annealed particle filter frame by
+frame (:class:`~torchtrack.tracking.particles.MarkerAPF`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchtrack.cameras import load_calibration
+from torchtrack.checks import InputError
+from torchtrack.io.markers2d import load_markers2d
+from torchtrack.io.poses import Poses
+from torchtrack.markers.model import subject_from_markers
+from torchtrack.markers.triangulate import triangulate_candidates
+from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
+
+__all__ = ["MarkerTrack", "is_marker_folder", "track_markers"]
+
+log = logging.getLogger(__name__)
+
+#: The subject (bone lengths, marker offsets) is fitted on the triangulated markers of this many first seconds.
+FIT_SECONDS = 2.0
+#: ... or, where those do not place every joint centre (markers hidden from all but one camera), up to this many.
+MAX_FIT_SECONDS = 10.0
+
+
+def is_marker_folder(folder: str | Path) -> bool:
+    """A folder for marker mode: ``markers2d.npz`` and no video (``video/`` or ``frames/``)."""
+    folder = Path(folder)
+    return (folder / "markers2d.npz").is_file() and not (folder / "video").exists() and not (
+        folder / "frames").exists()
+
+
+@dataclass(frozen=True)
+class MarkerTrack:
+    """A marker track: the poses (with ``marker_names`` and ``markers3d``; ``extra``: ``particle_spread_m (T,)``)
+    and the wall-clock seconds it took."""
+
+    poses: Poses
+    seconds: float
+
+
+def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: int = 0, stop: int | None = None,
+                  seed: int = 0, progress: bool = True) -> MarkerTrack:
+    """Track the markers of ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)``.
+
+    Raises:
+        InputError: a missing or malformed file (named), cameras of the detections missing from the calibration,
+            too few frames, or first frames whose markers do not give the joint centres.
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    folder = Path(folder)
+    calib = folder / "calibration.toml"
+    if not calib.is_file():
+        raise InputError(f"{folder}: no calibration.toml")
+    rig = load_calibration(calib, warn_units=False).double()
+    det = load_markers2d(folder / "markers2d.npz")
+    missing = [n for n in det.camera_names if n not in rig.names]
+    if missing:
+        raise InputError(f"{folder / 'markers2d.npz'}: cameras {missing} are not in {calib} ({rig.names})")
+    rig = rig.subset(det.camera_names)  # the detections' camera order
+    T_all = len(det.frame_index)
+    stop = T_all if stop is None else min(int(stop), T_all)
+    if not 0 <= start < stop:
+        raise InputError(f"{folder}: frames [{start}, {stop}) hold nothing to track ({T_all} frames)")
+    uv = torch.from_numpy(det.uv[start:stop].astype(np.float64))  # (T, C, M, K, 2)
+    z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
+    T, _, M = z.shape[:3]
+    # the subject from the first seconds; where their markers do not give every joint centre, from more of them
+    for seconds in (FIT_SECONDS, MAX_FIT_SECONDS):
+        n_fit = min(T, max(2, round(seconds * det.fps)))
+        X, _ = triangulate_candidates(z[:n_fit], projection_matrices(rig))
+        enough = torch.isfinite(X).all(-1).sum(0) >= 2  # (M,)
+        keep = enough.nonzero()[:, 0]
+        names = [det.marker_names[i] for i in keep.tolist()]
+        try:
+            if len(names) < 3:
+                raise InputError(f"{folder}: fewer than 3 markers are seen by two cameras in the first {n_fit} "
+                                 "frames")
+            skel, mset, angles = subject_from_markers(X[:, keep], names, det.fps,
+                                                      source=f"{folder}, the first {n_fit} frames' markers")
+            break
+        except InputError:
+            if n_fit == T or seconds == MAX_FIT_SECONDS:
+                raise
+    if not bool(enough.all()):
+        log.warning("%s: markers %s are seen by two cameras in fewer than 2 of the first %d frames: not tracked",
+                    folder, [n for n, ok in zip(det.marker_names, enough.tolist()) if not ok], n_fit)
+    log.info("%s: subject fitted on %d frames: %d markers, %.2f m tall", folder, n_fit, len(names), skel.height())
+    apf = MarkerAPF(skel, mset, rig, config, torch.Generator().manual_seed(int(seed)))
+    apf.reset(angles[0])
+    zk = z[:, :, keep]
+    states, spread = [], []
+    for t in tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress):
+        states.append(apf.step(zk[t]))
+        spread.append(apf.spread)
+    A = torch.stack(states)
+    with torch.no_grad():
+        fk = skel.forward(A)
+        tracked = mset.positions(fk.bone_frames)
+    markers3d = torch.full((T, M, 3), math.nan, dtype=torch.float64)
+    markers3d[:, keep] = tracked
+    poses = Poses(fps=det.fps, frame_index=np.asarray(det.frame_index[start:stop]),
+                  joint_names=list(skel.output_names), joints3d=fk.output_points.float().numpy(),
+                  dof_names=list(skel.dof_names), angles=A.float().numpy(), valid=np.ones(T, dtype=bool),
+                  confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
+                  marker_names=list(det.marker_names), markers3d=markers3d.float().numpy(),
+                  extra={"particle_spread_m": np.asarray(spread, dtype=np.float32)})
+    return MarkerTrack(poses, time.perf_counter() - t0)

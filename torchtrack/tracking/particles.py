@@ -1,0 +1,274 @@
+"""Marker-based tracking by an annealed particle filter (Canton-Ferrer et al. 2010; Deutscher & Reid's annealing).
+
+Per frame: the particles (states of the skeleton) start from the last estimate; each of ``layers`` layers
+perturbs them by a truncated Gaussian inside the joint limits (its spread shrinking layer by layer), weighs them by
+``exp(-beta * cost)`` with ``beta`` set for a target survival rate, and resamples. The cost of a state is the
+symmetric epipolar distance between each model marker's projection in one view and the marker's detections in
+another (kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance`, the best of the candidates,
+capped at an outlier threshold), summed over markers and ordered pairs of views. The estimate is the weighted mean
+of the last layer. No I/O here; one frame is a few large tensor operations over the particles.
+
+Detections are compared in each camera's undistorted (pinhole) pixels, where the epipolar geometry holds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from kornia.geometry.epipolar import fundamental_from_projections, symmetrical_epipolar_distance
+from torch import nn
+
+from torchtrack.checks import InputError, check_shape
+from torchtrack.markers.model import MarkerSet
+from torchtrack.skeleton.model import Skeleton
+
+__all__ = ["APFConfig", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices", "pinhole_pixels",
+           "resample", "truncated_normal"]
+
+
+@dataclass(frozen=True)
+class APFConfig:
+    """The filter's settings.
+
+    Attributes:
+        particles: particles per layer. layers: annealing layers per frame (the paper's best: 5).
+        survival: the survival rate each layer's ``beta`` is set for (effective sample size / particles).
+        outlier_px: a marker's epipolar distance to a view's detections counts at most this much (pixels): a
+            detection farther off is another marker's or a false one.
+        root_m, root_rad, joint_rad: the first layer's perturbation (standard deviation) of the root's translation,
+            its rotation and every joint angle; ``shrink``: each later layer's, as a factor of the one before.
+    """
+
+    particles: int = 500
+    layers: int = 5
+    survival: float = 0.5
+    outlier_px: float = 20.0
+    root_m: float = 0.02
+    root_rad: float = 0.03
+    joint_rad: float = 0.05
+    shrink: float = 0.5
+    partitioned: bool = True
+    velocity: float = 0.8
+    polish_steps: int = 20
+
+    def __post_init__(self) -> None:
+        if self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1 or not self.outlier_px > 0:
+            raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), outlier_px > 0; got {self}")
+        if min(self.root_m, self.root_rad, self.joint_rad) < 0 or not 0 < self.shrink <= 1:
+            raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
+
+
+#: The limbs whose joints the filter resamples by their own markers: name prefixes of their DOFs and bones.
+LIMBS = (("l_shoulder", "l_elbow", "l_wrist", "l_upperarm", "l_forearm", "l_hand"),
+         ("r_shoulder", "r_elbow", "r_wrist", "r_upperarm", "r_forearm", "r_hand"),
+         ("l_hip", "l_knee", "l_ankle", "l_thigh", "l_shank", "l_foot"),
+         ("r_hip", "r_knee", "r_ankle", "r_thigh", "r_shank", "r_foot"))
+
+
+def _part(name: str) -> int:
+    """The body part of a DOF or bone name: 1 + its limb in ``LIMBS``, or 0 (root, trunk, head)."""
+    for g, prefixes in enumerate(LIMBS):
+        if name.startswith(prefixes):
+            return g + 1
+    return 0
+
+
+def pinhole_pixels(rig: nn.Module, uv: torch.Tensor) -> torch.Tensor:
+    """Distorted pixels ``(C, ..., N, 2)`` of each camera -> the same points in its undistorted pinhole image (the
+    camera's K on the undistorted normalized coordinates); NaN stays NaN."""
+    finite = torch.isfinite(uv).all(-1, keepdim=True)
+    _, d = rig.pixel_rays(torch.where(finite, uv, torch.zeros_like(uv)))  # (C, ..., N, 3) world directions
+    K, R = rig.K.to(d), rig.R_cam_world.to(d)
+    shape = d.shape
+    d_cam = torch.einsum("cij,cmj->cmi", R, d.reshape(shape[0], -1, 3))  # (C, *, 3)
+    pix = torch.einsum("cij,cmj->cmi", K, d_cam / d_cam[..., 2:3])[..., :2]
+    return torch.where(finite, pix.reshape(*shape[:-1], 2), torch.nan)
+
+
+def fundamental_matrices(rig: nn.Module) -> torch.Tensor:
+    """(C, C, 3, 3) ``F[i, j]`` with ``x_j^T F[i, j] x_i = 0`` for pinhole pixels ``x_i``, ``x_j`` of one point in
+    views i and j (kornia's convention; the diagonal is zero)."""
+    P = projection_matrices(rig)  # (C, 3, 4)
+    C = P.shape[0]
+    F = fundamental_from_projections(P[:, None].expand(C, C, 3, 4), P[None].expand(C, C, 3, 4))
+    return F * (1 - torch.eye(C, dtype=F.dtype, device=F.device))[..., None, None]
+
+
+def projection_matrices(rig: nn.Module) -> torch.Tensor:
+    """(C, 3, 4) each camera's pinhole projection ``K [R | t]`` (world points to undistorted pixels)."""
+    K, R, t = rig.K, rig.R_cam_world, rig.t_cam_world
+    return K @ torch.cat([R, t[..., None]], -1)
+
+
+def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
+                  outlier_px: float, per_marker: bool = False) -> torch.Tensor:
+    """The cost of each state's markers against one frame's detections.
+
+    Args:
+        points: (B, M, 3) the model markers of B states (world, m).
+        detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
+        P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
+        outlier_px: see :class:`APFConfig`.
+
+    Returns:
+        (B,) the sum over markers m and ordered pairs of views i != j of ``min(outlier_px^2, min_k d(z_mik,
+        y_mj))``, ``d`` the symmetric epipolar distance (sum of the two squared point-to-epiline distances, px^2)
+        between the candidate ``z_mik`` in view i and the marker's projection ``y_mj`` in view j; views i without
+        a candidate of the marker add nothing. ``per_marker``: (B, M), each marker's sum.
+    """
+    B, M, _ = points.shape
+    C, _, K, _ = detections.shape
+    h = torch.cat([points, torch.ones_like(points[..., :1])], -1)  # (B, M, 4)
+    y = torch.einsum("cij,bmj->bcmi", P.to(points), h)
+    y = y[..., :2] / y[..., 2:3]  # (B, C, M, 2) each view's projection
+    z = detections.to(points)
+    seen = torch.isfinite(z).all(-1)  # (C, M, K)
+    z = torch.nan_to_num(z)
+    # pts1: the candidates in view i, pts2: the projections in view j, for every (b, i, j) with M * K points
+    pts1 = z[None, :, None].expand(B, C, C, M, K, 2).reshape(B, C, C, M * K, 2)
+    pts2 = y[:, None, :, :, None].expand(B, C, C, M, K, 2).reshape(B, C, C, M * K, 2)
+    d = symmetrical_epipolar_distance(pts1, pts2, F.to(points)[None].expand(B, C, C, 3, 3))  # (B, C, C, M * K)
+    d = torch.where(seen.reshape(1, C, 1, M * K), d, math.inf).view(B, C, C, M, K).amin(-1)  # (B, i, j, M)
+    any_seen = seen.any(-1)[None, :, None, :]  # (1, i, 1, M)
+    off = ~torch.eye(C, dtype=torch.bool, device=points.device)[None, :, :, None]  # (1, i, j, 1)
+    cost = torch.where(any_seen & off, d.clamp(max=outlier_px ** 2).nan_to_num(outlier_px ** 2), 0.0)
+    return cost.sum((1, 2)) if per_marker else cost.sum((1, 2, 3))
+
+
+def annealing_beta(cost: torch.Tensor, survival: float, iterations: int = 50) -> float:
+    """The ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective sample size of ``survival`` times
+    the particles (bisection on log beta; the survival rate falls as beta grows)."""
+    c = (cost - cost.min()).double()
+    n = c.numel()
+
+    def rate(beta: float) -> float:
+        w = torch.exp(-beta * c)
+        return float(w.sum() ** 2 / (n * (w * w).sum()))
+
+    if float(c.max()) == 0.0:
+        return 0.0
+    lo, hi = -30.0, 30.0  # log beta bounds
+    for _ in range(iterations):
+        mid = 0.5 * (lo + hi)
+        if rate(math.exp(mid)) > survival:
+            lo = mid
+        else:
+            hi = mid
+    return math.exp(0.5 * (lo + hi))
+
+
+def resample(weights: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """(N,) indices drawn by systematic resampling from unnormalised ``weights (N,)`` (one uniform offset)."""
+    w = weights.double() / weights.double().sum()
+    N = w.numel()
+    u = (torch.rand(1, generator=generator, device=w.device, dtype=torch.float64)
+         + torch.arange(N, device=w.device, dtype=torch.float64)) / N
+    return torch.searchsorted(w.cumsum(0), u).clamp(max=N - 1)
+
+
+def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
+                     generator: torch.Generator) -> torch.Tensor:
+    """Samples of N(mean, std^2) truncated to [lower, upper], elementwise (``mean (..., D)``, the others
+    broadcasting), by the inverse CDF: exact, no rejection loop. ``std`` 0 gives ``mean`` clamped."""
+    dt = torch.float64
+    m, s = mean.to(dt), std.to(dt).expand_as(mean)
+    lo, hi = lower.to(dt).expand_as(mean), upper.to(dt).expand_as(mean)
+    safe = s > 0
+    s1 = torch.where(safe, s, 1.0)
+    a = torch.special.ndtr((lo - m) / s1)
+    b = torch.special.ndtr((hi - m) / s1)
+    u = a + (b - a) * torch.rand(mean.shape, generator=generator, device=mean.device, dtype=dt)
+    eps = torch.finfo(dt).tiny
+    x = m + s1 * torch.special.ndtri(u.clamp(eps, 1 - 1e-16))
+    x = torch.where(safe, x, m)
+    return torch.minimum(torch.maximum(x, lo), hi).to(mean.dtype)
+
+
+class MarkerAPF:
+    """The annealed particle filter of one subject.
+
+    Args:
+        skeleton: the subject's skeleton (its bone lengths). marker_set: its markers. rig: the cameras.
+        config: the filter's settings. generator: every random draw's source.
+    """
+
+    def __init__(self, skeleton: Skeleton, marker_set: MarkerSet, rig: nn.Module, config: APFConfig = APFConfig(),
+                 generator: torch.Generator | None = None) -> None:
+        self.skeleton, self.marker_set, self.rig, self.config = skeleton, marker_set, rig, config
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.P = projection_matrices(rig).double()
+        self.F = fundamental_matrices(rig.double() if rig.K.dtype != torch.float64 else rig).double()
+        D = skeleton.num_dofs
+        std = torch.full((D,), config.joint_rad, dtype=torch.float64)
+        std[:3], std[3:6] = config.root_m, config.root_rad
+        self.std = std
+        self.lower, self.upper = skeleton.lower.double(), skeleton.upper.double()
+        # the body's parts: each limb's joints and the markers on its bones (the trunk, root and head: part 0)
+        self.dof_part = torch.tensor([_part(n) for n in skeleton.dof_names])
+        self.marker_part = torch.tensor([_part(skeleton.bone_names[b]) for b in marker_set.bone.tolist()])
+        self.state: torch.Tensor | None = None
+        self.spread: float = math.nan
+
+    def reset(self, angles: torch.Tensor) -> None:
+        """Start from the state ``angles (D,)``."""
+        check_shape(angles, (self.skeleton.num_dofs,), "angles")
+        self.state = angles.detach().double().clone()
+        self.previous = self.state.clone()
+
+    def _polish(self, angles: torch.Tensor, detections: torch.Tensor) -> torch.Tensor:
+        """A few gradient steps (L-BFGS) of the same cost from the filter's estimate, within the joint limits."""
+        theta = angles.detach().clone().requires_grad_(True)
+        opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=self.config.polish_steps, line_search_fn="strong_wolfe")
+
+        def closure() -> torch.Tensor:
+            opt.zero_grad()
+            cost = epipolar_cost(self.markers(theta[None]), detections, self.P, self.F, self.config.outlier_px)[0]
+            cost.backward()
+            return cost
+
+        with torch.enable_grad():
+            opt.step(closure)
+        return self.skeleton.clamp(theta.detach())
+
+    def markers(self, angles: torch.Tensor) -> torch.Tensor:
+        """(B, D) states -> (B, M, 3) their model markers."""
+        return self.marker_set.positions(self.skeleton.forward(angles.double()).bone_frames)
+
+    def step(self, detections: torch.Tensor) -> torch.Tensor:
+        """One frame: ``detections (C, M, K, 2)`` in pinhole pixels (:func:`pinhole_pixels`) -> the estimate
+        ``(D,)``; :attr:`spread` is the last layer's weighted RMS distance of the particles' markers from the
+        estimate's (m), which grows when the track is lost."""
+        if self.state is None:
+            raise InputError("MarkerAPF.step: no state yet; call reset() with a start pose")
+        cfg, gen = self.config, self.generator
+        predicted = self.skeleton.clamp(self.state + cfg.velocity * (self.state - self.previous))
+        x = predicted[None].expand(cfg.particles, -1)
+        std = self.std
+        G = len(LIMBS) + 1
+        for _ in range(cfg.layers):
+            x = truncated_normal(x, std, self.lower, self.upper, gen)
+            per = epipolar_cost(self.markers(x), detections, self.P, self.F, cfg.outlier_px, per_marker=True)
+            parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
+            cost = parts.sum(1)
+            beta = annealing_beta(cost, cfg.survival)
+            w = torch.exp(-beta * (cost - cost.min()))
+            keep = x
+            x = x[resample(w, gen)].clone()
+            if cfg.partitioned:  # each limb's joints resampled by the limb's own markers (the trunk's as drawn)
+                for g in range(1, G):
+                    c = parts[:, g]
+                    wg = torch.exp(-annealing_beta(c, cfg.survival) * (c - c.min()))
+                    dofs = self.dof_part == g
+                    x[:, dofs] = keep[resample(wg, gen)][:, dofs]
+            std = std * cfg.shrink
+        w = w / w.sum()
+        estimate = (w[:, None] * keep).sum(0)
+        if cfg.polish_steps > 0:
+            estimate = self._polish(estimate, detections)
+        self.previous, self.state = self.state, estimate
+        with torch.no_grad():
+            pts = self.markers(torch.cat([self.state[None], keep]))
+        self.spread = float((w * ((pts[1:] - pts[:1]) ** 2).sum(-1).mean(-1)).sum().sqrt())
+        return self.state.clone()
