@@ -214,3 +214,18 @@ def test_formats_document_lists_every_key_written(demo_run, tmp_path):
     for key, value in meta.items():  # top-level keys and tables
         key = f"[{key}]" if isinstance(value, dict) else key
         assert key in documented_keys("Sequence folder"), f"meta.toml key {key} missing from docs/formats.md"
+
+
+def test_readme_marker_commands_run_as_printed(tmp_path):
+    """The marker section's commands, the capture 1 s long."""
+    if not SHARED_DATA.exists():
+        pytest.skip(f"real data not available: {SHARED_DATA}")
+    lines = shell_lines(readme_section("Track markers"))
+    assert [ln.split()[1] for ln in lines] == ["synth", "track", "eval"]
+    out = tmp_path / "out"
+    res = None
+    for line in lines:
+        line = line.replace(".venv/bin/torchtrack", TORCHTRACK)
+        line = re.sub(r"(?<=[ \"])out/", f"{out}/", line)
+        res = run(line + (" --duration 1.0" if " synth " in line else ""))
+    assert "MMTA@50mm" in res.stdout and "MMTP" in res.stdout

@@ -236,3 +236,36 @@ def test_triangulation_ignores_false_candidates():
     assert torch.isnan(got[:, 0]).all() and (views[:, 0] == 0).all()
     assert float((got[:, 1:] - X[:, 1:]).norm(dim=-1).max()) < 0.01
     assert (views[:, 1] == C - 1).all() and (views[:, 2:] == C).all()
+
+
+def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
+    """A filter whose estimate is a body turned round 1 m away: the lost test fires, and the restart from the
+    frame's triangulated markers lands on the body (the markers within 3 cm of the capture's)."""
+    from torchtrack.cli import main
+    from torchtrack.io.markers2d import load_markers2d
+    from torchtrack.io.poses import load_poses
+    from torchtrack.markers.model import subject_from_markers
+    from torchtrack.markers.track import _lost, _restart
+    from torchtrack.markers.triangulate import triangulate_candidates
+    from torchtrack.tracking.particles import MarkerAPF
+
+    cap = tmp_path / "cap"
+    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+                 "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
+    rig = load_calibration(cap / "calibration.toml", warn_units=False).double()
+    det, gt = load_markers2d(cap / "markers2d.npz"), load_poses(cap / "gt.npz")
+    m3 = torch.from_numpy(gt.markers3d.astype(np.float64))
+    skel, mset, angles = subject_from_markers(m3, gt.marker_names, gt.fps)
+    apf = MarkerAPF(skel, mset, rig)
+    t = 20
+    z = pinhole_pixels(rig, torch.from_numpy(det.uv[t].astype(np.float64)))
+    X, _ = triangulate_candidates(z[None], projection_matrices(rig))
+    assert not _lost(apf, angles[t], X[0])
+    wrong = angles[t].clone()
+    wrong[0] += 1.0
+    wrong[3] += math.pi
+    assert _lost(apf, wrong, X[0])
+    found = _restart(apf, wrong, X[0], angles[0])
+    err = (apf.markers(found[None])[0] - m3[t]).norm(dim=-1)
+    assert float(err.mean()) < 0.03

@@ -17,7 +17,7 @@ from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
 from torchtrack.io.markers2d import load_markers2d
 from torchtrack.io.poses import Poses
-from torchtrack.markers.model import subject_from_markers
+from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
 
@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 FIT_SECONDS = 2.0
 #: ... or, where those do not place every joint centre (markers hidden from all but one camera), up to this many.
 MAX_FIT_SECONDS = 10.0
+#: The track is lost where more than LOST_SHARE of the markers two views triangulate (at least LOST_MIN_MARKERS)
+#: lie farther than LOST_M from the estimate's: a few markers off is a limb's error, most of them the body's.
+LOST_M, LOST_SHARE, LOST_MIN_MARKERS = 0.1, 0.3, 6
 
 
 def is_marker_folder(folder: str | Path) -> bool:
@@ -99,10 +102,20 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     apf = MarkerAPF(skel, mset, rig, config, torch.Generator().manual_seed(int(seed)))
     apf.reset(angles[0])
     zk = z[:, :, keep]
-    states, spread = [], []
-    for t in tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress):
-        states.append(apf.step(zk[t]))
+    P = projection_matrices(rig)
+    states, spread, restarted = [], [], []
+    bar = tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress)
+    for t in bar:
+        est = apf.step(zk[t])
+        X, _ = triangulate_candidates(zk[t][None], P)
+        again = _lost(apf, est, X[0])
+        if again:  # the filter lost the body: start it again from this frame's triangulated markers
+            est = _restart(apf, est, X[0], angles[0])
+            apf.reset(est)
+        states.append(est)
         spread.append(apf.spread)
+        restarted.append(again)
+        bar.set_postfix(restarts=sum(restarted))
     A = torch.stack(states)
     with torch.no_grad():
         fk = skel.forward(A)
@@ -114,5 +127,35 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
                   dof_names=list(skel.dof_names), angles=A.float().numpy(), valid=np.ones(T, dtype=bool),
                   confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
                   marker_names=list(det.marker_names), markers3d=markers3d.float().numpy(),
-                  extra={"particle_spread_m": np.asarray(spread, dtype=np.float32)})
+                  extra={"particle_spread_m": np.asarray(spread, dtype=np.float32),
+                         "reinitialised": np.asarray(restarted, dtype=bool)})
     return MarkerTrack(poses, time.perf_counter() - t0)
+
+
+def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> bool:
+    """Whether the estimate ``angles (D,)`` has lost the body: more than ``LOST_SHARE`` of the markers that two
+    views triangulate this frame (``X (M, 3)``, NaN where not; at least ``LOST_MIN_MARKERS``) lie farther than
+    ``LOST_M`` from the estimate's. The particles' spread, the paper's test, barely grows when the whole cloud
+    follows a wrong pose (docs/results.md, "Marker-based capture")."""
+    seen = torch.isfinite(X).all(-1)
+    if int(seen.sum()) < LOST_MIN_MARKERS:
+        return False
+    d = (apf.markers(angles[None])[0][seen] - X[seen]).norm(dim=-1)
+    return float((d > LOST_M).double().mean()) > LOST_SHARE
+
+
+def _restart(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
+    """The pose whose markers best fit the triangulated ``X (M, 3)``: inverse kinematics from the lost estimate and
+    from the first frame's pose moved onto the markers at four headings, all at once; the least error kept."""
+    seen = torch.isfinite(X).all(-1)
+    centre = X[seen].mean(0)
+    starts = [angles.double()]
+    for k in range(4):
+        a = first.double().clone()
+        a[:2] = centre[:2]
+        a[3] = first[3] + k * math.pi / 2
+        starts.append(a)
+    S = torch.stack(starts)
+    fit = fit_poses_to_markers(apf.skeleton, apf.marker_set, S, X[None].expand(S.shape[0], -1, -1))
+    err = (apf.markers(fit) - X).norm(dim=-1)[:, seen].mean(-1)
+    return fit[int(err.argmin())]
