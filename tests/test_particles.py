@@ -212,6 +212,11 @@ def test_track_markers_follows_a_simulated_capture(tmp_path, capsys):
     mmta = float(text.split("MMTA@50mm")[1].split("%")[0])
     mmtp = float(text.split("MMTP")[1].split()[0])
     assert mmta >= 95.0 and mmtp <= 15.0, text
+    from test_docs import documented_keys
+
+    for f in (out / "poses.npz", cap / "gt.npz"):  # every key the marker mode writes is in docs/formats.md
+        with np.load(f) as z:
+            assert set(z.files) <= documented_keys("`poses.npz`"), (f, z.files)
 
 
 def test_triangulation_ignores_false_candidates():
