@@ -12,6 +12,7 @@ table, writes OUT/sweep.png (one panel per parameter) and the curves to TensorBo
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 from dataclasses import replace
@@ -23,6 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from torchtrack.cameras import load_calibration, save_calibration  # noqa: E402
+from torchtrack.checks import InputError  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.markers2d import save_markers2d  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
@@ -43,13 +45,18 @@ SWEEPS = {"p_miss": (0.0, 0.2, 0.4, 0.6), "false_rate": (0.0, 0.5, 1.0, 2.0), "s
 
 def point(capture: Path, rig, detector: DetectorModel, apf: APFConfig, fps: float, duration: float | None
           ) -> tuple[float, float]:
-    """(MMTA, MMTP mm) of one setting."""
+    """(MMTA, MMTP mm) of one setting; NaN where the subject cannot be fitted from the detections (the reason is
+    printed)."""
     det, truth = simulated_capture(capture, rig, fps, duration, detector, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         save_calibration(rig, folder / "calibration.toml")
         save_markers2d(det, folder / "markers2d.npz")
-        result = track_markers(folder, apf, progress=False)
+        try:
+            result = track_markers(folder, apf, progress=False)
+        except InputError as exc:
+            print(f"  no track: {str(exc).split(': ', 1)[-1][:150]}")
+            return math.nan, math.nan
     m = evaluate(result.poses, truth).markers
     return m.mmta, m.mmtp_mm
 
@@ -87,16 +94,17 @@ def main() -> int:
                 mmta.append(100 * a)
                 mmtp.append(p)
                 print(f"{name:<11} {v:>7g} {100 * a:>7.2f}% {p:>8.1f}", flush=True)
-                tb.scalars(i, **{f"sweep/{name}/value": float(v), f"sweep/{name}/mmta_percent": 100 * a,
-                                 f"sweep/{name}/mmtp_mm": p})
+                if math.isfinite(a):
+                    tb.scalars(i, **{f"sweep/{name}/value": float(v), f"sweep/{name}/mmta_percent": 100 * a,
+                                     f"sweep/{name}/mmtp_mm": p})
             ax.plot(values, mmta, "o-", color="tab:blue")
             ax.set_xlabel(name)
             ax.set_ylabel("MMTA@50 mm (%)", color="tab:blue")
-            ax.set_ylim(min(50.0, min(mmta) - 5), 100.5)
+            ax.set_ylim(min([50.0] + [v - 5 for v in mmta if math.isfinite(v)]), 100.5)
             twin = ax.twinx()
             twin.plot(values, mmtp, "s--", color="tab:red")
             twin.set_ylabel("MMTP (mm)", color="tab:red")
-            twin.set_ylim(0, max(25.0, max(mmtp) + 5))
+            twin.set_ylim(0, max([25.0] + [v + 5 for v in mmtp if math.isfinite(v)]))
     fig.suptitle(f"{args.capture.name}, {args.duration:g} s at {args.fps:g} frames/s, the Pose2Sim demo's rig")
     fig.tight_layout()
     fig.savefig(out / "sweep.png", dpi=110)

@@ -73,6 +73,26 @@ def test_epipolar_cost_matches_a_plain_loop():
     assert float(exact[0]) < 1e-12
 
 
+def test_epipolar_cost_is_kornias_symmetric_distance():
+    from kornia.geometry.epipolar import symmetrical_epipolar_distance
+
+    rig = real_rig()
+    gen = torch.Generator().manual_seed(8)
+    C = rig.num_cameras
+    z = torch.tensor([[[[812.0, 640.0]]]], dtype=torch.float64).expand(C, 1, 1, 2).clone()
+    z[1:] = math.nan  # one detection, in view 0
+    points = torch.rand(6, 1, 3, generator=gen, dtype=torch.float64) + torch.tensor([-1.5, -0.5, 0.5])
+    P, F = projection_matrices(rig), fundamental_matrices(rig)
+    got = epipolar_cost(points, z, P, F, outlier_px=1e6)
+    h = torch.cat([points[:, 0], torch.ones(6, 1, dtype=torch.float64)], -1)
+    want = torch.zeros(6, dtype=torch.float64)
+    for j in range(1, C):
+        y = h @ P[j].T
+        y = y[:, :2] / y[:, 2:]
+        want += symmetrical_epipolar_distance(z[0, 0].expand(6, 2)[:, None], y[:, None], F[0, j])[:, 0]
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+
+
 def test_pinhole_pixels_undo_the_lens():
     rig = real_rig()
     pts = torch.tensor([[-1.0, 0.0, 1.0], [-0.5, 0.3, 0.2]], dtype=torch.float64)
@@ -274,3 +294,24 @@ def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
     found = _restart(apf, wrong, X[0], angles[0])
     err = (apf.markers(found[None])[0] - m3[t]).norm(dim=-1)
     assert float(err.mean()) < 0.03
+
+
+def test_frames_without_detections_are_invalid_and_the_track_goes_on(tmp_path):
+    """Frames whose detections are all gone (NaN): marked invalid, the filter holds and tracks the frames after."""
+    from torchtrack.cli import main
+    from torchtrack.io.markers2d import load_markers2d, save_markers2d
+    from torchtrack.io.poses import load_poses
+    from torchtrack.markers.track import track_markers
+
+    cap = tmp_path / "cap"
+    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+                 "--duration", "1.2"]) == 0
+    det = load_markers2d(cap / "markers2d.npz")
+    det.uv[30:32] = np.nan
+    save_markers2d(det, cap / "markers2d.npz")
+    poses = track_markers(cap, progress=False).poses
+    gt = load_poses(cap / "gt.npz")
+    assert poses.valid.tolist() == [t not in (30, 31) for t in range(len(poses.valid))]
+    err = np.linalg.norm(poses.markers3d[33:] - gt.markers3d[33:], axis=-1)
+    assert float(np.nanmean(err)) < 0.03

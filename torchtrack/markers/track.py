@@ -32,6 +32,8 @@ MAX_FIT_SECONDS = 10.0
 #: The track is lost where more than LOST_SHARE of the markers two views triangulate (at least LOST_MIN_MARKERS)
 #: lie farther than LOST_M from the estimate's: a few markers off is a limb's error, most of them the body's.
 LOST_M, LOST_SHARE, LOST_MIN_MARKERS = 0.1, 0.3, 6
+#: A frame with fewer markers detected in any view is not tracked (marked invalid; the filter holds its state).
+MIN_DETECTED = 3
 
 
 def is_marker_folder(folder: str | Path) -> bool:
@@ -103,9 +105,17 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     apf.reset(angles[0])
     zk = z[:, :, keep]
     P = projection_matrices(rig)
-    states, spread, restarted = [], [], []
+    states, spread, restarted, valid = [], [], [], []
+    detected = torch.isfinite(zk).all(-1).any(-1).any(1).sum(-1)  # (T,) markers found in some view
     bar = tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress)
     for t in bar:
+        if int(detected[t]) < MIN_DETECTED:  # nothing to weigh the particles by: held, marked invalid
+            apf.hold()
+            states.append(apf.state.clone())
+            spread.append(math.nan)
+            restarted.append(False)
+            valid.append(False)
+            continue
         est = apf.step(zk[t])
         X, _ = triangulate_candidates(zk[t][None], P)
         again = _lost(apf, est, X[0])
@@ -115,6 +125,7 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
         states.append(est)
         spread.append(apf.spread)
         restarted.append(again)
+        valid.append(True)
         bar.set_postfix(restarts=sum(restarted))
     A = torch.stack(states)
     with torch.no_grad():
@@ -124,7 +135,7 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     markers3d[:, keep] = tracked
     poses = Poses(fps=det.fps, frame_index=np.asarray(det.frame_index[start:stop]),
                   joint_names=list(skel.output_names), joints3d=fk.output_points.float().numpy(),
-                  dof_names=list(skel.dof_names), angles=A.float().numpy(), valid=np.ones(T, dtype=bool),
+                  dof_names=list(skel.dof_names), angles=A.float().numpy(), valid=np.asarray(valid, dtype=bool),
                   confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
                   marker_names=list(det.marker_names), markers3d=markers3d.float().numpy(),
                   extra={"particle_spread_m": np.asarray(spread, dtype=np.float32),

@@ -4,8 +4,8 @@ Per frame: the particles (states of the skeleton) start from the last estimate; 
 perturbs them by a truncated Gaussian inside the joint limits (its spread shrinking layer by layer), weighs them by
 ``exp(-beta * cost)`` with ``beta`` set for a target survival rate, and resamples. The cost of a state is the
 symmetric epipolar distance between each model marker's projection in one view and the marker's detections in
-another (kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance`, the best of the candidates,
-capped at an outlier threshold), summed over markers and ordered pairs of views. The estimate is the weighted mean
+another (the best of the candidates, capped at an outlier threshold; kornia's fundamental matrices), summed over
+markers and ordered pairs of views. The estimate is the weighted mean
 of the last layer. No I/O here; one frame is a few large tensor operations over the particles.
 
 Detections are compared in each camera's undistorted (pinhole) pixels, where the epipolar geometry holds.
@@ -17,14 +17,14 @@ import math
 from dataclasses import dataclass
 
 import torch
-from kornia.geometry.epipolar import fundamental_from_projections, symmetrical_epipolar_distance
+from kornia.geometry.epipolar import fundamental_from_projections
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
 from torchtrack.markers.model import MarkerSet
 from torchtrack.skeleton.model import Skeleton
 
-__all__ = ["APFConfig", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices", "pinhole_pixels",
+__all__ = ["APFConfig", "EpipolarCost", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices", "pinhole_pixels",
            "resample", "truncated_normal"]
 
 
@@ -102,6 +102,49 @@ def projection_matrices(rig: nn.Module) -> torch.Tensor:
     return K @ torch.cat([R, t[..., None]], -1)
 
 
+class EpipolarCost:
+    """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), with the detections'
+    epipolar lines computed once for the frame: each layer of each frame then costs two small contractions per
+    view pair. Hand-written over kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the
+    same distance, tested against it) because that one recomputes every candidate's line for every state.
+
+    Args:
+        detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
+        P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
+        outlier_px: see :class:`APFConfig`.
+    """
+
+    def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor, outlier_px: float) -> None:
+        C, M, K, _ = detections.shape
+        self.P, self.cap = P, outlier_px ** 2
+        seen = torch.isfinite(detections).all(-1)  # (C, M, K)
+        z = torch.cat([torch.nan_to_num(detections), torch.ones_like(detections[..., :1])], -1)  # (C, M, K, 3)
+        self.FT = F.transpose(-1, -2).to(z)  # (i, j, 3, 3): F[i, j]^T
+        self.lines = torch.einsum("ijcd,imkd->ijmkc", F.to(z), z)  # (i, j, M, K, 3): z_ik's epiline in view j
+        norm = self.lines[..., :2].square().sum(-1)  # (i, j, M, K)
+        diagonal = torch.eye(C, dtype=torch.bool, device=z.device)[:, :, None, None]
+        seen = seen & ((norm > 0) | diagonal).all(1)  # a candidate with no epiline (at an epipole) is none
+        # finite where unseen too: those are masked after, and an infinite factor would make NaN gradients
+        self.inv_norm = torch.where(seen[:, None], 1.0 / norm.clamp(min=1e-30), 0.0)
+        self.z = z
+        off = ~torch.eye(C, dtype=torch.bool, device=z.device)[:, :, None]  # (i, j, 1)
+        self.pair = off & seen.any(-1)[:, None, :]  # (i, j, M): view i has a candidate of marker m
+        self.seen = seen
+
+    def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``."""
+        h = torch.cat([points, torch.ones_like(points[..., :1])], -1)
+        y = torch.einsum("jcd,bmd->bjmc", self.P.to(points), h)
+        y = y / y[..., 2:3]  # (B, j, M, 3) each view's projection, w = 1
+        num = torch.einsum("bjmc,ijmkc->bijmk", y, self.lines.to(y))  # y_j . (F z_ik) = y^T F z
+        back = torch.einsum("ijdc,bjmc->bijmd", self.FT.to(y), y)  # F^T y_j: y_j's epiline in view i
+        inv_back = 1.0 / back[..., :2].square().sum(-1).clamp(min=1e-30)  # (B, i, j, M)
+        d = num.square() * (self.inv_norm.to(y)[None] + inv_back[..., None])  # (B, i, j, M, K)
+        d = torch.where(self.seen[:, None][None], d, math.inf).amin(-1).clamp(max=self.cap)  # (B, i, j, M)
+        cost = torch.where(self.pair[None], d, 0.0)
+        return cost.sum((1, 2)) if per_marker else cost.sum((1, 2, 3))
+
+
 def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
                   outlier_px: float, per_marker: bool = False) -> torch.Tensor:
     """The cost of each state's markers against one frame's detections.
@@ -118,23 +161,7 @@ def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tenso
         between the candidate ``z_mik`` in view i and the marker's projection ``y_mj`` in view j; views i without
         a candidate of the marker add nothing. ``per_marker``: (B, M), each marker's sum.
     """
-    B, M, _ = points.shape
-    C, _, K, _ = detections.shape
-    h = torch.cat([points, torch.ones_like(points[..., :1])], -1)  # (B, M, 4)
-    y = torch.einsum("cij,bmj->bcmi", P.to(points), h)
-    y = y[..., :2] / y[..., 2:3]  # (B, C, M, 2) each view's projection
-    z = detections.to(points)
-    seen = torch.isfinite(z).all(-1)  # (C, M, K)
-    z = torch.nan_to_num(z)
-    # pts1: the candidates in view i, pts2: the projections in view j, for every (b, i, j) with M * K points
-    pts1 = z[None, :, None].expand(B, C, C, M, K, 2).reshape(B, C, C, M * K, 2)
-    pts2 = y[:, None, :, :, None].expand(B, C, C, M, K, 2).reshape(B, C, C, M * K, 2)
-    d = symmetrical_epipolar_distance(pts1, pts2, F.to(points)[None].expand(B, C, C, 3, 3))  # (B, C, C, M * K)
-    d = torch.where(seen.reshape(1, C, 1, M * K), d, math.inf).view(B, C, C, M, K).amin(-1)  # (B, i, j, M)
-    any_seen = seen.any(-1)[None, :, None, :]  # (1, i, 1, M)
-    off = ~torch.eye(C, dtype=torch.bool, device=points.device)[None, :, :, None]  # (1, i, j, 1)
-    cost = torch.where(any_seen & off, d.clamp(max=outlier_px ** 2).nan_to_num(outlier_px ** 2), 0.0)
-    return cost.sum((1, 2)) if per_marker else cost.sum((1, 2, 3))
+    return EpipolarCost(detections.to(points), P, F, outlier_px)(points, per_marker)
 
 
 def annealing_beta(cost: torch.Tensor, survival: float, iterations: int = 50) -> float:
@@ -217,20 +244,25 @@ class MarkerAPF:
         self.state = angles.detach().double().clone()
         self.previous = self.state.clone()
 
-    def _polish(self, angles: torch.Tensor, detections: torch.Tensor) -> torch.Tensor:
+    def _polish(self, angles: torch.Tensor, score: EpipolarCost) -> torch.Tensor:
         """A few gradient steps (L-BFGS) of the same cost from the filter's estimate, within the joint limits."""
         theta = angles.detach().clone().requires_grad_(True)
         opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=self.config.polish_steps, line_search_fn="strong_wolfe")
 
         def closure() -> torch.Tensor:
             opt.zero_grad()
-            cost = epipolar_cost(self.markers(theta[None]), detections, self.P, self.F, self.config.outlier_px)[0]
+            cost = score(self.markers(theta[None]))[0]
             cost.backward()
             return cost
 
         with torch.enable_grad():
             opt.step(closure)
         return self.skeleton.clamp(theta.detach())
+
+    def hold(self) -> None:
+        """A frame without detections: the state stays, and the next frame predicts without velocity."""
+        if self.state is not None:
+            self.previous = self.state.clone()
 
     def markers(self, angles: torch.Tensor) -> torch.Tensor:
         """(B, D) states -> (B, M, 3) their model markers."""
@@ -247,9 +279,10 @@ class MarkerAPF:
         x = predicted[None].expand(cfg.particles, -1)
         std = self.std
         G = len(LIMBS) + 1
+        score = EpipolarCost(detections.to(self.P), self.P, self.F, cfg.outlier_px)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, self.lower, self.upper, gen)
-            per = epipolar_cost(self.markers(x), detections, self.P, self.F, cfg.outlier_px, per_marker=True)
+            per = score(self.markers(x), per_marker=True)
             parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
             cost = parts.sum(1)
             beta = annealing_beta(cost, cfg.survival)
@@ -266,7 +299,7 @@ class MarkerAPF:
         w = w / w.sum()
         estimate = (w[:, None] * keep).sum(0)
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, detections)
+            estimate = self._polish(estimate, score)
         self.previous, self.state = self.state, estimate
         with torch.no_grad():
             pts = self.markers(torch.cat([self.state[None], keep]))

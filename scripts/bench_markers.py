@@ -1,0 +1,79 @@
+"""Frames per second of the marker tracker's annealed particle filter (one frame: its layers and the polish).
+
+A simulated Plug-in-Gait capture in the real 4-camera rig of the Pose2Sim demo (p_miss 0.2, 0.1 false detections,
+sigma 2 px); the subject fitted from its detections; then the filter timed over frames at each particles x layers
+setting (PARSEC bodytrack runs 4000 x 5), same run. The lost-track test of `torchtrack track` is not included.
+
+    .venv/bin/python scripts/bench_markers.py [--frames 30] [--settings 1000x5 4000x5] [--device cpu] [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from torchtrack.cameras import load_calibration  # noqa: E402
+from torchtrack.markers.capture import simulated_capture  # noqa: E402
+from torchtrack.markers.model import subject_from_markers  # noqa: E402
+from torchtrack.markers.simulate import DetectorModel  # noqa: E402
+from torchtrack.markers.triangulate import triangulate_candidates  # noqa: E402
+from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices  # noqa: E402
+
+DATA = REPO.parent / "shared" / "data"
+CAPTURE = DATA / "mocap" / "btk" / "c3d" / "PiG_Motion-FlatFoot-Full.c3d"
+RIG = DATA / "pose2sim_demo" / "calibration" / "Calib_qualisys_pose2sim.toml"
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=30, help="frames timed per setting (default: 30)")
+    ap.add_argument("--settings", nargs="+", default=["1000x5", "4000x5"], metavar="PxL",
+                    help="particles x layers (default: 1000x5 4000x5)")
+    ap.add_argument("--polish", type=int, nargs="+", default=[20, 0], metavar="N",
+                    help="the L-BFGS polish's steps, each setting timed with each (default: 20 0)")
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default: 1, as `track`)")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    dev = torch.device(args.device)
+    rig = load_calibration(RIG, warn_units=False).double()
+    det, _ = simulated_capture(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0,
+                               DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=0)
+    uv = torch.from_numpy(det.uv.astype("float64"))
+    z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)  # (T, C, M, K, 2)
+    X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
+    skel, mset, angles = subject_from_markers(X, det.marker_names, det.fps)
+    rig_d, skel_d = rig.to(dev), skel.to(dev)
+    mset_d = replace(mset, bone=mset.bone.to(dev), offset=mset.offset.to(dev))
+    zd = z.to(dev)
+    print(f"{'particles x layers':<19} {'polish':>6} {'frames/s':>9} {'ms/frame':>9}   ({args.device}, "
+          f"{args.threads} thread(s), {len(det.marker_names)} markers, {rig.num_cameras} cameras)")
+    for setting in args.settings:
+        P, L = (int(v) for v in setting.lower().split("x"))
+        for polish in args.polish:
+            cfg = APFConfig(particles=P, layers=L, polish_steps=polish)
+            apf = MarkerAPF(skel_d, mset_d, rig_d, cfg, torch.Generator(device=dev).manual_seed(0))
+            apf.reset(angles[59].to(dev))
+            apf.step(zd[60])  # warm-up
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            for t in range(61, 61 + args.frames):
+                apf.step(zd[t])
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            dt = (time.perf_counter() - t0) / args.frames
+            print(f"{setting:<19} {polish:>6} {1 / dt:>9.1f} {1e3 * dt:>9.1f}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
