@@ -24,8 +24,8 @@ from torchtrack.checks import InputError, check_shape
 from torchtrack.markers.model import MarkerSet
 from torchtrack.skeleton.model import Skeleton
 
-__all__ = ["APFConfig", "EpipolarCost", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices", "pinhole_pixels",
-           "resample", "truncated_normal"]
+__all__ = ["APFConfig", "EpipolarCost", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices",
+           "pinhole_pixels", "projection_matrices", "resample", "truncated_normal"]
 
 
 @dataclass(frozen=True)
