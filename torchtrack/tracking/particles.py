@@ -89,8 +89,8 @@ def pinhole_pixels(rig: nn.Module, uv: torch.Tensor) -> torch.Tensor:
 
 def fundamental_matrices(rig: nn.Module) -> torch.Tensor:
     """(C, C, 3, 3) ``F[i, j]`` with ``x_j^T F[i, j] x_i = 0`` for pinhole pixels ``x_i``, ``x_j`` of one point in
-    views i and j (kornia's convention; the diagonal is zero)."""
-    P = projection_matrices(rig)  # (C, 3, 4)
+    views i and j (kornia's convention; the diagonal is zero), in float64."""
+    P = projection_matrices(rig).double()  # (C, 3, 4)
     C = P.shape[0]
     F = fundamental_from_projections(P[:, None].expand(C, C, 3, 4), P[None].expand(C, C, 3, 4))
     return F * (1 - torch.eye(C, dtype=F.dtype, device=F.device))[..., None, None]
@@ -226,15 +226,15 @@ class MarkerAPF:
         self.skeleton, self.marker_set, self.rig, self.config = skeleton, marker_set, rig, config
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
         self.P = projection_matrices(rig).double()
-        self.F = fundamental_matrices(rig.double() if rig.K.dtype != torch.float64 else rig).double()
-        D = skeleton.num_dofs
-        std = torch.full((D,), config.joint_rad, dtype=torch.float64)
+        self.F = fundamental_matrices(rig)
+        D, dev = skeleton.num_dofs, skeleton.lower.device  # everything on the skeleton's device
+        std = torch.full((D,), config.joint_rad, dtype=torch.float64, device=dev)
         std[:3], std[3:6] = config.root_m, config.root_rad
         self.std = std
         self.lower, self.upper = skeleton.lower.double(), skeleton.upper.double()
         # the body's parts: each limb's joints and the markers on its bones (the trunk, root and head: part 0)
-        self.dof_part = torch.tensor([_part(n) for n in skeleton.dof_names])
-        self.marker_part = torch.tensor([_part(skeleton.bone_names[b]) for b in marker_set.bone.tolist()])
+        self.dof_part = torch.tensor([_part(n) for n in skeleton.dof_names], device=dev)
+        self.marker_part = torch.tensor([_part(skeleton.bone_names[b]) for b in marker_set.bone.tolist()], device=dev)
         self.state: torch.Tensor | None = None
         self.spread: float = math.nan
 
