@@ -271,7 +271,8 @@ class MarkerAPF:
     def step(self, detections: torch.Tensor) -> torch.Tensor:
         """One frame: ``detections (C, M, K, 2)`` in pinhole pixels (:func:`pinhole_pixels`) -> the estimate
         ``(D,)``; :attr:`spread` is the last layer's weighted RMS distance of the particles' markers from the
-        estimate's (m), which grows when the track is lost."""
+        estimate's (m), the paper's lost-track signal (it stays small where the whole cloud follows a wrong pose:
+        :mod:`torchtrack.markers.track` tests the estimate against the triangulated markers instead)."""
         if self.state is None:
             raise InputError("MarkerAPF.step: no state yet; call reset() with a start pose")
         cfg, gen = self.config, self.generator
