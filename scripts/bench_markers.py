@@ -2,7 +2,8 @@
 
 A simulated Plug-in-Gait capture in the real 4-camera rig of the Pose2Sim demo (p_miss 0.2, 0.1 false detections,
 sigma 2 px); the subject fitted from its detections; then the filter timed over frames at each particles x layers
-setting (PARSEC bodytrack runs 4000 x 5), same run. The lost-track test of `torchtrack track` is not included.
+setting (PARSEC bodytrack runs 4000 x 5), same run, and the forward kinematics of that many states alone. The
+lost-track test of `torchtrack track` is not included.
 
     .venv/bin/python scripts/bench_markers.py [--frames 30] [--settings 1000x5 4000x5] [--device cpu] [--threads 1]
 """
@@ -72,6 +73,21 @@ def main() -> int:
                 torch.cuda.synchronize()
             dt = (time.perf_counter() - t0) / args.frames
             print(f"{setting:<19} {polish:>6} {1 / dt:>9.1f} {1e3 * dt:>9.1f}", flush=True)
+    # the part of a layer that the forward kinematics of the particles takes
+    for setting in args.settings:
+        P = int(setting.lower().split("x")[0])
+        for dtype in (torch.float64, torch.float32):
+            states = angles[59].to(dev, dtype)[None].repeat(P, 1)
+            skel_d.forward(states)
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            t0 = time.perf_counter()
+            for _ in range(10):
+                skel_d.forward(states)
+            if dev.type == "cuda":
+                torch.cuda.synchronize()
+            print(f"forward kinematics of {P} states, {str(dtype).split('.')[-1]}: "
+                  f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
     return 0
 
 

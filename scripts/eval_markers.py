@@ -21,12 +21,11 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torchtrack.cameras import load_calibration, save_calibration  # noqa: E402
+from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
-from torchtrack.io.markers2d import save_markers2d  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.io.poses import save_poses  # noqa: E402
-from torchtrack.markers.capture import simulated_capture  # noqa: E402
+from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
 
@@ -53,12 +52,8 @@ def main() -> int:
           f"{'landmarks mm':>12} {'lost':>5} {'s/frame':>8}")
     for name in args.captures:
         for setting in args.settings:
-            folder = work / f"{name}_{setting}"
-            folder.mkdir(parents=True, exist_ok=True)
             det, truth = simulated_capture(CAPTURES[name], rig, args.fps, args.duration, SETTINGS[setting], seed=0)
-            save_calibration(rig, folder / "calibration.toml")
-            save_markers2d(det, folder / "markers2d.npz")
-            save_poses(truth, folder / "gt.npz")
+            folder = write_marker_capture(work / f"{name}_{setting}", rig, det, truth)
             t0 = time.perf_counter()
             result = track_markers(folder, progress=False)
             seconds = time.perf_counter() - t0

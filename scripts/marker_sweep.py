@@ -23,13 +23,12 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from torchtrack.cameras import load_calibration, save_calibration  # noqa: E402
+from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.checks import InputError  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
-from torchtrack.io.markers2d import save_markers2d  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.logging import RunLogger  # noqa: E402
-from torchtrack.markers.capture import simulated_capture  # noqa: E402
+from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
 from torchtrack.tracking.particles import APFConfig  # noqa: E402
@@ -49,9 +48,7 @@ def point(capture: Path, rig, detector: DetectorModel, apf: APFConfig, fps: floa
     printed)."""
     det, truth = simulated_capture(capture, rig, fps, duration, detector, seed=0)
     with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
-        save_calibration(rig, folder / "calibration.toml")
-        save_markers2d(det, folder / "markers2d.npz")
+        folder = write_marker_capture(tmp, rig, det, truth)
         try:
             result = track_markers(folder, apf, progress=False)
         except InputError as exc:

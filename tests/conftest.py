@@ -181,3 +181,14 @@ def pose_at(skel, x: float, y: float = 0.0) -> torch.Tensor:
     a[skel.dof_names.index("root_tx")] = x
     a[skel.dof_names.index("root_ty")] = y
     return a
+
+
+#: The real Pose2Sim demo's Qualisys rig (4 cameras) in ../shared/data, as its TOML.
+DEMO_RIG = ("pose2sim_demo", "calibration", "Calib_qualisys_pose2sim.toml")
+
+
+def demo_rig():
+    """The real Pose2Sim demo's rig in float64; skips the test where ../shared/data is absent."""
+    from torchtrack.cameras import load_calibration
+
+    return load_calibration(shared_data(*DEMO_RIG), warn_units=False).double()

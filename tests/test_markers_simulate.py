@@ -11,7 +11,7 @@ import pytest
 import torch
 from scipy import stats
 
-from conftest import shared_data
+from conftest import DEMO_RIG, demo_rig, shared_data
 from test_docs import documented_keys
 from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
@@ -21,15 +21,8 @@ from torchtrack.io.markers2d import load_markers2d
 from torchtrack.io.poses import load_poses
 from torchtrack.markers.simulate import DetectorModel, marker_visibility, simulate_detections
 
-RIG = ("pose2sim_demo", "calibration", "Calib_qualisys_pose2sim.toml")
-
-
-def real_rig():
-    return load_calibration(shared_data(*RIG), warn_units=False).double()
-
-
 def test_projections_match_opencv():
-    rig = real_rig()
+    rig = demo_rig()
     gen = torch.Generator().manual_seed(0)
     markers = torch.rand(3, 5, 3, generator=gen, dtype=torch.float64) * torch.tensor([2.0, 1.4, 1.9]) + torch.tensor(
         [-1.9, -0.7, 0.05])  # the capture area
@@ -44,7 +37,7 @@ def test_projections_match_opencv():
 
 def test_a_sphere_hides_what_lies_behind_it():
     """Occlusion against a plain loop of the closed-form ray-sphere test (one sphere, many markers)."""
-    rig = real_rig()
+    rig = demo_rig()
     centre, radius, skin = np.array([-0.9, -0.1, 1.0]), 0.25, 0.05
     gen = np.random.default_rng(1)
     markers = centre + gen.uniform(-0.8, 0.8, size=(1, 400, 3))
@@ -124,7 +117,7 @@ def test_plug_in_gait_outputs_are_not_markers():
 
 def test_synth_markers_writes_a_capture(tmp_path, capsys):
     c3d = shared_data("mocap", "cmu", "85_02.c3d")
-    rig = shared_data(*RIG)
+    rig = shared_data(*DEMO_RIG)
     out = tmp_path / "cap"
     args = ["synth", "markers", "--motion", str(c3d), "--calibration", str(rig), "--out", str(out),
             "--duration", "0.5", "--fps", "30"]
@@ -149,7 +142,7 @@ def test_synth_markers_writes_a_capture(tmp_path, capsys):
 
 def test_synth_markers_names_a_malformed_capture(tmp_path, capsys):
     bad = shared_data("mocap", "btk", "c3d", "Dance.c3d")
-    assert main(["synth", "markers", "--motion", str(bad), "--calibration", str(shared_data(*RIG)),
+    assert main(["synth", "markers", "--motion", str(bad), "--calibration", str(shared_data(*DEMO_RIG)),
                  "--out", str(tmp_path / "x")]) == 2
     assert "Dance.c3d" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()

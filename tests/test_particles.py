@@ -12,7 +12,7 @@ import pytest
 import torch
 from scipy import stats
 
-from conftest import shared_data
+from conftest import DEMO_RIG, demo_rig, shared_data
 from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
 from torchtrack.markers.model import MarkerSet, assign_markers, fit_marker_set
@@ -20,15 +20,8 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.particles import (APFConfig, annealing_beta, epipolar_cost, fundamental_matrices,
                                            pinhole_pixels, projection_matrices, resample, truncated_normal)
 
-RIG = ("pose2sim_demo", "calibration", "Calib_qualisys_pose2sim.toml")
-
-
-def real_rig():
-    return load_calibration(shared_data(*RIG), warn_units=False).double()
-
-
 def test_epipolar_cost_matches_a_plain_loop():
-    rig = real_rig()
+    rig = demo_rig()
     gen = torch.Generator().manual_seed(0)
     C, M, K, B, tau = rig.num_cameras, 6, 3, 4, 20.0
     truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
@@ -76,7 +69,7 @@ def test_epipolar_cost_matches_a_plain_loop():
 def test_epipolar_cost_is_kornias_symmetric_distance():
     from kornia.geometry.epipolar import symmetrical_epipolar_distance
 
-    rig = real_rig()
+    rig = demo_rig()
     gen = torch.Generator().manual_seed(8)
     C = rig.num_cameras
     z = torch.tensor([[[[812.0, 640.0]]]], dtype=torch.float64).expand(C, 1, 1, 2).clone()
@@ -94,7 +87,7 @@ def test_epipolar_cost_is_kornias_symmetric_distance():
 
 
 def test_pinhole_pixels_undo_the_lens():
-    rig = real_rig()
+    rig = demo_rig()
     pts = torch.tensor([[-1.0, 0.0, 1.0], [-0.5, 0.3, 0.2]], dtype=torch.float64)
     distorted, _ = rig.project(pts)  # (C, 2, 2)
     h = torch.cat([pts, torch.ones(2, 1, dtype=torch.float64)], -1)
@@ -121,6 +114,9 @@ def test_resampling_draws_in_proportion_to_the_weights():
     # systematic resampling's counts vary less than multinomial ones: the mean of each count must match
     z = (counts.numpy()[keep] - expected[keep]) / np.sqrt(draws * 0.25)  # a count's spread is at most 1/2 a draw
     assert np.abs(z).max() < 5
+    # rows are resampled each by its own weights
+    rows = resample(torch.stack([w, w.flip(0)]), gen)
+    assert (torch.bincount(rows[0], minlength=N)[5] == 0) and (torch.bincount(rows[1], minlength=N)[N - 6] == 0)
 
 
 @pytest.mark.parametrize("mean, std, lo, hi", [(0.0, 1.0, -0.5, 2.0), (1.0, 0.3, 1.2, 1.5), (0.0, 2.0, -1.0, 1.0)])
@@ -140,7 +136,13 @@ def test_annealing_beta_hits_the_survival_rate():
         beta = annealing_beta(cost, target)
         w = torch.exp(-beta * (cost - cost.min()))
         assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(target, abs=1e-3)
-    assert annealing_beta(torch.zeros(10), 0.5) == 0.0
+    # rows of different scales at once, each its own beta; a row of equal costs gets 0
+    rows = torch.stack([cost, 1e-3 * cost.flip(0), torch.full_like(cost, 7.0)])
+    betas = annealing_beta(rows, 0.5)
+    for r in range(2):
+        w = torch.exp(-betas[r] * (rows[r] - rows[r].min()))
+        assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
+    assert float(betas[2]) == 0.0
 
 
 def test_bad_filter_settings_are_refused():
@@ -224,7 +226,7 @@ def test_track_markers_follows_a_simulated_capture(tmp_path, capsys):
 
     cap, out = tmp_path / "cap", tmp_path / "track"
     pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
-    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out", str(cap),
                  "--duration", "1.2"]) == 0
     assert main(["track", str(cap), "--out", str(out)]) == 0
     assert main(["eval", str(out / "poses.npz"), str(cap / "gt.npz")]) == 0
@@ -244,7 +246,7 @@ def test_triangulation_ignores_false_candidates():
     (against their truth) and says how many views agree; a marker in one view only is NaN."""
     from torchtrack.markers.triangulate import triangulate_candidates
 
-    rig = real_rig()
+    rig = demo_rig()
     gen = torch.Generator().manual_seed(7)
     T, M, C = 3, 5, rig.num_cameras
     X = torch.rand(T, M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
@@ -261,6 +263,8 @@ def test_triangulation_ignores_false_candidates():
     assert torch.isnan(got[:, 0]).all() and (views[:, 0] == 0).all()
     assert float((got[:, 1:] - X[:, 1:]).norm(dim=-1).max()) < 0.01
     assert (views[:, 1] == C - 1).all() and (views[:, 2:] == C).all()
+    chunked, _ = triangulate_candidates(det, P, chunk=2)  # frames in chunks: the same points
+    torch.testing.assert_close(chunked, got, equal_nan=True)
 
 
 def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
@@ -276,7 +280,7 @@ def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
 
     cap = tmp_path / "cap"
     pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
-    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out", str(cap),
                  "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
     rig = load_calibration(cap / "calibration.toml", warn_units=False).double()
     det, gt = load_markers2d(cap / "markers2d.npz"), load_poses(cap / "gt.npz")
@@ -305,7 +309,7 @@ def test_frames_without_detections_are_invalid_and_the_track_goes_on(tmp_path):
 
     cap = tmp_path / "cap"
     pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
-    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*RIG)), "--out", str(cap),
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out", str(cap),
                  "--duration", "1.2"]) == 0
     det = load_markers2d(cap / "markers2d.npz")
     det.uv[30:32] = np.nan

@@ -23,7 +23,7 @@ from torchtrack.occupancy import capture_views, grid_from_rig
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.c3d_motion import c3d_resampled, retarget_c3d
 
-__all__ = ["capture_centre", "simulated_capture"]
+__all__ = ["capture_centre", "simulated_capture", "write_marker_capture"]
 
 log = logging.getLogger(__name__)
 
@@ -88,3 +88,18 @@ def simulated_capture(path: str | Path, rig: nn.Module, fps: float | None = None
                   valid=np.ones(T, dtype=bool), confidence=np.ones((T, len(body.output_names)), dtype=np.float32),
                   marker_names=labels, markers3d=markers.float().numpy())
     return detections, truth
+
+
+def write_marker_capture(folder: str | Path, rig: nn.Module, detections: Markers2D, truth: Poses) -> Path:
+    """A simulated capture's folder, as ``torchtrack track`` reads it: ``calibration.toml``, ``markers2d.npz`` and
+    the truth as ``gt.npz`` (each file written atomically). Returns the folder."""
+    from torchtrack.cameras import save_calibration
+    from torchtrack.io.markers2d import save_markers2d
+    from torchtrack.io.poses import save_poses
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    save_calibration(rig, folder / "calibration.toml")
+    save_markers2d(detections, folder / "markers2d.npz")
+    save_poses(truth, folder / "gt.npz")
+    return folder

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 
 from torchtrack.checks import InputError, check_shape
-from torchtrack.skeleton.model import Skeleton
+from torchtrack.skeleton.model import Skeleton, fit_states
 
 __all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_markers", "subject_from_markers"]
 
@@ -86,25 +86,16 @@ def assign_markers(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tens
 def fit_poses_to_markers(skeleton: Skeleton, marker_set: MarkerSet, angles: torch.Tensor, markers: torch.Tensor,
                          iterations: int = 200, lr: float = 0.02) -> torch.Tensor:
     """Inverse kinematics of every frame at once: the poses ``(T, D)`` from ``angles`` whose markers lie nearest
-    ``markers (T, M, 3)`` (NaN: missing) in the least-squares sense, within the joint limits (Adam, projected)."""
+    ``markers (T, M, 3)`` (NaN: missing) in the least-squares sense, within the joint limits
+    (:func:`~torchtrack.skeleton.model.fit_states`)."""
     seen = torch.isfinite(markers).all(-1).to(torch.float64)  # (T, M)
     target = torch.nan_to_num(markers.double())
-    lower, upper = skeleton.lower.double(), skeleton.upper.double()
-    theta = angles.detach().double().clone().requires_grad_(True)
-    opt = torch.optim.Adam([theta], lr=lr)
-    with torch.enable_grad():
-        for it in range(iterations):
-            opt.zero_grad()
-            pred = marker_set.positions(skeleton.forward(theta).bone_frames)  # (T, M, 3)
-            loss = (((pred - target) ** 2).sum(-1) * seen).sum() / seen.sum().clamp(min=1)
-            loss.backward()
-            opt.step()
-            with torch.no_grad():
-                theta.copy_(torch.clamp(theta, lower, upper))
-            if it == iterations // 2:
-                for group in opt.param_groups:
-                    group["lr"] = lr / 3
-    return theta.detach().to(angles.dtype)
+
+    def loss(fk, _theta):
+        pred = marker_set.positions(fk.bone_frames)  # (T, M, 3)
+        return (((pred - target) ** 2).sum(-1) * seen).sum() / seen.sum().clamp(min=1)
+
+    return fit_states(skeleton, angles, loss, iterations, lr)
 
 
 def fit_marker_set(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tensor, names: Sequence[str],

@@ -80,10 +80,12 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     uv = torch.from_numpy(det.uv[start:stop].astype(np.float64))  # (T, C, M, K, 2)
     z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
     T, _, M = z.shape[:3]
+    P = projection_matrices(rig)
+    X_all, _ = triangulate_candidates(z, P)  # (T, M, 3): the subject's fit and the lost-track test
     # the subject from the first seconds; where their markers do not give every joint centre, from more of them
     for seconds in (FIT_SECONDS, MAX_FIT_SECONDS):
         n_fit = min(T, max(2, round(seconds * det.fps)))
-        X, _ = triangulate_candidates(z[:n_fit], projection_matrices(rig))
+        X = X_all[:n_fit]
         enough = torch.isfinite(X).all(-1).sum(0) >= 2  # (M,)
         keep = enough.nonzero()[:, 0]
         names = [det.marker_names[i] for i in keep.tolist()]
@@ -103,8 +105,7 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     log.info("%s: subject fitted on %d frames: %d markers, %.2f m tall", folder, n_fit, len(names), skel.height())
     apf = MarkerAPF(skel, mset, rig, config, torch.Generator().manual_seed(int(seed)))
     apf.reset(angles[0])
-    zk = z[:, :, keep]
-    P = projection_matrices(rig)
+    zk, Xk = z[:, :, keep], X_all[:, keep]
     states, spread, restarted, valid = [], [], [], []
     detected = torch.isfinite(zk).all(-1).any(-1).any(1).sum(-1)  # (T,) markers found in some view
     bar = tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress)
@@ -117,10 +118,9 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
             valid.append(False)
             continue
         est = apf.step(zk[t])
-        X, _ = triangulate_candidates(zk[t][None], P)
-        again = _lost(apf, est, X[0])
+        again = _lost(apf, est, Xk[t])
         if again:  # the filter lost the body: start it again from this frame's triangulated markers
-            est = _restart(apf, est, X[0], angles[0])
+            est = _restart(apf, est, Xk[t], angles[0])
             apf.reset(est)
         states.append(est)
         spread.append(apf.spread)

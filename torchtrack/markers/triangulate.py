@@ -26,7 +26,7 @@ def _project(P: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
     return y[..., :2] / y[..., 2:3]
 
 
-def triangulate_candidates(detections: torch.Tensor, P: torch.Tensor, inlier_px: float = 10.0
+def triangulate_candidates(detections: torch.Tensor, P: torch.Tensor, inlier_px: float = 10.0, chunk: int = 64
                            ) -> tuple[torch.Tensor, torch.Tensor]:
     """Markers from candidate detections (module docstring).
 
@@ -36,6 +36,7 @@ def triangulate_candidates(detections: torch.Tensor, P: torch.Tensor, inlier_px:
         P: (C, 3, 4) the cameras' pinhole projections.
         inlier_px: a view agrees with a point where one of its candidates lies within this of the point's
             projection.
+        chunk: frames solved at once.
 
     Returns:
         (T, M, 3) points (NaN where fewer than two views agree) and (T, M) how many views agree.
@@ -43,15 +44,19 @@ def triangulate_candidates(detections: torch.Tensor, P: torch.Tensor, inlier_px:
     check_shape(detections, ("T", P.shape[0], "M", "K", 2), "detections")
     T, C, M, K, _ = detections.shape
     P = P.to(detections)
+    if T > chunk:  # bounded memory: the hypotheses' distances are (C, frames, M, H, K)
+        parts = [triangulate_candidates(detections[t:t + chunk], P, inlier_px) for t in range(0, T, chunk)]
+        return torch.cat([x for x, _ in parts]), torch.cat([v for _, v in parts])
     z = detections.permute(0, 2, 1, 3, 4)  # (T, M, C, K, 2)
-    hyps = []
-    for i, j in itertools.combinations(range(C), 2):
-        a = z[:, :, i, :, None].expand(T, M, K, K, 2).reshape(T, M, K * K, 2)
-        b = z[:, :, j, None, :].expand(T, M, K, K, 2).reshape(T, M, K * K, 2)
-        ok = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1)
-        X = triangulate_points(P[i], P[j], torch.nan_to_num(a), torch.nan_to_num(b))  # (T, M, K*K, 3)
-        hyps.append(torch.where(ok[..., None], X, math.nan))
-    X = torch.cat(hyps, 2)  # (T, M, H, 3)
+    # every pair of views (i < j) and of their candidates, one linear two-view triangulation each
+    ii, jj = (torch.tensor(v, device=z.device) for v in zip(*itertools.combinations(range(C), 2)))
+    S = ii.numel()
+    a = z[:, :, ii, :, None].expand(T, M, S, K, K, 2).reshape(T, M, S, K * K, 2)
+    b = z[:, :, jj, None, :].expand(T, M, S, K, K, 2).reshape(T, M, S, K * K, 2)
+    ok = torch.isfinite(a).all(-1) & torch.isfinite(b).all(-1)
+    X = triangulate_points(P[ii].expand(T, M, S, 3, 4), P[jj].expand(T, M, S, 3, 4), torch.nan_to_num(a),
+                           torch.nan_to_num(b))  # (T, M, S, K*K, 3)
+    X = torch.where(ok[..., None], X, math.nan).reshape(T, M, S * K * K, 3)  # (T, M, H, 3)
     # each view's nearest candidate to each hypothesis's projection
     y = _project(P, torch.nan_to_num(X))  # (C, T, M, H, 2)
     cand = z.permute(2, 0, 1, 3, 4)[:, :, :, None]  # (C, T, M, 1, K, 2)

@@ -15,7 +15,7 @@ Names used here:
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -341,3 +341,25 @@ class FKResult:
     joints: torch.Tensor  # (B, 22, 3)
     bone_frames: torch.Tensor  # (B, nb, 4, 4)
     output_points: torch.Tensor  # (B, 22, 3), named by Skeleton.output_names
+
+
+def fit_states(skeleton: Skeleton, theta0: torch.Tensor, loss: Callable[[FKResult, torch.Tensor], torch.Tensor],
+               iterations: int, lr: float) -> torch.Tensor:
+    """State vectors ``(B, D)`` from ``theta0`` that minimise ``loss(skeleton(theta), theta)`` (a scalar tensor):
+    Adam on the differentiable forward kinematics, projected onto the joint limits after every step, its rate a
+    third from halfway. In float64, also under ``torch.no_grad``; returns the states detached, in ``theta0``'s
+    dtype. Batched over B: the retargeting's frames, the marker fit's frames."""
+    lower, upper = skeleton.lower.double(), skeleton.upper.double()
+    theta = theta0.detach().double().clone().requires_grad_(True)
+    opt = torch.optim.Adam([theta], lr=lr)
+    with torch.enable_grad():
+        for it in range(iterations):
+            opt.zero_grad()
+            loss(skeleton(theta), theta).backward()
+            opt.step()
+            with torch.no_grad():
+                theta.copy_(torch.clamp(theta, lower, upper))
+            if it == iterations // 2:
+                for group in opt.param_groups:
+                    group["lr"] = lr / 3
+    return theta.detach().to(theta0.dtype)

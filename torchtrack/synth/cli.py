@@ -82,12 +82,10 @@ def run_markers(args: argparse.Namespace) -> int:
     """``torchtrack synth markers``: the folder of :func:`~torchtrack.markers.capture.simulated_capture`."""
     from pathlib import Path
 
-    from torchtrack.cameras import load_calibration, save_calibration
+    from torchtrack.cameras import load_calibration
     from torchtrack.checks import InputError
-    from torchtrack.io.markers2d import save_markers2d
     from torchtrack.io.outputs import MARKERS_DIR, check_output, replacing
-    from torchtrack.io.poses import save_poses
-    from torchtrack.markers.capture import simulated_capture
+    from torchtrack.markers.capture import simulated_capture, write_marker_capture
     from torchtrack.markers.simulate import DetectorModel
 
     if Path(args.motion).suffix.lower() != ".c3d":
@@ -101,9 +99,7 @@ def run_markers(args: argparse.Namespace) -> int:
     rig = load_calibration(calib, warn_units=False)
     detections, truth = simulated_capture(args.motion, rig, args.fps, args.duration, model, args.seed)
     with replacing(args.out, MARKERS_DIR) as out:
-        save_calibration(rig, out / "calibration.toml")
-        save_markers2d(detections, out / "markers2d.npz")
-        save_poses(truth, out / "gt.npz")
+        write_marker_capture(out, rig, detections, truth)
     T, C, M = detections.uv.shape[:3]
     print(f"wrote {T} frames of {M} markers in {C} cameras to {args.out}")
     return 0

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 
 from torchtrack.checks import InputError, check_shape
-from torchtrack.skeleton import Skeleton
+from torchtrack.skeleton import Skeleton, fit_states
 
 log = logging.getLogger(__name__)
 
@@ -144,24 +144,15 @@ def _initial_root(skel: Skeleton, ours: list[str], target: torch.Tensor) -> torc
 
 def _fit(skel: Skeleton, theta0: torch.Tensor, target: torch.Tensor, joint_idx: torch.Tensor, iterations: int,
          lr: float, rest_weight: float) -> torch.Tensor:
-    """Adam on (T, D) state vectors, projected onto the joint limits after every step."""
+    """(T, D) states whose joints ``joint_idx`` meet ``target (T, n, 3)``, with a small pull to the rest pose
+    (:func:`~torchtrack.skeleton.model.fit_states`)."""
     rest = skel.rest_angles().double()
-    lower, upper = skel.lower.double(), skel.upper.double()
-    theta = theta0.detach().clone().requires_grad_(True)
-    opt = torch.optim.Adam([theta], lr=lr)
-    with torch.enable_grad():  # also when the caller runs under no_grad
-        for it in range(iterations):
-            opt.zero_grad()
-            pred = skel(theta).joints[:, joint_idx]  # (T, n, 3)
-            loss = ((pred - target) ** 2).sum(-1).mean() + rest_weight * ((theta[:, 6:] - rest[6:]) ** 2).mean()
-            loss.backward()
-            opt.step()
-            with torch.no_grad():
-                theta.copy_(torch.clamp(theta, lower, upper))
-            if it == iterations // 2:
-                for group in opt.param_groups:
-                    group["lr"] = lr / 3
-    return theta.detach()
+
+    def loss(fk, theta):
+        return (((fk.joints[:, joint_idx] - target) ** 2).sum(-1).mean()
+                + rest_weight * ((theta[:, 6:] - rest[6:]) ** 2).mean())
+
+    return fit_states(skel, theta0, loss, iterations, lr)
 
 
 def retarget_positions(skel: Skeleton, positions: torch.Tensor, names: Sequence[str],

@@ -164,35 +164,35 @@ def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tenso
     return EpipolarCost(detections.to(points), P, F, outlier_px)(points, per_marker)
 
 
-def annealing_beta(cost: torch.Tensor, survival: float, iterations: int = 50) -> float:
-    """The ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective sample size of ``survival`` times
-    the particles (bisection on log beta; the survival rate falls as beta grows)."""
-    c = (cost - cost.min()).double()
-    n = c.numel()
-
-    def rate(beta: float) -> float:
-        w = torch.exp(-beta * c)
-        return float(w.sum() ** 2 / (n * (w * w).sum()))
-
-    if float(c.max()) == 0.0:
-        return 0.0
-    lo, hi = -30.0, 30.0  # log beta bounds
-    for _ in range(iterations):
-        mid = 0.5 * (lo + hi)
-        if rate(math.exp(mid)) > survival:
-            lo = mid
-        else:
-            hi = mid
-    return math.exp(0.5 * (lo + hi))
+def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 4, points: int = 64) -> torch.Tensor:
+    """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
+    sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
+    evaluates it at ``points`` values of log beta in one tensor operation and keeps the bracket where it crosses
+    ``survival`` (from [-30, 30]: log beta to within 60 / 63^stages). Returns ``(...,)`` float64; 0 where a row's
+    costs are all equal."""
+    c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
+    n = c.shape[-1]
+    lo = c.new_full(c.shape[:-1], -30.0)
+    hi = c.new_full(c.shape[:-1], 30.0)
+    steps = torch.linspace(0.0, 1.0, points, dtype=c.dtype, device=c.device)
+    for _ in range(stages):
+        grid = lo[..., None] + (hi - lo)[..., None] * steps  # (..., P) log beta
+        w = torch.exp(-grid.exp()[..., None] * c[..., None, :])  # (..., P, N)
+        rate = w.sum(-1) ** 2 / (n * (w * w).sum(-1))  # (..., P), falling along P
+        k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
+        lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
+    return torch.where(c.amax(-1) > 0, (0.5 * (lo + hi)).exp(), 0.0)
 
 
 def resample(weights: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-    """(N,) indices drawn by systematic resampling from unnormalised ``weights (N,)`` (one uniform offset)."""
-    w = weights.double() / weights.double().sum()
-    N = w.numel()
-    u = (torch.rand(1, generator=generator, device=w.device, dtype=torch.float64)
+    """Indices ``(..., N)`` drawn by systematic resampling from each row of unnormalised ``weights (..., N)`` (one
+    uniform offset per row)."""
+    w = weights.double()
+    N = w.shape[-1]
+    cdf = w.cumsum(-1) / w.sum(-1, keepdim=True)
+    u = (torch.rand((*w.shape[:-1], 1), generator=generator, device=w.device, dtype=torch.float64)
          + torch.arange(N, device=w.device, dtype=torch.float64)) / N
-    return torch.searchsorted(w.cumsum(0), u).clamp(max=N - 1)
+    return torch.searchsorted(cdf.contiguous(), u.contiguous()).clamp(max=N - 1)
 
 
 def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
@@ -285,17 +285,16 @@ class MarkerAPF:
             x = truncated_normal(x, std, self.lower, self.upper, gen)
             per = score(self.markers(x), per_marker=True)
             parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
-            cost = parts.sum(1)
-            beta = annealing_beta(cost, cfg.survival)
-            w = torch.exp(-beta * (cost - cost.min()))
-            keep = x
-            x = x[resample(w, gen)].clone()
-            if cfg.partitioned:  # each limb's joints resampled by the limb's own markers (the trunk's as drawn)
-                for g in range(1, G):
-                    c = parts[:, g]
-                    wg = torch.exp(-annealing_beta(c, cfg.survival) * (c - c.min()))
-                    dofs = self.dof_part == g
-                    x[:, dofs] = keep[resample(wg, gen)][:, dofs]
+            # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
+            # the limb's own markers (the trunk's as the whole particle drew them)
+            costs = torch.cat([parts.sum(1, keepdim=True), parts[:, 1:]], 1).T  # (G, N)
+            if not cfg.partitioned:
+                costs = costs[:1]
+            W = torch.exp(-annealing_beta(costs, cfg.survival)[:, None] * (costs - costs.amin(1, keepdim=True)))
+            keep, w = x, W[0]
+            drawn = keep[resample(W, gen)]  # (G or 1, N, D): each row's draw of whole particles
+            part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
+            x = drawn.gather(0, part[None, None].expand(1, *drawn.shape[1:]))[0]
             std = std * cfg.shrink
         w = w / w.sum()
         estimate = (w[:, None] * keep).sum(0)
