@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "torchtrack.occupancy.cli",
     "torchtrack.tracking.cli",
     "torchtrack.tracking.init_cli",
+    "torchtrack.markers.cli",
     "torchtrack.eval.cli",
 )
 

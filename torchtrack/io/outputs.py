@@ -155,7 +155,7 @@ OBSERVE_DIR = OutputKind("occupancy output", True, frozenset({"occupancy.npz", "
                          _run_folder("occupancy.npz", {"frame_index", "frame_offsets", "centres"}))
 SEQUENCE_DIR = OutputKind("synthetic sequence", True,
                           frozenset({"calibration.toml", "video", "frames", "background", "gt.npz", "meta.toml",
-                                     "body.urdf"}),
+                                     "body.urdf", "marker_labels.csv", "markers2d.npz"}),
                           _synth_sequence)
 MARKERS_DIR = OutputKind("simulated marker capture", True, frozenset({"calibration.toml", "markers2d.npz", "gt.npz"}),
                          lambda folder: _npz_with({"uv", "marker_names"})(folder / "markers2d.npz"))

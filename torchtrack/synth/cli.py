@@ -55,6 +55,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shadow", action="store_true", help="soft shadow of the body on the floor (default: off)")
     p.add_argument("--distractor", action="store_true",
                    help="a static box absent from the background frames, seen by some views (default: off)")
+    p.add_argument("--markers", action="store_true",
+                   help="coloured balls on the body (Plug-in-Gait places), for `torchtrack detect-markers`; writes "
+                        "marker_labels.csv (frame 0's labels) and the markers' truth in gt.npz (default: off)")
+    p.add_argument("--marker-radius", type=float, default=0.02, metavar="M",
+                   help="radius of the balls in metres, with --markers (default: %(default)s)")
+    p.add_argument("--marker-colour", default="0.95,0.1,0.75", metavar="R,G,B",
+                   help="RGB albedo of the balls in [0, 1], with --markers (default: %(default)s, magenta)")
     p.add_argument("--seed", type=int, default=0, metavar="N",
                    help="seed of the sensor noise and the room textures (default: %(default)s)")
     p.add_argument("--device", default="cpu", help="torch device to render on: cpu or cuda (default: %(default)s)")
@@ -108,6 +115,7 @@ def run_markers(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     from torchtrack.checks import InputError
     from torchtrack.io.outputs import SEQUENCE_DIR, check_output
+    from torchtrack.synth.markers import MarkerStyle
     from torchtrack.synth.scene import SceneConfig
     from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence
 
@@ -117,6 +125,13 @@ def run(args: argparse.Namespace) -> int:
         w, h = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise InputError(f"--size must look like 640x480, got {args.size!r}") from None
+    markers = None
+    if args.markers:
+        try:
+            colour = tuple(float(v) for v in args.marker_colour.split(","))
+        except ValueError:
+            raise InputError(f"--marker-colour must look like 0.95,0.1,0.75, got {args.marker_colour!r}") from None
+        markers = MarkerStyle(radius_m=args.marker_radius, colour=colour)
     cfg = SynthConfig(
         motion=args.motion, duration_s=args.duration, starfish_s=args.starfish, fps=args.fps,
         subject_height_m=args.height, background_frames=args.background_frames, video_format=args.format,
@@ -124,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         scene=dataclasses.replace(SceneConfig(), noise_std=args.noise / 255.0,
                                   illumination_change=args.illumination_change, shadow=args.shadow,
                                   distractor=args.distractor, seed=args.seed),
-        seed=args.seed)
+        markers=markers, seed=args.seed)
     if args.reuse and is_current(args.out, cfg):
         print(f"{args.out} already holds this sequence (--reuse): kept")
         return 0

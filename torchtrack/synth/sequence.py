@@ -26,6 +26,7 @@ from torchtrack.io.atomic import atomic_dir
 from torchtrack.io.poses import Poses, save_poses
 from torchtrack.resources import builtin_config
 from torchtrack.skeleton import Skeleton
+from torchtrack.synth.markers import MarkerStyle, marker_names, marker_positions, visible_centroids
 from torchtrack.synth.motion import MOTIONS, on_the_floor, procedural_motion
 from torchtrack.synth.retarget import RETARGET_REVISION
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
@@ -155,6 +156,9 @@ class SynthConfig:
         path: ``(time_s, x, y)`` waypoints: the subject is carried over the floor by this offset (m) from where
             the motion puts them, eased between waypoints (smoothstep), held before the first and after the
             last; times from the sequence's start, starfish included. Empty: no offset.
+        markers: coloured balls on the body (:mod:`torchtrack.synth.markers`), for the colour marker detector:
+            gt.npz then also holds their centres and visible pixels, and ``marker_labels.csv`` the labels of frame 0
+            as a person would click them. None: no markers.
         seed: seeds the sensor noise.
     """
 
@@ -171,6 +175,7 @@ class SynthConfig:
     starfish_arms: float = 1.25
     starfish_legs: float = 0.3
     path: tuple[tuple[float, float, float], ...] = ()
+    markers: MarkerStyle | None = None
     seed: int = 0
 
 
@@ -263,6 +268,16 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
         centres, R = blobs.ellipsoids(fk.bone_frames)  # (T, K, 3), (T, K, 3, 3)
     semi = blobs.semi_axes.float().to(device)
     colours = blobs.colour.float().to(device)
+    K = len(blobs.names)
+    if cfg.markers is not None:  # the balls are M more ellipsoids of the body: parts K .. K + M - 1
+        balls = marker_positions(list(blobs.names), centres, R, blobs.semi_axes.double(), cfg.markers.radius_m)
+        M = balls.shape[1]
+        centres = torch.cat([centres, balls], 1)
+        R = torch.cat([R, torch.eye(3, dtype=R.dtype).expand(T, M, 3, 3)], 1)
+        semi = torch.cat([semi, torch.full((M, 3), cfg.markers.radius_m, device=device)])
+        colours = torch.cat([colours, torch.tensor(cfg.markers.colour, device=device).expand(M, 3)])
+        marker_uv = np.full((T, rig.num_cameras, M, 2), np.nan, dtype=np.float32)
+        marker_px = np.zeros((T, rig.num_cameras, M), dtype=np.int32)
     C, (W, H) = rig.num_cameras, (cfg.rig.width, cfg.rig.height)  # C: the ring and any overhead camera
     with atomic_dir(out) as tmp:
         save_calibration(rig, tmp / "calibration.toml")
@@ -274,9 +289,12 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
         del bg
         frames = np.lib.format.open_memmap(tmp / "frames.npy", mode="w+", dtype=np.uint8, shape=(T, C, H, W, 3))
         for t in tqdm(range(T), desc=f"render {out.name}", unit="frame", disable=not progress):
-            images, _, _ = renderer.render(centres[t].float().to(device), R[t].float().to(device), semi, colours,
-                                           frame=t, num_frames=T, generator=gen)
+            images, _, parts = renderer.render(centres[t].float().to(device), R[t].float().to(device), semi,
+                                               colours, frame=t, num_frames=T, generator=gen)
             frames[t] = _to_uint8(images)
+            if cfg.markers is not None:
+                uv, count = visible_centroids(parts, K, M)
+                marker_uv[t], marker_px[t] = uv.cpu().numpy(), count.cpu().numpy()
         frames.flush()
         del frames
         if cfg.background_frames:  # none: a recording without empty frames (the background estimated from video)
@@ -289,14 +307,34 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
             joints3d=fk.output_points.float().numpy(),
             dof_names=list(skel.dof_names), angles=angles.float().numpy(), valid=np.ones(T, dtype=bool),
             confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
-            extra={"blob_names": np.asarray(blobs.names), "blob_centres": centres.float().numpy(),
-                   "blob_R_world": R.float().numpy(), "blob_semi_axes": blobs.semi_axes.numpy(),
+            extra={"blob_names": np.asarray(blobs.names), "blob_centres": centres[:, :K].float().numpy(),
+                   "blob_R_world": R[:, :K].float().numpy(), "blob_semi_axes": blobs.semi_axes.numpy(),
                    "bone_names": np.asarray(skel.bone_names), "bone_lengths": skel.bone_lengths.numpy()})
+        if cfg.markers is not None:
+            poses.extra.update(marker_names=np.asarray(marker_names()), markers3d=balls.float().numpy(),
+                               marker_uv=marker_uv, marker_pixels=marker_px)
+            write_marker_labels(tmp / "marker_labels.csv", rig.names, marker_names(), marker_uv[0], marker_px[0])
         save_poses(poses, tmp / "gt.npz")
         _write_meta(tmp / "meta.toml", cfg, skel, table)
         (tmp / "body.urdf").write_text(skel.urdf_text, encoding="utf-8")
     log.info("wrote %s: %d cameras, %d frames (%d background)", out, C, T, cfg.background_frames)
     return out
+
+
+#: ``marker_labels.csv`` lists a marker in a view where at least this many of its pixels show, as a person labelling
+#: the frame would click the balls they can see.
+MIN_LABEL_PIXELS = 4
+
+
+def write_marker_labels(path: Path, cameras: list[str], names: list[str], uv: np.ndarray, pixels: np.ndarray) -> None:
+    """One frame's labels (``frame,camera,marker,u,v``; frame 0) of the markers seen well in each view: the whole
+    pixel nearest the visible centroid ``uv (C, M, 2)``, where ``pixels (C, M)`` reaches MIN_LABEL_PIXELS."""
+    rows = ["frame,camera,marker,u,v"]
+    for c, cam in enumerate(cameras):
+        for m, name in enumerate(names):
+            if pixels[c, m] >= MIN_LABEL_PIXELS:
+                rows.append(f"0,{cam},{name},{round(float(uv[c, m, 0]))},{round(float(uv[c, m, 1]))}")
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
 
 
 def body_model_digest() -> str:
