@@ -217,15 +217,17 @@ def test_formats_document_lists_every_key_written(demo_run, tmp_path):
 
 
 def test_readme_marker_commands_run_as_printed(tmp_path):
-    """The marker section's commands, the capture 1 s long."""
+    """The marker section's commands, the capture 1 s long, the video of balls 0.5 s after a 0.5 s starfish."""
     if not SHARED_DATA.exists():
         pytest.skip(f"real data not available: {SHARED_DATA}")
     lines = shell_lines(readme_section("Track markers"))
-    assert [ln.split()[1] for ln in lines] == ["synth", "track", "eval"]
+    assert [ln.split()[1] for ln in lines] == ["synth", "track", "eval", "synth", "detect-markers", "track", "eval"]
     out = tmp_path / "out"
-    res = None
     for line in lines:
         line = line.replace(".venv/bin/torchtrack", TORCHTRACK)
         line = re.sub(r"(?<=[ \"])out/", f"{out}/", line)
-        res = run(line + (" --duration 1.0" if " synth " in line else ""))
-    assert "MMTA@50mm" in res.stdout and "MMTP" in res.stdout
+        if " synth " in line:
+            line += " --duration 0.5 --starfish 0.5" if "--markers" in line else " --duration 1.0"
+        res = run(line)
+        if " eval " in line:
+            assert "MMTA@50mm" in res.stdout and "MMTP" in res.stdout

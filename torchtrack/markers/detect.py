@@ -122,13 +122,15 @@ class ChromaModel:
     num_pixels: int
 
     @classmethod
-    def fit(cls, images: torch.Tensor, points: Sequence[torch.Tensor], radius_px: float = 1.5) -> ChromaModel:
+    def fit(cls, images: torch.Tensor, points: Sequence[torch.Tensor], radius_px: float = 0.5) -> ChromaModel:
         """Learn from the pixels within ``radius_px`` of labelled points.
 
         Args:
             images: (C, 3, H, W) RGB in [0, 1], one frame of each view.
             points: C tensors (N_c, 2) of labelled (u, v) pixels in each view (N_c may be 0).
-            radius_px: the neighbourhood of a point whose pixels are taken (1.5: the 3 x 3 pixels around it).
+            radius_px: the neighbourhood of a point whose pixels are taken: by default the labelled pixel alone
+                (1.5: the 3 x 3 pixels round it), as a ball a few pixels wide in a video's subsampled chrominance
+                has its own colour only at its centre (docs/results.md, "Marker-based capture").
         """
         check_shape(images, (len(points), 3, "H", "W"), "images")
         H, W = images.shape[-2:]
@@ -151,8 +153,8 @@ class ChromaModel:
             raise InputError(f"marker colour: {x.shape[0]} labelled pixels inside the images; label at least one "
                              "marker in a view")
         x = x.double()
-        # robust: a neighbourhood also holds the edge of the ball and what lies behind it, so the Gaussian is
-        # refitted to the pixels within its own 90 % ellipse, starting from the median and the median deviation
+        # robust: a label may be off the ball's centre, or a neighbourhood hold the ball's edge and what lies behind
+        # it, so the Gaussian is refitted to the pixels within its own 90 % ellipse, starting from the median and the median deviation
         floor = MIN_CHROMA_STD ** 2 * torch.eye(2, dtype=x.dtype)
         mean = x.median(0).values
         cov = torch.diag((x - mean).abs().median(0).values.square() * 1.4826 ** 2) + floor
