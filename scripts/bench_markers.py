@@ -73,21 +73,23 @@ def main() -> int:
                 torch.cuda.synchronize()
             dt = (time.perf_counter() - t0) / args.frames
             print(f"{setting:<19} {polish:>6} {1 / dt:>9.1f} {1e3 * dt:>9.1f}", flush=True)
-    # the part of a layer that the forward kinematics of the particles takes
+    # the part of a layer that the forward kinematics of the particles takes: the filter's lean chain
+    # (Skeleton.bone_poses) and pytorch-kinematics' general one (Skeleton.forward)
     for setting in args.settings:
         P = int(setting.lower().split("x")[0])
-        for dtype in (torch.float64, torch.float32):
-            states = angles[59].to(dev, dtype)[None].repeat(P, 1)
-            skel_d.forward(states)
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
-            t0 = time.perf_counter()
-            for _ in range(10):
-                skel_d.forward(states)
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
-            print(f"forward kinematics of {P} states, {str(dtype).split('.')[-1]}: "
-                  f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
+        for name, fk in (("lean", skel_d.bone_poses), ("pytorch-kinematics", skel_d.forward)):
+            for dtype in (torch.float64, torch.float32):
+                states = angles[59].to(dev, dtype)[None].repeat(P, 1)
+                fk(states)
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+                t0 = time.perf_counter()
+                for _ in range(10):
+                    fk(states)
+                if dev.type == "cuda":
+                    torch.cuda.synchronize()
+                print(f"forward kinematics of {P} states, {name}, {str(dtype).split('.')[-1]}: "
+                      f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
     return 0
 
 

@@ -94,6 +94,32 @@ def test_fk_matches_plain_implementation(skel):
         np.testing.assert_allclose(res.joints[b].numpy(), jt_ref, atol=1e-7)  # 0.1 um; pytorch-kinematics keeps some constants in float32
 
 
+def test_lean_bone_poses_match_the_plain_implementation_and_pytorch_kinematics(skel, device):
+    """The particle filter's lean FK against the plain URDF walk (and pytorch-kinematics' FK, also its gradient)."""
+    angles = _random_angles(skel, 6, seed=3)
+    R, t = skel.bone_poses(angles)
+    for b in range(angles.shape[0]):
+        ref = plain_fk(skel.urdf_text, dict(zip(skel.dof_names, angles[b].tolist())))
+        bf = np.stack([ref[n] for n in skel.bone_names])
+        np.testing.assert_allclose(R[b].numpy(), bf[:, :3, :3], atol=1e-7)  # pytorch-kinematics' float32 constants
+        np.testing.assert_allclose(t[b].numpy(), bf[:, :3, 3], atol=1e-7)
+    x = _random_angles(skel, 300, seed=4).to(device)
+    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-5)):
+        R, t = skel.bone_poses(x.to(dtype))
+        T = skel(x.to(dtype)).bone_frames
+        assert R.dtype == dtype and R.device.type == device.type
+        torch.testing.assert_close(R, T[..., :3, :3], atol=tol, rtol=0)
+        torch.testing.assert_close(t, T[..., :3, 3], atol=tol, rtol=0)
+    xg = x[:4].clone().requires_grad_(True)
+    R, t = skel.bone_poses(xg)
+    (R.sin().sum() + t.square().sum()).backward()
+    lean = xg.grad.clone()
+    xg.grad = None
+    T = skel(xg).bone_frames
+    (T[..., :3, :3].sin().sum() + T[..., :3, 3].square().sum()).backward()
+    torch.testing.assert_close(lean, xg.grad, atol=1e-10, rtol=0)
+
+
 def test_batched_equals_looped(skel, device):
     angles = _random_angles(skel, 64, seed=1).float().to(device)
     batched = skel.landmarks(angles)

@@ -41,6 +41,11 @@ class MarkerSet:
     def num_markers(self) -> int:
         return len(self.names)
 
+    def positions_from(self, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Bone rotations ``(B, nb, 3, 3)`` and origins ``(B, nb, 3)`` (``Skeleton.bone_poses``) -> (B, M, 3)."""
+        bone = self.bone.to(R.device)
+        return (R[:, bone] @ self.offset.to(R)[..., None])[..., 0] + t[:, bone]
+
     def positions(self, bone_frames: torch.Tensor) -> torch.Tensor:
         """(B, nb, 4, 4) bone-to-world transforms (``Skeleton.forward(...).bone_frames``) -> (B, M, 3) markers."""
         check_shape(bone_frames, ("B", None, 4, 4), "bone_frames")

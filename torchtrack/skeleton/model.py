@@ -311,6 +311,22 @@ class Skeleton(nn.Module):
         T = self._chain_for(angles).forward_kinematics_tensor(angles)  # (F, B, 4, 4)
         return T.transpose(0, 1)
 
+    def bone_poses(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The bones' frames of many states, lean: ``angles (B, D)`` -> rotations ``(B, nb, 3, 3)`` and origins
+        ``(B, nb, 3)`` (world), the same as :meth:`forward`'s ``bone_frames`` (tested against it), differentiable.
+
+        The annealed particle filter weighs thousands of states per layer, where pytorch-kinematics' general
+        path (4 x 4 transforms for every link, selected by joint type) took a third of the layer: this one reads
+        the chain's own offsets, axes and levels from pytorch-kinematics and composes 3 x 3 rotations and
+        origins level by level."""
+        check_shape(angles, ("B", self.num_dofs), "angles")
+        key = ("lean", angles.device, angles.dtype)
+        if key not in self._chains:
+            self._chains[key] = _LeanChain(self._chain_for(angles))
+        R, t = self._chains[key](angles)  # (B, F, 3, 3), (B, F, 3)
+        idx = self.bone_index.to(angles.device)
+        return R[:, idx], t[:, idx]
+
     def forward(self, angles: torch.Tensor) -> FKResult:
         """Landmarks, kinematic joints and bone frames of a batch of poses.
 
@@ -331,6 +347,45 @@ class Skeleton(nn.Module):
     def landmarks(self, angles: torch.Tensor) -> torch.Tensor:
         """(B, D) -> (B, 16, 3) world landmark positions."""
         return self.forward(angles).landmarks
+
+
+class _LeanChain:
+    """Forward kinematics of a pytorch-kinematics chain in 3 x 3 rotations and origins (:meth:`Skeleton.bone_poses`):
+    each link's local transform is its static offset times its joint's rotation (Rodrigues' formula) or
+    translation, composed with its parent's level by level as pytorch-kinematics does."""
+
+    def __init__(self, chain: pk.Chain) -> None:
+        off = chain._static_offsets  # (F, 4, 4) the links' fixed offsets, in the chain's dtype and device
+        self.R0, self.t0 = off[:, :3, :3], off[:, :3, 3]
+        self.joint = chain._joint_indices_clamped  # (F,) the DOF that moves each link
+        kind = chain.joint_type_indices.to(off.device)
+        self.revolute, self.prismatic = kind == 1, kind == 2
+        a = chain.axes.to(off)[self.joint]  # (F, 3) each link's joint axis
+        z = torch.zeros_like(a[:, 0])
+        K = torch.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z], -1).reshape(-1, 3, 3)
+        self.K, self.K2, self.axis = K, K @ K, a
+        parent = chain._direct_parent_idx
+        self.levels = [(lvl.to(off.device), parent[lvl].to(off.device)) for lvl in chain._bfs_levels]
+
+    def __call__(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, D) -> (B, F, 3, 3) link-to-world rotations and (B, F, 3) origins. Computed batch last, so that each
+        operation runs along the states' contiguous axis and a level's 3 x 3 products are one matrix product."""
+        q = angles.T[self.joint]  # (F, B)
+        turn = torch.where(self.revolute[:, None], q, 0.0)[:, None, None]  # (F, 1, 1, B)
+        eye = torch.eye(3, dtype=q.dtype, device=q.device)[..., None]
+        Rj = eye + turn.sin() * self.K[..., None] + (1 - turn.cos()) * self.K2[..., None]  # (F, 3, 3, B)
+        R = torch.einsum("fik,fkjb->fijb", self.R0, Rj)  # the local rotations: offset, then the joint's
+        t = self.t0[..., None] + torch.einsum("fik,fb->fib", self.R0 @ self.axis[..., None],
+                                              torch.where(self.prismatic[:, None], q, 0.0))  # (F, 3, B)
+        Rw, tw = torch.empty_like(R), torch.empty_like(t)
+        for level, parent in self.levels:
+            if int(parent[0]) < 0:  # the root
+                Rw[level], tw[level] = R[level], t[level]
+                continue
+            Rp = Rw[parent]  # (n, 3, 3, B); the products as sums of elementwise ones, along B
+            Rw[level] = (Rp[:, :, :, None] * R[level][:, None]).sum(2)
+            tw[level] = (Rp * t[level][:, None]).sum(2) + tw[parent]
+        return Rw.permute(3, 0, 1, 2), tw.permute(2, 0, 1)
 
 
 @dataclass(frozen=True)

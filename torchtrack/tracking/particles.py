@@ -39,6 +39,11 @@ class APFConfig:
             detection farther off is another marker's or a false one.
         root_m, root_rad, joint_rad: the first layer's perturbation (standard deviation) of the root's translation,
             its rotation and every joint angle; ``shrink``: each later layer's, as a factor of the one before.
+        partitioned: each limb's joints resampled by the limb's own markers (the trunk's by all of them), not whole
+            particles by the total cost alone.
+        velocity: the share of the last frame's motion the prediction carries on (0: none).
+        polish_steps: Levenberg-Marquardt iterations on the same cost from the filter's estimate (0: none).
+        The figures behind these values: docs/results.md, "Marker-based capture".
     """
 
     particles: int = 500
@@ -60,6 +65,9 @@ class APFConfig:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
 
 
+#: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
+#: the cost below which it stops (a ten-thousandth: well under a pixel's worth over the markers).
+FD_STEP, POLISH_TOL = 1e-6, 1e-4
 #: The limbs whose joints the filter resamples by their own markers: name prefixes of their DOFs and bones.
 LIMBS = (("l_shoulder", "l_elbow", "l_wrist", "l_upperarm", "l_forearm", "l_hand"),
          ("r_shoulder", "r_elbow", "r_wrist", "r_upperarm", "r_forearm", "r_hand"),
@@ -108,6 +116,10 @@ class EpipolarCost:
     view pair. Hand-written over kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the
     same distance, tested against it) because that one recomputes every candidate's line for every state.
 
+    The distance is invariant to each fundamental matrix's scale and to the lines' scale, so both are normalised
+    here (in float64): the lines then give pixel distances directly, and the states' side runs in their own dtype
+    (float32 for the particle filter's layers) without the ill-scaled products of a raw F.
+
     Args:
         detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
         P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
@@ -116,33 +128,56 @@ class EpipolarCost:
 
     def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor, outlier_px: float) -> None:
         C, M, K, _ = detections.shape
-        self.P, self.cap = P, outlier_px ** 2
-        seen = torch.isfinite(detections).all(-1)  # (C, M, K)
-        z = torch.cat([torch.nan_to_num(detections), torch.ones_like(detections[..., :1])], -1)  # (C, M, K, 3)
-        self.FT = F.transpose(-1, -2).to(z)  # (i, j, 3, 3): F[i, j]^T
-        self.lines = torch.einsum("ijcd,imkd->ijmkc", F.to(z), z)  # (i, j, M, K, 3): z_ik's epiline in view j
-        norm = self.lines[..., :2].square().sum(-1)  # (i, j, M, K)
-        diagonal = torch.eye(C, dtype=torch.bool, device=z.device)[:, :, None, None]
-        seen = seen & ((norm > 0) | diagonal).all(1)  # a candidate with no epiline (at an epipole) is none
-        # finite where unseen too: those are masked after, and an infinite factor would make NaN gradients
-        self.inv_norm = torch.where(seen[:, None], 1.0 / norm.clamp(min=1e-30), 0.0)
-        self.z = z
-        off = ~torch.eye(C, dtype=torch.bool, device=z.device)[:, :, None]  # (i, j, 1)
-        self.pair = off & seen.any(-1)[:, None, :]  # (i, j, M): view i has a candidate of marker m
-        self.seen = seen
+        dtype, dev = detections.dtype, detections.device
+        self.P, self.cap = P.to(dtype), outlier_px ** 2
+        i, j = (~torch.eye(C, dtype=torch.bool, device=dev)).nonzero(as_tuple=True)  # the ordered view pairs
+        self.j = j
+        Fij = F.to(dev, torch.float64)[i, j]  # (S, 3, 3): x_j^T Fij x_i = 0
+        Fij = Fij / Fij.flatten(1).norm(dim=1).clamp(min=1e-300)[:, None, None]
+        z = detections.double()
+        seen = torch.isfinite(z).all(-1)  # (C, M, K)
+        z = torch.cat([torch.nan_to_num(z), torch.ones_like(z[..., :1])], -1)  # (C, M, K, 3)
+        lines = torch.einsum("scd,smkd->smkc", Fij, z[i])  # (S, M, K, 3): z_ik's epiline in view j
+        norm2 = lines[..., :2].square().sum(-1)  # (S, M, K)
+        self.ok = seen[i] & (norm2 > 1e-300)  # a candidate at the epipole has no line there
+        unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
+        self.unit_T = unit.transpose(-1, -2).to(dtype)  # (S, M, 3, K)
+        self.norm2 = torch.where(self.ok, norm2, 0.0).to(dtype)
+        self.F = Fij.to(dtype)  # (S, 3, 3)
+        self.P_T = self.P.transpose(-1, -2)[:, None]  # (C, 1, 4, 3)
+        self.pair = self.ok.any(-1)  # (S, M): view i has a candidate of marker m
+
+    def _signed(self, points: torch.Tensor) -> torch.Tensor:
+        """(B, M, 3) -> (S, M, B, K) each candidate's signed root of its symmetric epipolar distance (px)."""
+        h = torch.cat([points, torch.ones_like(points[..., :1])], -1).transpose(0, 1)  # (M, B, 4)
+        y = h[None] @ self.P_T.to(h)  # (C, M, B, 3)
+        y = (y / y[..., 2:3])[self.j]  # (S, M, B, 3) each pair's second view's projection, w = 1
+        dist = y @ self.unit_T.to(y)  # (S, M, B, K): y_j from z_ik's epiline, px
+        back = (y @ self.F.to(y)[:, None])[..., :2].square().sum(-1)  # (S, M, B): |(F^T y_j)_12|^2
+        # (y^T F z)^2 over |(F z)_12|^2 and over |(F^T y)_12|^2, the first already in dist
+        return dist * (1 + self.norm2.to(y)[:, :, None] / back.clamp(min=1e-30)[..., None]).sqrt()
 
     def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
-        """``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``."""
-        h = torch.cat([points, torch.ones_like(points[..., :1])], -1)
-        y = torch.einsum("jcd,bmd->bjmc", self.P.to(points), h)
-        y = y / y[..., 2:3]  # (B, j, M, 3) each view's projection, w = 1
-        num = torch.einsum("bjmc,ijmkc->bijmk", y, self.lines.to(y))  # y_j . (F z_ik) = y^T F z
-        back = torch.einsum("ijdc,bjmc->bijmd", self.FT.to(y), y)  # F^T y_j: y_j's epiline in view i
-        inv_back = 1.0 / back[..., :2].square().sum(-1).clamp(min=1e-30)  # (B, i, j, M)
-        d = num.square() * (self.inv_norm.to(y)[None] + inv_back[..., None])  # (B, i, j, M, K)
-        d = torch.where(self.seen[:, None][None], d, math.inf).amin(-1).clamp(max=self.cap)  # (B, i, j, M)
-        cost = torch.where(self.pair[None], d, 0.0)
-        return cost.sum((1, 2)) if per_marker else cost.sum((1, 2, 3))
+        """``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``. Laid out markers before states, so
+        that each contraction is one batched matrix product."""
+        d = torch.where(self.ok[:, :, None], self._signed(points).square(), math.inf)
+        d = d.amin(-1).clamp(max=self.cap)  # (S, M, B)
+        cost = torch.where(self.pair[..., None], d, 0.0).sum(0)  # (M, B)
+        return cost.T if per_marker else cost.sum(0)
+
+    def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``points (B, M, 3)`` -> (B, S * M) signed residuals whose squares sum to the cost's terms below the
+        outlier cap (0 for the others), each pair's and marker's nearest candidate, or the candidates ``pick (S, M)``
+        (the nearest are returned with the residuals, to keep them while a Jacobian is taken)."""
+        r = self._signed(points)  # (S, M, B, K)
+        r2 = torch.where(self.ok[:, :, None], r.square(), math.inf)
+        if pick is None:
+            pick = r2[:, :, 0].argmin(-1)  # (S, M): the first state's nearest candidate
+        idx = pick[:, :, None, None].expand(*r.shape[:3], 1)
+        use = self.pair[..., None] & (r2.gather(-1, idx)[..., 0] < self.cap)  # (S, M, B)
+        out = torch.where(use, r.gather(-1, idx)[..., 0], 0.0)
+        return out.permute(2, 0, 1).reshape(points.shape[0], -1), pick
 
 
 def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
@@ -164,12 +199,12 @@ def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tenso
     return EpipolarCost(detections.to(points), P, F, outlier_px)(points, per_marker)
 
 
-def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 4, points: int = 64) -> torch.Tensor:
+def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 6, points: int = 8) -> torch.Tensor:
     """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
     sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
     evaluates it at ``points`` values of log beta in one tensor operation and keeps the bracket where it crosses
-    ``survival`` (from [-30, 30]: log beta to within 60 / 63^stages). Returns ``(...,)`` float64; 0 where a row's
-    costs are all equal."""
+    ``survival`` (from [-30, 30]: log beta to within 60 / (points - 1)^stages, 5e-4 by default). Returns ``(...,)``
+    float64; 0 where a row's costs are all equal."""
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
     n = c.shape[-1]
     lo = c.new_full(c.shape[:-1], -30.0)
@@ -245,19 +280,39 @@ class MarkerAPF:
         self.previous = self.state.clone()
 
     def _polish(self, angles: torch.Tensor, score: EpipolarCost) -> torch.Tensor:
-        """A few gradient steps (L-BFGS) of the same cost from the filter's estimate, within the joint limits."""
-        theta = angles.detach().clone().requires_grad_(True)
-        opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=self.config.polish_steps, line_search_fn="strong_wolfe")
+        """Levenberg-Marquardt on the cost's residuals from the filter's estimate, within the joint limits: the
+        Jacobian by forward differences, every column's state in one batch with the estimate (a single state's
+        autograd, as L-BFGS took it, cost several times as much per step for the same result)."""
+        theta = angles.detach().double()
+        D = theta.shape[0]
+        step = torch.full((D,), FD_STEP, dtype=theta.dtype, device=theta.device)
+        cost = float(score(self.markers(theta[None]))[0])
+        lam = 1e-3
+        for _ in range(self.config.polish_steps):
+            r0, pick = self.residuals_at(theta[None], score)
+            states = theta + torch.diag(step)  # (D, D): one DOF moved each
+            J = (self.residuals_at(states, score, pick)[0] - r0) / step[:, None]  # (D, R)
+            A, g = J @ J.T, J @ r0[0]
+            for _ in range(4):  # damp until the cost falls
+                delta = torch.linalg.solve(A + lam * (torch.diag(A.diagonal()) + 1e-9 * torch.eye(D, dtype=A.dtype,
+                                                                                                  device=A.device)), -g)
+                trial = self.skeleton.clamp(theta + delta)
+                trial_cost = float(score(self.markers(trial[None]))[0])
+                if trial_cost < cost:
+                    break
+                lam *= 10.0
+            else:
+                break
+            converged = cost - trial_cost < POLISH_TOL * cost
+            theta, cost, lam = trial, trial_cost, max(lam / 10.0, 1e-7)
+            if converged:
+                break
+        return theta
 
-        def closure() -> torch.Tensor:
-            opt.zero_grad()
-            cost = score(self.markers(theta[None]))[0]
-            cost.backward()
-            return cost
-
-        with torch.enable_grad():
-            opt.step(closure)
-        return self.skeleton.clamp(theta.detach())
+    def residuals_at(self, states: torch.Tensor, score: EpipolarCost, pick: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`EpipolarCost.residuals` of states ``(B, D)``."""
+        return score.residuals(self.markers(states), pick)
 
     def hold(self) -> None:
         """A frame without detections: the state stays, and the next frame predicts without velocity."""
@@ -265,8 +320,8 @@ class MarkerAPF:
             self.previous = self.state.clone()
 
     def markers(self, angles: torch.Tensor) -> torch.Tensor:
-        """(B, D) states -> (B, M, 3) their model markers."""
-        return self.marker_set.positions(self.skeleton.forward(angles.double()).bone_frames)
+        """(B, D) states -> (B, M, 3) their model markers, in the states' dtype."""
+        return self.marker_set.positions_from(*self.skeleton.bone_poses(angles))
 
     def step(self, detections: torch.Tensor) -> torch.Tensor:
         """One frame: ``detections (C, M, K, 2)`` in pinhole pixels (:func:`pinhole_pixels`) -> the estimate
@@ -280,10 +335,12 @@ class MarkerAPF:
         x = predicted[None].expand(cfg.particles, -1)
         std = self.std
         G = len(LIMBS) + 1
-        score = EpipolarCost(detections.to(self.P), self.P, self.F, cfg.outlier_px)
+        # the layers weigh the particles in float32 (costs in px^2, a thousandth of a pixel's precision is plenty);
+        # the polish and the estimate stay in float64
+        layer_score = EpipolarCost(detections.float(), self.P, self.F, cfg.outlier_px)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, self.lower, self.upper, gen)
-            per = score(self.markers(x), per_marker=True)
+            per = layer_score(self.markers(x.float()), per_marker=True).double()
             parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
             # the limb's own markers (the trunk's as the whole particle drew them)
@@ -299,9 +356,9 @@ class MarkerAPF:
         w = w / w.sum()
         estimate = (w[:, None] * keep).sum(0)
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, score)
+            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px))
         self.previous, self.state = self.state, estimate
         with torch.no_grad():
-            pts = self.markers(torch.cat([self.state[None], keep]))
+            pts = self.markers(torch.cat([self.state[None], keep]).float())
         self.spread = float((w * ((pts[1:] - pts[:1]) ** 2).sum(-1).mean(-1)).sum().sqrt())
         return self.state.clone()
