@@ -41,10 +41,11 @@ class MarkerSet:
     def num_markers(self) -> int:
         return len(self.names)
 
-    def positions_from(self, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
-        """Bone rotations ``(B, nb, 3, 3)`` and origins ``(B, nb, 3)`` (``Skeleton.bone_poses``) -> (B, M, 3)."""
+    def positions_last(self, R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Bone rotations ``(nb, 3, 3, B)`` and origins ``(nb, 3, B)`` (``Skeleton.bone_poses_last``) -> the markers
+        ``(M, 3, B)``, states last."""
         bone = self.bone.to(R.device)
-        return (R[:, bone] @ self.offset.to(R)[..., None])[..., 0] + t[:, bone]
+        return (R[bone] * self.offset.to(R)[:, None, :, None]).sum(2) + t[bone]
 
     def positions(self, bone_frames: torch.Tensor) -> torch.Tensor:
         """(B, nb, 4, 4) bone-to-world transforms (``Skeleton.forward(...).bone_frames``) -> (B, M, 3) markers."""

@@ -319,13 +319,18 @@ class Skeleton(nn.Module):
         path (4 x 4 transforms for every link, selected by joint type) took a third of the layer: this one reads
         the chain's own offsets, axes and levels from pytorch-kinematics and composes 3 x 3 rotations and
         origins level by level."""
+        R, t = self.bone_poses_last(angles)
+        return R.permute(3, 0, 1, 2), t.permute(2, 0, 1)
+
+    def bone_poses_last(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`bone_poses` laid out states last: ``(nb, 3, 3, B)`` and ``(nb, 3, B)``."""
         check_shape(angles, ("B", self.num_dofs), "angles")
         key = ("lean", angles.device, angles.dtype)
         if key not in self._chains:
             self._chains[key] = _LeanChain(self._chain_for(angles))
-        R, t = self._chains[key](angles)  # (B, F, 3, 3), (B, F, 3)
+        R, t = self._chains[key](angles)  # (F, 3, 3, B), (F, 3, B)
         idx = self.bone_index.to(angles.device)
-        return R[:, idx], t[:, idx]
+        return R[idx], t[idx]
 
     def forward(self, angles: torch.Tensor) -> FKResult:
         """Landmarks, kinematic joints and bone frames of a batch of poses.
@@ -368,8 +373,8 @@ class _LeanChain:
         self.levels = [(lvl.to(off.device), parent[lvl].to(off.device)) for lvl in chain._bfs_levels]
 
     def __call__(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, D) -> (B, F, 3, 3) link-to-world rotations and (B, F, 3) origins. Computed batch last, so that each
-        operation runs along the states' contiguous axis and a level's 3 x 3 products are one matrix product."""
+        """(B, D) -> (F, 3, 3, B) link-to-world rotations and (F, 3, B) origins, states last, so that each operation
+        runs along the states' contiguous axis."""
         q = angles.T[self.joint]  # (F, B)
         turn = torch.where(self.revolute[:, None], q, 0.0)[:, None, None]  # (F, 1, 1, B)
         eye = torch.eye(3, dtype=q.dtype, device=q.device)[..., None]
@@ -385,7 +390,7 @@ class _LeanChain:
             Rp = Rw[parent]  # (n, 3, 3, B); the products as sums of elementwise ones, along B
             Rw[level] = (Rp[:, :, :, None] * R[level][:, None]).sum(2)
             tw[level] = (Rp * t[level][:, None]).sum(2) + tw[parent]
-        return Rw.permute(3, 0, 1, 2), tw.permute(2, 0, 1)
+        return Rw, tw
 
 
 @dataclass(frozen=True)

@@ -141,28 +141,41 @@ class EpipolarCost:
         norm2 = lines[..., :2].square().sum(-1)  # (S, M, K)
         self.ok = seen[i] & (norm2 > 1e-300)  # a candidate at the epipole has no line there
         unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
-        self.unit_T = unit.transpose(-1, -2).to(dtype)  # (S, M, 3, K)
-        self.norm2 = torch.where(self.ok, norm2, 0.0).to(dtype)
-        self.F = Fij.to(dtype)  # (S, 3, 3)
-        self.P_T = self.P.transpose(-1, -2)[:, None]  # (C, 1, 4, 3)
+        # laid out for states last (B contiguous): each contraction is one batched product, each mask broadcast
+        # along B, each reduction over K runs along contiguous rows (several times faster than states first)
+        self.unit = unit.to(dtype)  # (S, M, K, 3)
+        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (S, M, K, 1)
+        self.F12_T = Fij[..., :2].transpose(-1, -2)[:, None].contiguous().to(dtype)  # (S, 1, 2, 3): (F^T y)_12
+        self.P = self.P[:, None]  # (C, 1, 3, 4)
+        self.not_ok = ~self.ok[..., None]  # (S, M, K, 1)
         self.pair = self.ok.any(-1)  # (S, M): view i has a candidate of marker m
+        self.no_pair = ~self.pair[..., None]  # (S, M, 1)
 
-    def _signed(self, points: torch.Tensor) -> torch.Tensor:
-        """(B, M, 3) -> (S, M, B, K) each candidate's signed root of its symmetric epipolar distance (px)."""
-        h = torch.cat([points, torch.ones_like(points[..., :1])], -1).transpose(0, 1)  # (M, B, 4)
-        y = h[None] @ self.P_T.to(h)  # (C, M, B, 3)
-        y = (y / y[..., 2:3])[self.j]  # (S, M, B, 3) each pair's second view's projection, w = 1
-        dist = y @ self.unit_T.to(y)  # (S, M, B, K): y_j from z_ik's epiline, px
-        back = (y @ self.F.to(y)[:, None])[..., :2].square().sum(-1)  # (S, M, B): |(F^T y_j)_12|^2
-        # (y^T F z)^2 over |(F z)_12|^2 and over |(F^T y)_12|^2, the first already in dist
-        return dist * (1 + self.norm2.to(y)[:, :, None] / back.clamp(min=1e-30)[..., None]).sqrt()
+    def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``(M, 3, B)``, states last -> each candidate's signed distance from the projection's epiline
+        ``(S, M, K, B)`` (px) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2`` ``(S, M, K, B)``: the symmetric distance is
+        their product with the first squared."""
+        h = torch.cat([points, torch.ones_like(points[:, :1])], 1)  # (M, 4, B)
+        y = self.P.to(h) @ h[None]  # (C, M, 3, B)
+        y = (y / y[:, :, 2:3])[self.j]  # (S, M, 3, B) each pair's second view's projection, w = 1
+        dist = self.unit.to(y) @ y  # (S, M, K, B): y_j from z_ik's epiline, px
+        b = self.F12_T.to(y) @ y  # (S, M, 2, B)
+        back = (b[:, :, 0].square() + b[:, :, 1].square()).clamp(min=1e-30)  # (S, M, B): |(F^T y_j)_12|^2
+        return dist, self.norm2.to(y) / back[:, :, None] + 1
 
-    def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
-        """``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``. Laid out markers before states, so
-        that each contraction is one batched matrix product."""
-        d = torch.where(self.ok[:, :, None], self._signed(points).square(), math.inf)
-        d = d.amin(-1).clamp(max=self.cap)  # (S, M, B)
-        cost = torch.where(self.pair[..., None], d, 0.0).sum(0)  # (M, B)
+    def __call__(self, points: torch.Tensor, per_marker: bool = False, states_last: bool = False) -> torch.Tensor:
+        """``points (B, M, 3)`` (``states_last``: ``(M, 3, B)``) -> (B,) costs, or (B, M) with ``per_marker``. In
+        place where no gradient is asked for (the particle filter's layers)."""
+        if not states_last:
+            points = points.permute(1, 2, 0)
+        dist, factor = self._terms(points)
+        if torch.is_grad_enabled() and points.requires_grad:
+            d = (dist.square() * factor).masked_fill(self.not_ok, math.inf)
+            d = d.amin(2).clamp(max=self.cap).masked_fill(self.no_pair, 0.0)
+        else:
+            d = dist.square_().mul_(factor).masked_fill_(self.not_ok, math.inf)
+            d = d.amin(2).clamp_(max=self.cap).masked_fill_(self.no_pair, 0.0)  # (S, M, B)
+        cost = d.sum(0)  # (M, B)
         return cost.T if per_marker else cost.sum(0)
 
     def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
@@ -170,14 +183,16 @@ class EpipolarCost:
         """``points (B, M, 3)`` -> (B, S * M) signed residuals whose squares sum to the cost's terms below the
         outlier cap (0 for the others), each pair's and marker's nearest candidate, or the candidates ``pick (S, M)``
         (the nearest are returned with the residuals, to keep them while a Jacobian is taken)."""
-        r = self._signed(points)  # (S, M, B, K)
-        r2 = torch.where(self.ok[:, :, None], r.square(), math.inf)
+        B = points.shape[0]
+        dist, factor = self._terms(points.permute(1, 2, 0))
+        r = dist * factor.sqrt()  # (S, M, K, B)
+        r2 = r.square().masked_fill(self.not_ok, math.inf)
         if pick is None:
-            pick = r2[:, :, 0].argmin(-1)  # (S, M): the first state's nearest candidate
-        idx = pick[:, :, None, None].expand(*r.shape[:3], 1)
-        use = self.pair[..., None] & (r2.gather(-1, idx)[..., 0] < self.cap)  # (S, M, B)
-        out = torch.where(use, r.gather(-1, idx)[..., 0], 0.0)
-        return out.permute(2, 0, 1).reshape(points.shape[0], -1), pick
+            pick = r2[..., 0].argmin(-1)  # (S, M): the first state's nearest candidate
+        idx = pick[:, :, None, None].expand(*r.shape[:2], 1, r.shape[3])
+        use = self.pair[..., None] & (r2.gather(2, idx)[:, :, 0] < self.cap)  # (S, M, B)
+        out = torch.where(use, r.gather(2, idx)[:, :, 0], 0.0)
+        return out.permute(2, 0, 1).reshape(B, -1), pick
 
 
 def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
@@ -321,7 +336,11 @@ class MarkerAPF:
 
     def markers(self, angles: torch.Tensor) -> torch.Tensor:
         """(B, D) states -> (B, M, 3) their model markers, in the states' dtype."""
-        return self.marker_set.positions_from(*self.skeleton.bone_poses(angles))
+        return self.markers_last(angles).permute(2, 0, 1)
+
+    def markers_last(self, angles: torch.Tensor) -> torch.Tensor:
+        """(B, D) states -> (M, 3, B) their model markers, states last."""
+        return self.marker_set.positions_last(*self.skeleton.bone_poses_last(angles))
 
     def step(self, detections: torch.Tensor) -> torch.Tensor:
         """One frame: ``detections (C, M, K, 2)`` in pinhole pixels (:func:`pinhole_pixels`) -> the estimate
@@ -340,7 +359,7 @@ class MarkerAPF:
         layer_score = EpipolarCost(detections.float(), self.P, self.F, cfg.outlier_px)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, self.lower, self.upper, gen)
-            per = layer_score(self.markers(x.float()), per_marker=True).double()
+            per = layer_score(self.markers_last(x.float()), per_marker=True, states_last=True).double()
             parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
             # the limb's own markers (the trunk's as the whole particle drew them)
