@@ -1,7 +1,7 @@
 """Marker capture from video: the colour detector against the rendered balls, then the marker tracker on its output.
 
 Each case renders `torchtrack synth --markers` video (a motion, a rig, a ball colour, lighting), learns the colour and
-links the detections from frame 0's labels (`torchtrack detect-markers`), tracks them (`torchtrack track --mode
+links the detections from frame 0's labels (`torchtrack detect`), tracks them (`torchtrack track --mode
 markers`) and scores:
 - the detector against the renderer's labelled pixels (every 5th frame): the share of balls that touch no other in the
   image found within 1.5 px of their visible pixels' centre, the mean distance of those, false detections per view

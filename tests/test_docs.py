@@ -221,7 +221,7 @@ def test_readme_marker_commands_run_as_printed(tmp_path):
     if not SHARED_DATA.exists():
         pytest.skip(f"real data not available: {SHARED_DATA}")
     lines = shell_lines(readme_section("Track markers"))
-    assert [ln.split()[1] for ln in lines] == ["synth", "track", "eval", "synth", "detect-markers", "track", "eval"]
+    assert [ln.split()[1] for ln in lines] == ["synth", "track", "eval", "synth", "detect", "track", "eval"]
     out = tmp_path / "out"
     for line in lines:
         line = line.replace(".venv/bin/torchtrack", TORCHTRACK)

@@ -1,5 +1,5 @@
 """The colour marker detector and its labelling: chrominance against OpenCV, blob centres against drawn discs, the
-linking against projected ground truth, and the whole `synth --markers` -> `detect-markers` path against the
+linking against projected ground truth, and the whole `synth --markers` -> `detect` path against the
 renderer's labelled pixels."""
 
 from __future__ import annotations
@@ -188,7 +188,7 @@ def test_detector_against_the_labelled_pixels_of_its_synthetic_video(marker_vide
     assert np.mean(hits) > 0.9 and np.mean(errors) < 0.8 and np.mean(false) < 4, (np.mean(hits), np.mean(errors),
                                                                                    np.mean(false))
     # the CLI's labelled candidates: the first is the ball wherever it shows
-    assert main(["detect-markers", str(marker_video), "--labels", str(marker_video / "marker_labels.csv")]) == 0
+    assert main(["detect", str(marker_video), "--labels", str(marker_video / "marker_labels.csv")]) == 0
     data = load_markers2d(marker_video / "markers2d.npz")
     idx = [list(gt["marker_names"]).index(n) for n in data.marker_names]
     truth, seen = gt["marker_uv"][:, :, idx], gt["marker_pixels"][:, :, idx] >= 4
@@ -200,6 +200,34 @@ def test_detect_markers_bad_labels(marker_video, tmp_path, capsys):
     bad = tmp_path / "labels.csv"
     for rows, words in (("0,camX,LASI,10,20", "cameras ['camX'] are not in"), ("999,cam0,LASI,10,20", "frame 999")):
         bad.write_text(f"frame,camera,marker,u,v\n{rows}\n", encoding="utf-8")
-        assert main(["detect-markers", str(marker_video), "--labels", str(bad), "--out", str(tmp_path / "m.npz")]) != 0
+        assert main(["detect", str(marker_video), "--labels", str(bad), "--out", str(tmp_path / "m.npz")]) != 0
         assert words in capsys.readouterr().err
     assert not (tmp_path / "m.npz").exists()
+
+
+def test_marker_track_logs_what_it_saw_to_tensorboard(marker_video, tmp_path):
+    """`track --mode markers` on the detected video: per-frame scalars, and each camera's frame with the detections
+    drawn where markers2d.npz has them (white dots) and the model's markers as rings."""
+    import io
+
+    from PIL import Image
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    if not (marker_video / "markers2d.npz").is_file():
+        assert main(["detect", str(marker_video), "--labels", str(marker_video / "marker_labels.csv")]) == 0
+    out = tmp_path / "track"
+    assert main(["track", str(marker_video), "--mode", "markers", "--out", str(out), "--stop", "6",
+                 "--log-every", "5"]) == 0
+    ea = EventAccumulator(str(out / "tb"), size_guidance={"images": 0})
+    ea.Reload()
+    assert {"markers/detected", "markers/particle_spread_mm", "markers/restarts",
+            "markers/triangulated_error_mm"} <= set(ea.Tags()["scalars"])
+    assert [e.step for e in ea.Scalars("markers/detected")] == list(range(6))
+    data = load_markers2d(marker_video / "markers2d.npz")
+    event = ea.Images("cameras/markers/cam0")[-1]
+    image = np.asarray(Image.open(io.BytesIO(event.encoded_image_string)).convert("RGB"))
+    uv = data.uv[event.step, 0].reshape(-1, 2)
+    uv = uv[np.isfinite(uv).all(-1)]
+    assert len(uv) > 5
+    px = image[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
+    assert (px.min(-1) > 200).mean() > 0.9  # white dots at the detections

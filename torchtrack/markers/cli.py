@@ -1,4 +1,4 @@
-"""`torchtrack detect-markers`: coloured markers in a sequence's video, labelled from one frame, to markers2d.npz."""
+"""`torchtrack detect`: coloured markers in a sequence's video, labelled from one frame, to markers2d.npz."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("detect-markers", help="detect coloured ball markers in a sequence's video (markers2d.npz)",
+    p = sub.add_parser("detect", help="find coloured ball markers in a video (markers2d.npz)",
                        description="Learn the balls' colour from one labelled frame, detect them in every frame of "
                                    "every view and link each view's detections to the labelled markers; writes "
                                    "SEQ/markers2d.npz for `torchtrack track SEQ --mode markers`.")
@@ -40,7 +40,7 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.markers.detect import detect_sequence, read_marker_labels
 
     if args.candidates < 1 or args.gate <= 0 or args.threshold <= 0 or not 1 <= args.min_area <= args.max_area:
-        raise InputError("detect-markers: --candidates >= 1, --gate and --threshold > 0 and 1 <= --min-area <= "
+        raise InputError("detect: --candidates >= 1, --gate and --threshold > 0 and 1 <= --min-area <= "
                          "--max-area are needed")
     labels = read_marker_labels(args.labels)
     data = detect_sequence(args.sequence, labels, threshold=args.threshold, gate_px=args.gate,

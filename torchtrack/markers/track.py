@@ -17,6 +17,7 @@ from torchtrack.cameras import load_calibration
 from torchtrack.checks import InputError
 from torchtrack.io.markers2d import load_markers2d
 from torchtrack.io.poses import Poses
+from torchtrack.logging import RunLogger
 from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
@@ -53,8 +54,12 @@ class MarkerTrack:
 
 
 def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: int = 0, stop: int | None = None,
-                  seed: int = 0, progress: bool = True) -> MarkerTrack:
+                  seed: int = 0, progress: bool = True, logger: RunLogger | None = None,
+                  log_every: int = 10) -> MarkerTrack:
     """Track the markers of ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)``.
+
+    ``logger``: TensorBoard scalars for every frame and, every ``log_every`` frames, each camera's picture of the
+    detections and the model's markers (:func:`_log_frame`).
 
     Raises:
         InputError: a missing or malformed file (named), cameras of the detections missing from the calibration,
@@ -127,6 +132,15 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
         restarted.append(again)
         valid.append(True)
         bar.set_postfix(restarts=sum(restarted))
+        if logger is not None:
+            step = int(det.frame_index[start + t])
+            model = apf.markers(est[None])[0]
+            seen = torch.isfinite(Xk[t]).all(-1)
+            err = (model - Xk[t]).norm(dim=-1)[seen].mean() if bool(seen.any()) else torch.tensor(math.nan)
+            logger.scalars(step, markers__detected=int(detected[t]), markers__particle_spread_mm=1e3 * apf.spread,
+                           markers__restarts=sum(restarted), markers__triangulated_error_mm=1e3 * float(err))
+            if t % max(1, log_every) == 0:
+                _log_frame(logger, step, folder, rig, det.uv[start + t], model, Xk[t], skel.landmarks(est[None])[0])
     A = torch.stack(states)
     with torch.no_grad():
         fk = skel.forward(A)
@@ -141,6 +155,41 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
                   extra={"particle_spread_m": np.asarray(spread, dtype=np.float32),
                          "reinitialised": np.asarray(restarted, dtype=bool)})
     return MarkerTrack(poses, time.perf_counter() - t0)
+
+
+def _log_frame(logger: RunLogger, step: int, folder: Path, rig, uv: np.ndarray, model: torch.Tensor,
+               triangulated: torch.Tensor, landmarks: torch.Tensor) -> None:
+    """One frame's pictures: per camera (``cameras/markers/<name>``) the video frame where the folder has one
+    (else a black canvas) with the detections, the model's markers and the skeleton
+    (:func:`~torchtrack.tracking.draw.draw_marker_overlays`); and a 3D cloud (``pose/markers``) of the triangulated
+    markers (grey), the model's (green) and the skeleton."""
+    from torchtrack.tracking.draw import MARKER_RGB, VOXEL_RGB, draw_marker_overlays
+
+    video = (folder / "video").is_dir() or (folder / "frames").is_dir()
+    seq = None
+    if video:
+        from torchtrack.io.sequence import SequenceFolder
+
+        seq = SequenceFolder(folder, rig)
+    try:
+        for c, name in enumerate(rig.names):
+            w, h = (int(v) for v in rig.image_size_wh[c].tolist())
+            image = torch.zeros(1, 3, h, w)
+            if seq is not None and step < seq.num_frames:
+                frame, ok = seq.read_camera_frames(c, [step])
+                if ok[0]:
+                    image = torch.from_numpy(frame[0]).permute(2, 0, 1)[None].float() / 255.0
+            det = torch.from_numpy(uv[c].reshape(1, -1, 2).astype(np.float64))
+            out = draw_marker_overlays(image, rig.subset([name]), model, det, landmarks)
+            logger.camera_images(step, "cameras/markers", out, [name])
+    finally:
+        if seq is not None:
+            seq.close()
+    seen = torch.isfinite(triangulated).all(-1)
+    points = torch.cat([triangulated[seen], model])
+    colours = torch.cat([points.new_tensor(VOXEL_RGB).expand(int(seen.sum()), 3),
+                         points.new_tensor(MARKER_RGB).expand(model.shape[0], 3)])
+    logger.pose_cloud(step, "pose/markers", points, landmarks, colours)
 
 
 def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> bool:

@@ -56,7 +56,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--distractor", action="store_true",
                    help="a static box absent from the background frames, seen by some views (default: off)")
     p.add_argument("--markers", action="store_true",
-                   help="coloured balls on the body (Plug-in-Gait places), for `torchtrack detect-markers`; writes "
+                   help="coloured balls on the body (Plug-in-Gait places), for `torchtrack detect`; writes "
                         "marker_labels.csv (frame 0's labels) and the markers' truth in gt.npz (default: off)")
     p.add_argument("--marker-radius", type=float, default=0.02, metavar="M",
                    help="radius of the balls in metres, with --markers (default: %(default)s)")

@@ -50,7 +50,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         return _config_default(cfg, key)
 
     p = sub.add_parser(
-        "track", help="markerless 3D body tracking of a sequence folder",
+        "track", help="3D body tracking of a sequence folder, from video or markers",
         description="Track the body through a sequence folder from its occupancy (Bayesian grid or colour hull), "
                     "with blobs fitted by EM, joint goals and CCD inverse kinematics. Writes OUT/poses.npz "
                     "(docs/formats.md) and TensorBoard logs in OUT/tb. The tracker starts at the first frame that "
@@ -173,14 +173,15 @@ def _run_markers(args: argparse.Namespace) -> int:
 
     from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
     from torchtrack.io.poses import save_poses
+    from torchtrack.logging import RunLogger
     from torchtrack.markers.track import track_markers
 
     seq = args.seq[0]
     check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
     torch.set_num_threads(max(1, args.threads))
     try:
-        with replacing(args.out, TRACK_DIR):
-            result = track_markers(seq, start=args.start, stop=args.stop)
+        with replacing(args.out, TRACK_DIR), RunLogger(args.out / "tb") as logger:
+            result = track_markers(seq, start=args.start, stop=args.stop, logger=logger, log_every=args.log_every)
             save_poses(result.poses, args.out / "poses.npz")
     except KeyboardInterrupt:
         print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)

@@ -24,14 +24,16 @@ from torchtrack.cameras import CameraRig
 from torchtrack.checks import InputError, check_shape
 from torchtrack.conventions import LANDMARK_EDGES, LANDMARKS
 
-__all__ = ["LEFT_RGB", "RIGHT_RGB", "CENTRE_RGB", "BLOB_RGB", "VOXEL_RGB", "landmark_colours", "ellipsoid_rim_points",
-           "draw_pose_overlays", "skeleton_cloud"]
+__all__ = ["LEFT_RGB", "RIGHT_RGB", "CENTRE_RGB", "BLOB_RGB", "VOXEL_RGB", "MARKER_RGB", "DETECTION_RGB",
+           "landmark_colours", "ellipsoid_rim_points", "draw_marker_overlays", "draw_pose_overlays", "skeleton_cloud"]
 
 LEFT_RGB: tuple[float, float, float] = (0.1, 0.6, 1.0)  #: left-side bones and joints (blue)
 RIGHT_RGB: tuple[float, float, float] = (1.0, 0.3, 0.1)  #: right-side bones and joints (orange-red)
 CENTRE_RGB: tuple[float, float, float] = (1.0, 0.9, 0.1)  #: pelvis, spine, neck, head (yellow)
 BLOB_RGB: tuple[float, float, float] = (0.9, 0.9, 0.9)  #: blob outlines when no blob colours are given
 VOXEL_RGB: tuple[float, float, float] = (0.55, 0.55, 0.55)  #: voxels under a skeleton cloud (grey)
+MARKER_RGB: tuple[float, float, float] = (0.2, 1.0, 0.3)  #: the model's markers, projected (green rings)
+DETECTION_RGB: tuple[float, float, float] = (1.0, 1.0, 1.0)  #: marker detections (white dots)
 
 _SHIFT = 4  # fractional bits of OpenCV's fixed-point drawing coordinates (1/16 px)
 
@@ -254,3 +256,42 @@ def skeleton_cloud(landmarks: Tensor, points_per_bone: int = 20) -> tuple[Tensor
     _, bone_rgb = landmark_colours()
     colours = torch.tensor(bone_rgb, dtype=dtype, device=x.device).repeat_interleave(points_per_bone, 0)
     return points, colours
+
+
+def draw_marker_overlays(images: Tensor, rig: CameraRig, markers: Tensor | None = None,
+                         detections: Tensor | None = None, landmarks: Tensor | None = None, *,
+                         ring_radius_px: int = 5, dot_radius_px: int = 2) -> Tensor:
+    """The marker tracker's view of one frame: the skeleton (:func:`draw_pose_overlays`), every detection as a
+    white dot and the model's markers projected as green rings, so that a ring without its dot is a marker the
+    detector missed and a dot without a ring a false detection or another marker's.
+
+    Args:
+        images: (C, 3, H, W) float RGB in [0, 1] at the calibrated size (video frames, or a blank canvas).
+        rig: the C cameras. markers: (M, 3) world points, NaN where not tracked.
+        detections: (C, N, 2) distorted pixels, NaN where none (e.g. ``markers2d.npz``'s ``uv`` of one frame,
+            markers and candidates flattened).
+        landmarks: (16, 3) or None.
+
+    Returns:
+        (C, 3, H, W) a copy of ``images`` with the overlays.
+    """
+    import cv2
+
+    out = draw_pose_overlays(images, rig, landmarks)
+    canvas = out.detach().permute(0, 2, 3, 1).to("cpu", torch.float32).numpy().copy()  # (C, H, W, 3)
+    if detections is not None:
+        check_shape(detections, (rig.num_cameras, "N", 2), "detections")
+        det = detections.detach().cpu().double().numpy()
+        for c in range(rig.num_cameras):
+            for uv in det[c][np.isfinite(det[c]).all(-1)]:
+                cv2.circle(canvas[c], tuple(int(x) for x in _fixed(uv)), dot_radius_px << _SHIFT, DETECTION_RGB,
+                           -1, cv2.LINE_AA, _SHIFT)
+    if markers is not None:
+        check_shape(markers, ("M", 3), "markers")
+        uv, _, inside = _pixels(rig, markers.to(rig.K.device, rig.K.dtype))
+        uv, inside = uv.cpu().numpy(), inside.cpu().numpy()
+        for c in range(rig.num_cameras):
+            for m in np.flatnonzero(inside[c]):
+                cv2.circle(canvas[c], tuple(int(x) for x in _fixed(uv[c, m])), ring_radius_px << _SHIFT, MARKER_RGB,
+                           1, cv2.LINE_AA, _SHIFT)
+    return torch.from_numpy(canvas).permute(0, 3, 1, 2).to(device=images.device, dtype=images.dtype)
