@@ -57,6 +57,28 @@ def test_detector_finds_shaded_discs_at_their_centres():
     assert d.min(0).max() < 0.05  # a disc's pixels are symmetric about its centre
 
 
+def test_epipolar_cost_differentiates_with_respect_to_the_cameras():
+    """The cost's in-place path is taken only where nothing asks for a gradient (a camera matrix may)."""
+    from conftest import demo_rig
+    from torchtrack.tracking.particles import epipolar_cost, fundamental_matrices, projection_matrices
+
+    rig = demo_rig()
+    P = projection_matrices(rig).double().clone().requires_grad_(True)
+    points = torch.tensor([[[-0.9, -0.1, 1.0], [-0.7, 0.1, 1.3]]], dtype=torch.float64)
+    det = torch.full((rig.num_cameras, 2, 1, 2), 600.0, dtype=torch.float64)
+    epipolar_cost(points, det, P, fundamental_matrices(rig), 1e6).sum().backward()
+    assert P.grad is not None and torch.isfinite(P.grad).all()
+
+
+def test_synth_reuse_sees_the_markers(tmp_path):
+    from torchtrack.synth.markers import MarkerStyle
+    from torchtrack.synth.sequence import SynthConfig, _synth_table
+
+    plain, balls = SynthConfig(), SynthConfig(markers=MarkerStyle())
+    assert _synth_table(plain) != _synth_table(balls)
+    assert _synth_table(balls) != _synth_table(SynthConfig(markers=MarkerStyle(colour=(1.0, 0.85, 0.05))))
+
+
 def test_labels_csv_errors_name_the_file_and_line(tmp_path):
     good = tmp_path / "labels.csv"
     good.write_text("frame,camera,marker,u,v\n3,cam0,LASI,10,20\n3,cam1,LASI,11.5,21\n", encoding="utf-8")
@@ -181,10 +203,11 @@ def test_detector_against_the_labelled_pixels_of_its_synthetic_video(marker_vide
             r = np.sqrt(gt["marker_pixels"][t, c][gt["marker_pixels"][t, c] >= 4] / np.pi)
             near = np.linalg.norm(truth[:, None] - truth[None], axis=-1) + 1e9 * np.eye(len(truth))
             alone = near.min(1) > 4 * r  # balls that do not touch another in the image
-            d = np.linalg.norm(truth[:, None] - b[None], axis=-1)
-            hits += list(d.min(1)[alone] < 1.5)
-            errors += list(d.min(1)[alone][d.min(1)[alone] < 1.5])
-            false.append(int((d.min(0) > 6).sum()))
+            d = np.linalg.norm(truth[:, None] - b[None], axis=-1).reshape(len(truth), len(b))
+            near = d.min(1) if len(b) else np.full(len(truth), np.inf)
+            hits += list(near[alone] < 1.5)
+            errors += list(near[alone][near[alone] < 1.5])
+            false.append(int((d.min(0) > 6).sum()) if len(truth) else len(b))
     assert np.mean(hits) > 0.9 and np.mean(errors) < 0.8 and np.mean(false) < 4, (np.mean(hits), np.mean(errors),
                                                                                    np.mean(false))
     # the CLI's labelled candidates: the first is the ball wherever it shows

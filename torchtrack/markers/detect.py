@@ -49,8 +49,8 @@ MIN_CHROMA_STD = 0.02
 #: covariance is that share of the whole Gaussian's (a 2D Gaussian truncated at r^2 = q keeps a variance of
 #: 1 - (q/2) e^{-q/2} / (1 - e^{-q/2}) per axis; q = 4.605).
 ROBUST_ROUNDS, CHI2_2DOF_90, CHI2_90_SHRINK = 5, 4.605, 0.744
-#: A marker missed in a view (and not reprojected from the others) is looked for in a gate that grows by one gate
-#: width each frame, up to this many.
+#: A marker's gate in a view is one gate width where the view kept it the frame before, two where the others'
+#: reprojection predicts it, and grows by one each frame it is neither, up to this many.
 MAX_GATE_GROWTH = 4
 
 
@@ -150,12 +150,12 @@ class ChromaModel:
             samples.append(x[torch.isfinite(x).all(-1)])
         x = torch.cat(samples) if samples else torch.zeros(0, 2)
         if x.shape[0] < 3:
-            raise InputError(f"marker colour: {x.shape[0]} labelled pixels inside the images; label at least one "
-                             "marker in a view")
+            raise InputError(f"marker colour: {x.shape[0]} labelled pixels inside the images (and lit); the colour "
+                             "needs at least 3: label more markers")
         x = x.double()
         # robust: a label may be off the ball's centre, or a neighbourhood hold the ball's edge and what lies behind
-        # it, so the Gaussian is refitted to the pixels within its own 90 % ellipse, starting from the median and the median deviation
-        floor = MIN_CHROMA_STD ** 2 * torch.eye(2, dtype=x.dtype)
+        # it, so the Gaussian is refitted to the pixels within its own 90 % ellipse, from the median and its deviation
+        floor = MIN_CHROMA_STD ** 2 * torch.eye(2, dtype=x.dtype, device=x.device)
         mean = x.median(0).values
         cov = torch.diag((x - mean).abs().median(0).values.square() * 1.4826 ** 2) + floor
         for _ in range(ROBUST_ROUNDS):
@@ -271,11 +271,17 @@ def detect_sequence(folder: str | Path, labels: MarkerLabels, threshold: float =
     Raises:
         InputError: labels of cameras the calibration lacks, of a frame outside the video, or none usable.
     """
-    from tqdm import tqdm
-
     from torchtrack.io.sequence import SequenceFolder
 
-    seq = SequenceFolder(folder)
+    with SequenceFolder(folder) as seq:
+        return _detect(seq, labels, threshold, gate_px, candidates, min_area, max_area, batch, progress)
+
+
+def _detect(seq, labels: MarkerLabels, threshold: float, gate_px: float, candidates: int, min_area: int,
+            max_area: int, batch: int, progress: bool) -> Markers2D:
+    """:func:`detect_sequence` on an open :class:`~torchtrack.io.sequence.SequenceFolder`."""
+    from tqdm import tqdm
+
     cams, names = seq.camera_names, labels.markers
     unknown = sorted({c for c, _ in labels.points} - set(cams))
     if unknown:
@@ -289,7 +295,7 @@ def detect_sequence(folder: str | Path, labels: MarkerLabels, threshold: float =
     if few:
         warnings.warn(f"marker labels: {few} labelled in fewer than two views: they cannot be triangulated and are "
                       "found in other views only once two views see them; label each marker in two or more views",
-                      DataWarning, stacklevel=2)
+                      DataWarning, stacklevel=3)
     first = seq.read_frame(labels.frame)
     model = ChromaModel.fit(first, [torch.from_numpy(lab[c][np.isfinite(lab[c]).all(-1)]) for c in range(len(cams))])
     log.info("marker colour from %d labelled pixels: (Cr, Cb) mean %s", model.num_pixels, model.mean.tolist())

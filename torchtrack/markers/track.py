@@ -4,6 +4,7 @@ frame (:class:`~torchtrack.tracking.particles.MarkerAPF`)."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -114,33 +115,42 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     states, spread, restarted, valid = [], [], [], []
     detected = torch.isfinite(zk).all(-1).any(-1).any(1).sum(-1)  # (T,) markers found in some view
     bar = tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress)
-    for t in bar:
-        if int(detected[t]) < MIN_DETECTED:  # nothing to weigh the particles by: held, marked invalid
-            apf.hold()
-            states.append(apf.state.clone())
-            spread.append(math.nan)
-            restarted.append(False)
-            valid.append(False)
-            continue
-        est = apf.step(zk[t])
-        again = _lost(apf, est, Xk[t])
-        if again:  # the filter lost the body: start it again from this frame's triangulated markers
-            est = _restart(apf, est, Xk[t], angles[0])
-            apf.reset(est)
-        states.append(est)
-        spread.append(apf.spread)
-        restarted.append(again)
-        valid.append(True)
-        bar.set_postfix(restarts=sum(restarted))
-        if logger is not None:
+    with contextlib.ExitStack() as closing:
+        video = None  # the folder's video for the logged pictures: opened at the first, decoded forwards from then
+        for t in bar:
             step = int(det.frame_index[start + t])
-            model = apf.markers(est[None])[0]
-            seen = torch.isfinite(Xk[t]).all(-1)
-            err = (model - Xk[t]).norm(dim=-1)[seen].mean() if bool(seen.any()) else torch.tensor(math.nan)
-            logger.scalars(step, markers__detected=int(detected[t]), markers__particle_spread_mm=1e3 * apf.spread,
-                           markers__restarts=sum(restarted), markers__triangulated_error_mm=1e3 * float(err))
-            if t % max(1, log_every) == 0:
-                _log_frame(logger, step, folder, rig, det.uv[start + t], model, Xk[t], skel.landmarks(est[None])[0])
+            if int(detected[t]) < MIN_DETECTED:  # nothing to weigh the particles by: held, marked invalid
+                if logger is not None:
+                    logger.scalars(step, markers__detected=int(detected[t]), markers__restarts=sum(restarted))
+                apf.hold()
+                states.append(apf.state.clone())
+                spread.append(math.nan)
+                restarted.append(False)
+                valid.append(False)
+                continue
+            est = apf.step(zk[t])
+            again = _lost(apf, est, Xk[t])
+            if again:  # the filter lost the body: start it again from this frame's triangulated markers
+                est = _restart(apf, est, Xk[t], angles[0])
+                apf.reset(est)
+            states.append(est)
+            spread.append(apf.spread)
+            restarted.append(again)
+            valid.append(True)
+            bar.set_postfix(restarts=sum(restarted))
+            if logger is not None:
+                model = apf.markers(est[None])[0]
+                seen = torch.isfinite(Xk[t]).all(-1)
+                err = (model - Xk[t]).norm(dim=-1)[seen].mean() if bool(seen.any()) else torch.tensor(math.nan)
+                logger.scalars(step, markers__detected=int(detected[t]), markers__particle_spread_mm=1e3 * apf.spread,
+                               markers__restarts=sum(restarted), markers__triangulated_error_mm=1e3 * float(err))
+                if t % max(1, log_every) == 0:
+                    if video is None and ((folder / "video").is_dir() or (folder / "frames").is_dir()):
+                        from torchtrack.io.sequence import SequenceFolder
+
+                        video = closing.enter_context(SequenceFolder(folder, rig))
+                    _log_frame(logger, step, video, rig, det.uv[start + t], model, Xk[t],
+                               skel.landmarks(est[None])[0])
     A = torch.stack(states)
     with torch.no_grad():
         fk = skel.forward(A)
@@ -157,34 +167,24 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     return MarkerTrack(poses, time.perf_counter() - t0)
 
 
-def _log_frame(logger: RunLogger, step: int, folder: Path, rig, uv: np.ndarray, model: torch.Tensor,
+def _log_frame(logger: RunLogger, step: int, video, rig, uv: np.ndarray, model: torch.Tensor,
                triangulated: torch.Tensor, landmarks: torch.Tensor) -> None:
-    """One frame's pictures: per camera (``cameras/markers/<name>``) the video frame where the folder has one
-    (else a black canvas) with the detections, the model's markers and the skeleton
-    (:func:`~torchtrack.tracking.draw.draw_marker_overlays`); and a 3D cloud (``pose/markers``) of the triangulated
-    markers (grey), the model's (green) and the skeleton."""
+    """One frame's pictures: per camera (``cameras/markers/<name>``) the frame of ``video`` (an open
+    :class:`~torchtrack.io.sequence.SequenceFolder`; None: a black canvas) with the detections, the model's markers
+    and the skeleton (:func:`~torchtrack.tracking.draw.draw_marker_overlays`); and a 3D cloud (``pose/markers``) of
+    the triangulated markers (grey), the model's (green) and the skeleton."""
     from torchtrack.tracking.draw import MARKER_RGB, VOXEL_RGB, draw_marker_overlays
 
-    video = (folder / "video").is_dir() or (folder / "frames").is_dir()
-    seq = None
-    if video:
-        from torchtrack.io.sequence import SequenceFolder
-
-        seq = SequenceFolder(folder, rig)
-    try:
-        for c, name in enumerate(rig.names):
-            w, h = (int(v) for v in rig.image_size_wh[c].tolist())
-            image = torch.zeros(1, 3, h, w)
-            if seq is not None and step < seq.num_frames:
-                frame, ok = seq.read_camera_frames(c, [step])
-                if ok[0]:
-                    image = torch.from_numpy(frame[0]).permute(2, 0, 1)[None].float() / 255.0
-            det = torch.from_numpy(uv[c].reshape(1, -1, 2).astype(np.float64))
-            out = draw_marker_overlays(image, rig.subset([name]), model, det, landmarks)
-            logger.camera_images(step, "cameras/markers", out, [name])
-    finally:
-        if seq is not None:
-            seq.close()
+    for c, name in enumerate(rig.names):
+        w, h = (int(v) for v in rig.image_size_wh[c].tolist())
+        image = torch.zeros(1, 3, h, w)
+        if video is not None and step < video.num_frames:
+            frame, ok = video.read_camera_frames(c, [step])
+            if ok[0]:
+                image = torch.from_numpy(frame[0]).permute(2, 0, 1)[None].float() / 255.0
+        det = torch.from_numpy(uv[c].reshape(1, -1, 2).astype(np.float64))
+        out = draw_marker_overlays(image, rig.subset([name]), model, det, landmarks)
+        logger.camera_images(step, "cameras/markers", out, [name])
     seen = torch.isfinite(triangulated).all(-1)
     points = torch.cat([triangulated[seen], model])
     colours = torch.cat([points.new_tensor(VOXEL_RGB).expand(int(seen.sum()), 3),

@@ -366,6 +366,7 @@ def _synth_table(cfg: SynthConfig) -> dict:
             "video_format": cfg.video_format, "body_model": body_model_digest(), "rig": _plain(asdict(cfg.rig)),
             "scene": _plain(asdict(cfg.scene)), "body": _plain(asdict(cfg.body)),
             "starfish": [cfg.starfish_arms, cfg.starfish_legs], "path": _plain(cfg.path),
+            **({} if cfg.markers is None else {"markers": _plain(asdict(cfg.markers))}),
             **({} if cfg.motion in MOTIONS else {"retarget": RETARGET_REVISION})}
 
 

@@ -169,7 +169,7 @@ class EpipolarCost:
         if not states_last:
             points = points.permute(1, 2, 0)
         dist, factor = self._terms(points)
-        if torch.is_grad_enabled() and points.requires_grad:
+        if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
             d = (dist.square() * factor).masked_fill(self.not_ok, math.inf)
             d = d.amin(2).clamp(max=self.cap).masked_fill(self.no_pair, 0.0)
         else:
