@@ -111,12 +111,13 @@ def test_lean_bone_poses_match_the_plain_implementation_and_pytorch_kinematics(s
         torch.testing.assert_close(R, T[..., :3, :3], atol=tol, rtol=0)
         torch.testing.assert_close(t, T[..., :3, 3], atol=tol, rtol=0)
     xg = x[:4].clone().requires_grad_(True)
-    R, t = skel.bone_poses(xg)
-    (R.sin().sum() + t.square().sum()).backward()
-    lean = xg.grad.clone()
-    xg.grad = None
-    T = skel(xg).bone_frames
-    (T[..., :3, :3].sin().sum() + T[..., :3, 3].square().sum()).backward()
+    with torch.enable_grad():  # other test modules turn gradients off for the whole session
+        R, t = skel.bone_poses(xg)
+        (R.sin().sum() + t.square().sum()).backward()
+        lean = xg.grad.clone()
+        xg.grad = None
+        T = skel(xg).bone_frames
+        (T[..., :3, :3].sin().sum() + T[..., :3, 3].square().sum()).backward()
     torch.testing.assert_close(lean, xg.grad, atol=1e-10, rtol=0)
 
 

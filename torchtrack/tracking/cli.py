@@ -169,18 +169,17 @@ def run(args: argparse.Namespace) -> int:
 
 def _run_markers(args: argparse.Namespace) -> int:
     """``--mode markers``: the annealed particle filter on SEQ's marker detections into OUT/poses.npz."""
-    import torch
 
     from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
     from torchtrack.io.poses import save_poses
     from torchtrack.logging import RunLogger
     from torchtrack.markers.track import track_markers
+    from torchtrack.tracking.pipeline import intra_op_threads
 
     seq = args.seq[0]
     check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
-    torch.set_num_threads(max(1, args.threads))
     try:
-        with replacing(args.out, TRACK_DIR), RunLogger(args.out / "tb") as logger:
+        with intra_op_threads(args.threads), replacing(args.out, TRACK_DIR), RunLogger(args.out / "tb") as logger:
             result = track_markers(seq, start=args.start, stop=args.stop, logger=logger, log_every=args.log_every)
             save_poses(result.poses, args.out / "poses.npz")
     except KeyboardInterrupt:
