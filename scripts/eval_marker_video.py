@@ -31,7 +31,7 @@ from torchtrack.io.markers2d import save_markers2d  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.io.poses import load_poses, save_poses  # noqa: E402
 from torchtrack.io.sequence import SequenceFolder  # noqa: E402
-from torchtrack.markers.detect import ChromaModel, detect_blobs, detect_sequence, read_marker_labels  # noqa: E402
+from torchtrack.markers.detect import detect_blobs, detect_sequence, read_marker_labels  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
 from torchtrack.synth.markers import MarkerStyle  # noqa: E402
 from torchtrack.synth.scene import SceneConfig  # noqa: E402
@@ -58,10 +58,7 @@ def detector_scores(folder: Path) -> tuple[float, float, float]:
     gt = np.load(folder / "gt.npz")
     labels = read_marker_labels(folder / "marker_labels.csv")
     seq = SequenceFolder(folder)
-    lab = [[] for _ in seq.camera_names]
-    for (cam, _), p in labels.points.items():
-        lab[seq.camera_names.index(cam)].append(p)
-    model = ChromaModel.fit(seq.read_frame(labels.frame), [torch.tensor(p).reshape(-1, 2) for p in lab])
+    model = labels.colour_model(seq.read_frame(labels.frame), seq.camera_names)
     hits, err, false = [], [], []
     for t in range(0, seq.num_frames, 5):
         for c, b in enumerate(detect_blobs(seq.read_frame(t), model)):

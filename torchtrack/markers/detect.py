@@ -66,6 +66,22 @@ class MarkerLabels:
         """The labelled markers, in the order of their first row."""
         return list(dict.fromkeys(m for _, m in self.points))
 
+    def pixels(self, cameras: Sequence[str]) -> np.ndarray:
+        """(C, M, 2) each labelled marker's pixel in each of ``cameras`` (M: :attr:`markers`), NaN where not
+        labelled."""
+        names = self.markers
+        out = np.full((len(cameras), len(names), 2), np.nan)
+        for (cam, m), uv in self.points.items():
+            if cam in cameras:
+                out[list(cameras).index(cam), names.index(m)] = uv
+        return out
+
+    def colour_model(self, images: torch.Tensor, cameras: Sequence[str]) -> ChromaModel:
+        """The balls' colour from the labelled frame's ``images (C, 3, H, W)`` of ``cameras``
+        (:meth:`ChromaModel.fit`)."""
+        lab = self.pixels(cameras)
+        return ChromaModel.fit(images, [torch.from_numpy(x[np.isfinite(x).all(-1)]) for x in lab])
+
 
 def read_marker_labels(path: str | Path) -> MarkerLabels:
     """Read a labels CSV: a header ``frame,camera,marker,u,v`` and one row per labelled marker and view, all of one
@@ -196,10 +212,10 @@ def detect_blobs(images: torch.Tensor, model: ChromaModel, threshold: float = 3.
 
 
 def _gated(centre: np.ndarray, blobs: np.ndarray, gate: np.ndarray) -> np.ndarray:
-    """(M, N) distances from markers' expected positions ``centre (M, 2)`` (NaN: unknown) to detections ``(N, 2)``,
-    inf beyond each marker's ``gate (M,)``."""
-    d = np.linalg.norm(centre[:, None] - blobs[None], axis=-1).reshape(len(centre), len(blobs))
-    return np.where(np.isfinite(d) & (d <= gate[:, None]), d, np.inf)
+    """(C, M, N) distances from markers' expected positions ``centre (C, M, 2)`` (NaN: unknown) to each view's
+    detections ``(C, N, 2)`` (NaN: padding), inf beyond each marker's ``gate (C, M)``."""
+    d = np.linalg.norm(centre[:, :, None] - blobs[:, None], axis=-1)
+    return np.where(np.isfinite(d) & (d <= gate[..., None]), d, np.inf)
 
 
 def link_detections(blobs: Sequence[Sequence[np.ndarray]], labels: np.ndarray, rig: torch.nn.Module,
@@ -227,18 +243,20 @@ def link_detections(blobs: Sequence[Sequence[np.ndarray]], labels: np.ndarray, r
     pred = labels.astype(np.float64).copy()  # (C, M, 2) where each marker is looked for in each view
     last, vel = pred.copy(), np.zeros_like(pred)  # the last kept detection and the motion from the one before
     age = np.where(np.isfinite(pred).all(-1), 0, MAX_GATE_GROWTH)  # (C, M) frames since a view last kept it
+    views = np.arange(C)[:, None]
     for t in range(T):
-        b = [np.asarray(x, dtype=np.float64).reshape(-1, 2) for x in blobs[t]]
+        n = max(1, max(len(x) for x in blobs[t]))
+        b = np.full((C, n, 2), np.nan)  # the views' detections, padded
+        for c, x in enumerate(blobs[t]):
+            b[c, :len(x)] = np.asarray(x, dtype=np.float64).reshape(-1, 2)
+        gate = gate_px * (1 + np.minimum(age, MAX_GATE_GROWTH - 1))  # (C, M)
+        d = _gated(pred, b, gate)  # (C, M, N)
         kept_idx = np.full((C, M), -1)
-        for c in range(C):  # one detection per marker: the optimal assignment within the gates
-            d = _gated(pred[c], b[c], gate_px * (1 + np.minimum(age[c], MAX_GATE_GROWTH - 1)))
-            rows, cols = linear_sum_assignment(np.where(np.isfinite(d), d, 1e9))
-            good = np.isfinite(d[rows, cols])
+        for c in range(C):  # one detection per marker: the optimal assignment within the gates (scipy, per view)
+            rows, cols = linear_sum_assignment(np.where(np.isfinite(d[c]), d[c], 1e9))
+            good = np.isfinite(d[c, rows, cols])
             kept_idx[c, rows[good]] = cols[good]
-        kept = np.full((C, M, 2), np.nan)  # the kept detections
-        for c in range(C):
-            has = kept_idx[c] >= 0
-            kept[c, has] = b[c][kept_idx[c, has]]
+        kept = np.where((kept_idx >= 0)[..., None], b[views, kept_idx.clip(min=0)], np.nan)  # (C, M, 2)
         # the kept detections triangulated; their reprojection checks each view and predicts where one missed
         z = pinhole_pixels(rig, torch.from_numpy(kept)[:, :, None])  # (C, M, 1, 2)
         X, _ = triangulate_candidates(z[None].double(), P, inlier_px)  # (1, M, 3)
@@ -246,16 +264,16 @@ def link_detections(blobs: Sequence[Sequence[np.ndarray]], labels: np.ndarray, r
         uv, has3d = uv.numpy(), (inside & torch.isfinite(X[0]).all(-1)[None]).numpy()
         agree = np.linalg.norm(kept - uv, axis=-1) <= inlier_px
         take = np.isfinite(kept).all(-1) & (agree | ~has3d)
-        for c in range(C):  # candidates: the kept one first, then the nearest that no other marker keeps
-            owned = np.zeros(len(b[c]), dtype=bool)
-            owned[kept_idx[c][take[c]]] = True
-            centre = np.where(take[c][:, None], kept[c], np.where(has3d[c][:, None], uv[c], pred[c]))
-            d = _gated(centre, b[c], gate_px * (1 + np.minimum(age[c], MAX_GATE_GROWTH - 1)))
-            d = np.where(owned[None], np.inf, d)
-            d[take[c], kept_idx[c][take[c]]] = 0.0
-            order = np.argsort(d, axis=1)[:, :candidates]  # (M, K') nearest first
-            near = np.take_along_axis(d, order, 1)
-            out[t, c, :, :order.shape[1]] = np.where(np.isfinite(near)[..., None], b[c][order], np.nan)
+        # candidates: the kept one first, then the nearest that no other marker keeps
+        ci, mi = np.nonzero(take)
+        owned = np.zeros((C, n), dtype=bool)
+        owned[ci, kept_idx[ci, mi]] = True
+        centre = np.where(take[..., None], kept, np.where(has3d[..., None], uv, pred))
+        d = np.where(owned[:, None], np.inf, _gated(centre, b, gate))
+        d[ci, mi, kept_idx[ci, mi]] = 0.0
+        order = np.argsort(d, axis=-1)[..., :candidates]  # (C, M, K') nearest first
+        near = np.take_along_axis(d, order, -1)
+        out[t, :, :, :order.shape[-1]] = np.where(np.isfinite(near)[..., None], b[views[..., None], order], np.nan)
         vel = np.where((take & (age == 0))[..., None], kept - last, 0.0)
         last = np.where(take[..., None], kept, last)
         pred = np.where(take[..., None], kept + vel, np.where(has3d[..., None], uv, pred))
@@ -288,16 +306,13 @@ def _detect(seq, labels: MarkerLabels, threshold: float, gate_px: float, candida
         raise InputError(f"marker labels: cameras {unknown} are not in {seq.root}'s calibration ({cams})")
     if not 0 <= labels.frame < seq.num_frames:
         raise InputError(f"marker labels: frame {labels.frame} outside {seq.root}'s {seq.num_frames} frames")
-    lab = np.full((len(cams), len(names), 2), np.nan)
-    for (cam, m), uv in labels.points.items():
-        lab[cams.index(cam), names.index(m)] = uv
+    lab = labels.pixels(cams)
     few = [n for m, n in enumerate(names) if np.isfinite(lab[:, m, 0]).sum() < 2]
     if few:
         warnings.warn(f"marker labels: {few} labelled in fewer than two views: they cannot be triangulated and are "
                       "found in other views only once two views see them; label each marker in two or more views",
                       DataWarning, stacklevel=3)
-    first = seq.read_frame(labels.frame)
-    model = ChromaModel.fit(first, [torch.from_numpy(lab[c][np.isfinite(lab[c]).all(-1)]) for c in range(len(cams))])
+    model = labels.colour_model(seq.read_frame(labels.frame), cams)
     log.info("marker colour from %d labelled pixels: (Cr, Cb) mean %s", model.num_pixels, model.mean.tolist())
     blobs: list[list[np.ndarray]] = []
     with tqdm(total=seq.num_frames, desc="detect markers", unit="frame", disable=not progress) as bar:

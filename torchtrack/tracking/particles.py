@@ -296,21 +296,24 @@ class MarkerAPF:
 
     def _polish(self, angles: torch.Tensor, score: EpipolarCost) -> torch.Tensor:
         """Levenberg-Marquardt on the cost's residuals from the filter's estimate, within the joint limits: the
-        Jacobian by forward differences, every column's state in one batch with the estimate (a single state's
-        autograd, as L-BFGS took it, cost several times as much per step for the same result)."""
+        Jacobian by forward differences, the estimate and every column's state in one batch (a single state's
+        autograd, as L-BFGS took it, cost several times as much per step for the same result). Hand-written over
+        scipy's ``least_squares`` because a step is kept only where the true cost falls (each marker's nearest
+        candidate and the outlier cap change under it): scipy's LM and TRF stalled on such frames
+        (docs/results.md, "Marker-based capture")."""
         theta = angles.detach().double()
         D = theta.shape[0]
         step = torch.full((D,), FD_STEP, dtype=theta.dtype, device=theta.device)
+        eye = torch.eye(D, dtype=theta.dtype, device=theta.device)
         cost = float(score(self.markers(theta[None]))[0])
         lam = 1e-3
         for _ in range(self.config.polish_steps):
-            r0, pick = self.residuals_at(theta[None], score)
-            states = theta + torch.diag(step)  # (D, D): one DOF moved each
-            J = (self.residuals_at(states, score, pick)[0] - r0) / step[:, None]  # (D, R)
-            A, g = J @ J.T, J @ r0[0]
+            states = torch.cat([theta[None], theta + torch.diag(step)])  # the estimate, then one DOF moved each
+            r, _ = score.residuals(self.markers(states))  # (D + 1, R), each candidate the estimate's nearest
+            J = (r[1:] - r[0]) / step[:, None]  # (D, R)
+            A, g = J @ J.T, J @ r[0]
             for _ in range(4):  # damp until the cost falls
-                delta = torch.linalg.solve(A + lam * (torch.diag(A.diagonal()) + 1e-9 * torch.eye(D, dtype=A.dtype,
-                                                                                                  device=A.device)), -g)
+                delta = torch.linalg.solve(A + lam * (torch.diag(A.diagonal()) + 1e-9 * eye), -g)
                 trial = self.skeleton.clamp(theta + delta)
                 trial_cost = float(score(self.markers(trial[None]))[0])
                 if trial_cost < cost:
@@ -323,11 +326,6 @@ class MarkerAPF:
             if converged:
                 break
         return theta
-
-    def residuals_at(self, states: torch.Tensor, score: EpipolarCost, pick: torch.Tensor | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`EpipolarCost.residuals` of states ``(B, D)``."""
-        return score.residuals(self.markers(states), pick)
 
     def hold(self) -> None:
         """A frame without detections: the state stays, and the next frame predicts without velocity."""
