@@ -2,10 +2,12 @@
 
 A simulated Plug-in-Gait capture in the real 4-camera rig of the Pose2Sim demo (p_miss 0.2, 0.1 false detections,
 sigma 2 px); the subject fitted from its detections; then the filter timed over frames at each particles x layers
-setting (PARSEC bodytrack runs 4000 x 5), same run, and the forward kinematics of that many states alone. The
-lost-track test of `torchtrack track` is not included.
+setting (PARSEC bodytrack runs 4000 x 5), same run, and the forward kinematics of that many states alone. With
+``--lockstep``: Q such captures (each its own detections and fitted subject) tracked in lockstep by one filter, the
+frames per second summed over them. The lost-track test of `torchtrack track` is not included.
 
     .venv/bin/python scripts/bench_markers.py [--frames 30] [--settings 1000x5 4000x5] [--device cpu] [--threads 1]
+        [--lockstep 1 4 16 [--lockstep-setting 1000x5]]
 """
 
 from __future__ import annotations
@@ -39,13 +41,19 @@ def main() -> int:
     ap.add_argument("--settings", nargs="+", default=["1000x5", "4000x5"], metavar="PxL",
                     help="particles x layers (default: 1000x5 4000x5)")
     ap.add_argument("--polish", type=int, nargs="+", default=[20, 0], metavar="N",
-                    help="the L-BFGS polish's steps, each setting timed with each (default: 20 0)")
+                    help="the Levenberg-Marquardt polish's steps, each setting timed with each (default: 20 0)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=1, help="torch intra-op threads (default: 1, as `track`)")
+    ap.add_argument("--lockstep", type=int, nargs="*", default=[], metavar="Q",
+                    help="numbers of sequences tracked in lockstep, each timed; only these are timed (default: none)")
+    ap.add_argument("--lockstep-setting", default="1000x5", metavar="PxL",
+                    help="particles x layers of the lockstep runs, with the polish (default: %(default)s)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     dev = torch.device(args.device)
     rig = load_calibration(RIG, warn_units=False).double()
+    if args.lockstep:
+        return lockstep(args, rig, dev)
     det, _ = simulated_capture(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0,
                                DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=0)
     uv = torch.from_numpy(det.uv.astype("float64"))
@@ -90,6 +98,46 @@ def main() -> int:
                     torch.cuda.synchronize()
                 print(f"forward kinematics of {P} states, {name}, {str(dtype).split('.')[-1]}: "
                       f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
+    return 0
+
+
+def lockstep(args: argparse.Namespace, rig, dev: torch.device) -> int:
+    """Frames/s summed over Q sequences in lockstep (one batched filter step a frame), for each Q of
+    ``--lockstep``: the sequences are the capture's detections drawn with seeds 0, 1, ... (each subject fitted on
+    its own), the largest Q's sequences the pool of the others."""
+    Q_max = max(args.lockstep)
+    P, L = (int(v) for v in args.lockstep_setting.lower().split("x"))
+    pool = []
+    for seed in range(Q_max):
+        det, _ = simulated_capture(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0,
+                                   DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=seed)
+        uv = torch.from_numpy(det.uv.astype("float64"))
+        z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
+        X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
+        skel, mset, angles = subject_from_markers(X, det.marker_names, det.fps)
+        pool.append((skel.to(dev), replace(mset, bone=mset.bone.to(dev), offset=mset.offset.to(dev)),
+                     angles[59].to(dev), z.to(dev)))
+    print(f"{'sequences':<10} {'frames/s summed':>15} {'ms/frame':>9}   ({args.device}, {args.threads} thread(s), "
+          f"{P} particles x {L} layers with the polish, {rig.num_cameras} cameras)")
+    base = None
+    for Q in args.lockstep:
+        subjects = pool[:Q]
+        apf = MarkerAPF([s[0] for s in subjects], [s[1] for s in subjects], [rig.to(dev)] * Q,
+                        APFConfig(particles=P, layers=L),
+                        [torch.Generator(device=dev).manual_seed(q) for q in range(Q)])
+        apf.reset(torch.stack([s[2] for s in subjects]))
+        Z = apf.pad_detections([s[3] for s in subjects])  # (T, Q, C, M, K, 2)
+        apf.step_all(Z[60])  # warm-up
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        for t in range(61, 61 + args.frames):
+            apf.step_all(Z[t])
+        if dev.type == "cuda":
+            torch.cuda.synchronize()
+        dt = (time.perf_counter() - t0) / args.frames
+        base = base or Q / dt
+        print(f"{Q:<10} {Q / dt:>15.1f} {1e3 * dt:>9.1f}   ({Q / dt / base:.1f}x the first)", flush=True)
     return 0
 
 

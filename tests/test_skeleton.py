@@ -121,6 +121,27 @@ def test_lean_bone_poses_match_the_plain_implementation_and_pytorch_kinematics(s
     torch.testing.assert_close(lean, xg.grad, atol=1e-10, rtol=0)
 
 
+def test_lockstep_bodies_are_each_bodys_plain_walk(skel):
+    """Q bodies of other bone lengths in one batch (the marker filter's lockstep): each body's bones as the plain
+    URDF walk of its own skeleton places them; a skeleton of another chain is refused."""
+    from torchtrack.skeleton.model import LockstepBodies
+
+    bodies = [skel, skel.scaled_to_height(1.55), skel.with_bone_lengths({"l_thigh": 0.5, "r_forearm": 0.2})]
+    angles = torch.stack([_random_angles(skel, 3, seed=10 + q) for q in range(3)])  # (Q, N, D)
+    R, t = LockstepBodies(bodies, torch.float64, "cpu")(angles)  # (nb, 3, 3, Q, N), (nb, 3, Q, N)
+    for q, body in enumerate(bodies):
+        for n in range(3):
+            ref = plain_fk(body.urdf_text, dict(zip(body.dof_names, angles[q, n].tolist())))
+            bf = np.stack([ref[b] for b in body.bone_names])
+            np.testing.assert_allclose(R[..., q, n].numpy(), bf[:, :3, :3], atol=1e-7)
+            np.testing.assert_allclose(t[..., q, n].numpy(), bf[:, :3, 3], atol=1e-7)
+    other = ET.fromstring(skel.urdf_text)
+    joint = next(j for j in other.iter("joint") if j.get("type") == "revolute")
+    joint.find("axis").set("xyz", "0 0 1" if joint.find("axis").get("xyz") != "0 0 1" else "1 0 0")
+    with pytest.raises(InputError, match="is not the chain of"):
+        LockstepBodies([skel, Skeleton(ET.tostring(other, encoding="unicode"), "other.urdf")], torch.float64, "cpu")
+
+
 def test_batched_equals_looped(skel, device):
     angles = _random_angles(skel, 64, seed=1).float().to(device)
     batched = skel.landmarks(angles)

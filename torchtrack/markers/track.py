@@ -8,22 +8,25 @@ import contextlib
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from torchtrack.cameras import load_calibration
+from torchtrack.cameras import CameraRig, load_calibration
 from torchtrack.checks import InputError
-from torchtrack.io.markers2d import load_markers2d
+from torchtrack.io.markers2d import Markers2D, load_markers2d
 from torchtrack.io.poses import Poses
 from torchtrack.logging import RunLogger
-from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers
+from torchtrack.markers.model import MarkerSet, fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
+from torchtrack.skeleton.model import Skeleton
 from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
 
-__all__ = ["MarkerTrack", "is_marker_folder", "track_markers"]
+__all__ = ["MarkerSequence", "MarkerTrack", "is_marker_folder", "load_marker_sequence", "track_marker_sequences",
+           "track_markers"]
 
 log = logging.getLogger(__name__)
 
@@ -48,26 +51,49 @@ def is_marker_folder(folder: str | Path) -> bool:
 @dataclass(frozen=True)
 class MarkerTrack:
     """A marker track: the poses (with ``marker_names`` and ``markers3d``; ``extra``: ``particle_spread_m (T,)``)
-    and the wall-clock seconds it took."""
+    and the wall-clock seconds it took (in lockstep: its loading and subject fit, and the shared track)."""
 
     poses: Poses
     seconds: float
 
 
-def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: int = 0, stop: int | None = None,
-                  seed: int = 0, progress: bool = True, logger: RunLogger | None = None,
-                  log_every: int = 10) -> MarkerTrack:
-    """Track the markers of ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)``.
+@dataclass(frozen=True)
+class MarkerSequence:
+    """A marker folder read and its subject fitted (:func:`load_marker_sequence`): ready to track.
 
-    ``logger``: TensorBoard scalars for every frame and, every ``log_every`` frames, each camera's picture of the
-    detections and the model's markers (:func:`_log_frame`).
+    Attributes:
+        folder: the folder. det: its detections. start: the first frame tracked. rig: the cameras, in the
+        detections' order. z: (T, C, M, K, 2) the frames' candidates in pinhole pixels. X: (T, M, 3) their
+        triangulated markers (NaN where fewer than two views agree). skeleton, marker_set, first: the subject
+        and its pose on the first frame. keep: (M',) the markers tracked (those the fit placed). seconds: the
+        time the loading and the fit took.
+    """
+
+    folder: Path
+    det: Markers2D
+    start: int
+    rig: CameraRig
+    z: torch.Tensor
+    X: torch.Tensor
+    skeleton: Skeleton
+    marker_set: MarkerSet
+    first: torch.Tensor
+    keep: torch.Tensor
+    seconds: float
+
+    @property
+    def num_frames(self) -> int:
+        return self.z.shape[0]
+
+
+def load_marker_sequence(folder: str | Path, start: int = 0, stop: int | None = None) -> MarkerSequence:
+    """Read ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)`` and fit its subject
+    (bone lengths, marker offsets) on the first seconds' triangulated markers.
 
     Raises:
         InputError: a missing or malformed file (named), cameras of the detections missing from the calibration,
             too few frames, or first frames whose markers do not give the joint centres.
     """
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     folder = Path(folder)
     calib = folder / "calibration.toml"
@@ -85,9 +111,8 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
         raise InputError(f"{folder}: frames [{start}, {stop}) hold nothing to track ({T_all} frames)")
     uv = torch.from_numpy(det.uv[start:stop].astype(np.float64))  # (T, C, M, K, 2)
     z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
-    T, _, M = z.shape[:3]
-    P = projection_matrices(rig)
-    X_all, _ = triangulate_candidates(z, P)  # (T, M, 3): the subject's fit and the lost-track test
+    T = z.shape[0]
+    X_all, _ = triangulate_candidates(z, projection_matrices(rig))  # (T, M, 3): the fit and the lost-track test
     # the subject from the first seconds; where their markers do not give every joint centre, from more of them
     for seconds in (FIT_SECONDS, MAX_FIT_SECONDS):
         n_fit = min(T, max(2, round(seconds * det.fps)))
@@ -109,62 +134,129 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
         log.warning("%s: markers %s are seen by two cameras in fewer than 2 of the first %d frames: not tracked",
                     folder, [n for n, ok in zip(det.marker_names, enough.tolist()) if not ok], n_fit)
     log.info("%s: subject fitted on %d frames: %d markers, %.2f m tall", folder, n_fit, len(names), skel.height())
-    apf = MarkerAPF(skel, mset, rig, config, torch.Generator().manual_seed(int(seed)))
-    apf.reset(angles[0])
-    zk, Xk = z[:, :, keep], X_all[:, keep]
-    states, spread, restarted, valid = [], [], [], []
-    detected = torch.isfinite(zk).all(-1).any(-1).any(1).sum(-1)  # (T,) markers found in some view
-    bar = tqdm(range(T), desc=f"track markers {folder.name}", unit="frame", disable=not progress)
-    with contextlib.ExitStack() as closing:
-        video = None  # the folder's video for the logged pictures: opened at the first, decoded forwards from then
-        for t in bar:
-            step = int(det.frame_index[start + t])
-            if int(detected[t]) < MIN_DETECTED:  # nothing to weigh the particles by: held, marked invalid
-                if logger is not None:
-                    logger.scalars(step, markers__detected=int(detected[t]), markers__restarts=sum(restarted))
-                apf.hold()
-                states.append(apf.state.clone())
-                spread.append(math.nan)
-                restarted.append(False)
-                valid.append(False)
-                continue
-            est = apf.step(zk[t])
-            again = _lost(apf, est, Xk[t])
-            if again:  # the filter lost the body: start it again from this frame's triangulated markers
-                est = _restart(apf, est, Xk[t], angles[0])
-                apf.reset(est)
-            states.append(est)
-            spread.append(apf.spread)
-            restarted.append(again)
-            valid.append(True)
-            bar.set_postfix(restarts=sum(restarted))
-            if logger is not None:
-                model = apf.markers(est[None])[0]
-                seen = torch.isfinite(Xk[t]).all(-1)
-                err = (model - Xk[t]).norm(dim=-1)[seen].mean() if bool(seen.any()) else torch.tensor(math.nan)
-                logger.scalars(step, markers__detected=int(detected[t]), markers__particle_spread_mm=1e3 * apf.spread,
-                               markers__restarts=sum(restarted), markers__triangulated_error_mm=1e3 * float(err))
-                if t % max(1, log_every) == 0:
-                    if video is None and ((folder / "video").is_dir() or (folder / "frames").is_dir()):
-                        from torchtrack.io.sequence import SequenceFolder
+    return MarkerSequence(folder, det, start, rig, z, X_all, skel, mset, angles[0], keep, time.perf_counter() - t0)
 
-                        video = closing.enter_context(SequenceFolder(folder, rig))
-                    _log_frame(logger, step, video, rig, det.uv[start + t], model, Xk[t],
-                               skel.landmarks(est[None])[0])
-    A = torch.stack(states)
+
+def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: int = 0, stop: int | None = None,
+                  seed: int = 0, progress: bool = True, logger: RunLogger | None = None,
+                  log_every: int = 10) -> MarkerTrack:
+    """Track the markers of ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)``:
+    :func:`load_marker_sequence`, then :func:`track_marker_sequences` of it alone.
+
+    ``logger``: TensorBoard scalars for every frame and, every ``log_every`` frames, each camera's picture of the
+    detections and the model's markers (:func:`_log_frame`).
+
+    Raises:
+        InputError: see :func:`load_marker_sequence`.
+    """
+    return track_marker_sequences([load_marker_sequence(folder, start, stop)], config, seed, progress,
+                                  [logger], log_every)[0]
+
+
+def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfig = APFConfig(), seed: int = 0,
+                           progress: bool = True, loggers: Sequence[RunLogger | None] | None = None,
+                           log_every: int = 10) -> list[MarkerTrack]:
+    """Track Q loaded sequences in lockstep: one annealed particle filter over all of them
+    (:class:`~torchtrack.tracking.particles.MarkerAPF`), each frame one batched step; a sequence that has ended or
+    whose frame has too few detections is held (that frame invalid), one that lost its body is started again from
+    its triangulated markers alone. One sequence alone is tracked by the same code.
+
+    Args:
+        sequences: from :func:`load_marker_sequence` (subjects of one body chain; any rigs and marker sets).
+        config: the filter's settings. seed: each sequence's random draws (a generator of its own: its track is the
+            same whichever others it is tracked with).
+        loggers: each sequence's TensorBoard logger, or None (see :func:`track_markers`).
+    """
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    Q = len(sequences)
+    loggers = list(loggers) if loggers is not None else [None] * Q
+    if not Q or len(loggers) != Q:
+        raise InputError(f"track_marker_sequences: {Q} sequences and {len(loggers)} loggers")
+    apf = MarkerAPF([s.skeleton for s in sequences], [s.marker_set for s in sequences], [s.rig for s in sequences],
+                    config, [torch.Generator().manual_seed(int(seed)) for _ in sequences])
+    apf.reset(torch.stack([s.first.double() for s in sequences]))
+    Z = apf.pad_detections([s.z[:, :, s.keep] for s in sequences])  # (T, Q, C, M, K, 2)
+    Tmax, M = Z.shape[0], Z.shape[3]
+    Xk = torch.full((Tmax, Q, M, 3), math.nan, dtype=torch.float64)
+    lengths = torch.tensor([s.num_frames for s in sequences])
+    for q, s in enumerate(sequences):
+        Xk[:s.num_frames, q, :len(s.keep)] = s.X[:, s.keep]
+    detected = torch.isfinite(Z).all(-1).any(-1).any(2).sum(-1)  # (T, Q) markers found in some view
+    states = torch.empty(Tmax, Q, apf.states.shape[1], dtype=torch.float64)
+    spread = torch.full((Tmax, Q), math.nan, dtype=torch.float64)
+    restarted = torch.zeros(Tmax, Q, dtype=torch.bool)
+    valid = torch.zeros(Tmax, Q, dtype=torch.bool)
+    name = sequences[0].folder.name if Q == 1 else f"{Q} sequences"
+    bar = tqdm(range(Tmax), desc=f"track markers {name}", unit="frame", disable=not progress)
+    with contextlib.ExitStack() as closing:
+        videos: dict[int, object] = {}  # each sequence's video for the logged pictures, opened at the first
+        for t in bar:
+            active = (t < lengths) & (detected[t] >= MIN_DETECTED)  # nothing to weigh the particles by: held
+            if bool(active.any()):
+                est = apf.step_all(Z[t], active)
+                lost = _lost(apf, est, Xk[t]) & active
+                for q in lost.nonzero()[:, 0].tolist():  # the filter lost the body: start it again from the markers
+                    est[q] = _restart(apf, q, est[q], Xk[t, q], sequences[q].first)
+                    apf.reset(est[q], subject=q)
+                restarted[t] = lost
+            else:
+                apf.hold()
+            states[t], valid[t] = apf.states.cpu(), active
+            spread[t] = torch.where(active, apf.spreads, math.nan)
+            bar.set_postfix(restarts=int(restarted.sum()))
+            for q, (s, logger) in enumerate(zip(sequences, loggers)):
+                if logger is not None and t < s.num_frames:
+                    _log_step(logger, apf, s, q, t, states[t, q], Xk[t, q, :len(s.keep)], int(detected[t, q]),
+                              bool(active[q]), int(restarted[:t + 1, q].sum()), log_every, videos, closing)
+    shared = time.perf_counter() - t0
+    return [_marker_track(s, states[:s.num_frames, q], spread[:s.num_frames, q], restarted[:s.num_frames, q],
+                          valid[:s.num_frames, q], s.seconds + shared) for q, s in enumerate(sequences)]
+
+
+def _log_step(logger: RunLogger, apf: MarkerAPF, s: MarkerSequence, q: int, t: int, est: torch.Tensor,
+              X: torch.Tensor, detected: int, tracked: bool, restarts: int, log_every: int, videos: dict,
+              closing: contextlib.ExitStack) -> None:
+    """Sequence ``q``'s TensorBoard record of frame ``t``: the scalars, and every ``log_every`` frames its
+    pictures (:func:`_log_frame`; the sequence's video opened in ``closing`` at the first)."""
+    step = int(s.det.frame_index[s.start + t])
+    if not tracked:
+        logger.scalars(step, markers__detected=detected, markers__restarts=restarts)
+        return
+    model = apf.markers(est[None], q)[0]
+    seen = torch.isfinite(X).all(-1)
+    err = (model - X).norm(dim=-1)[seen].mean() if bool(seen.any()) else torch.tensor(math.nan)
+    logger.scalars(step, markers__detected=detected, markers__particle_spread_mm=1e3 * float(apf.spreads[q]),
+                   markers__restarts=restarts, markers__triangulated_error_mm=1e3 * float(err))
+    if t % max(1, log_every) == 0:
+        if q not in videos:
+            videos[q] = None
+            if (s.folder / "video").is_dir() or (s.folder / "frames").is_dir():
+                from torchtrack.io.sequence import SequenceFolder
+
+                videos[q] = closing.enter_context(SequenceFolder(s.folder, s.rig))
+        _log_frame(logger, step, videos[q], s.rig, s.det.uv[s.start + t], model, X,
+                   s.skeleton.landmarks(est[None])[0])
+
+
+def _marker_track(s: MarkerSequence, A: torch.Tensor, spread: torch.Tensor, restarted: torch.Tensor,
+                  valid: torch.Tensor, seconds: float) -> MarkerTrack:
+    """One sequence's track ``A (T, D)`` as :class:`MarkerTrack` (poses with every marker's tracked position)."""
+    T, M = s.num_frames, len(s.det.marker_names)
     with torch.no_grad():
-        fk = skel.forward(A)
-        tracked = mset.positions(fk.bone_frames)
+        fk = s.skeleton.forward(A)
+        tracked = s.marker_set.positions(fk.bone_frames)
     markers3d = torch.full((T, M, 3), math.nan, dtype=torch.float64)
-    markers3d[:, keep] = tracked
-    poses = Poses(fps=det.fps, frame_index=np.asarray(det.frame_index[start:stop]),
-                  joint_names=list(skel.output_names), joints3d=fk.output_points.float().numpy(),
-                  dof_names=list(skel.dof_names), angles=A.float().numpy(), valid=np.asarray(valid, dtype=bool),
-                  confidence=np.ones((T, len(skel.output_names)), dtype=np.float32),
-                  marker_names=list(det.marker_names), markers3d=markers3d.float().numpy(),
-                  extra={"particle_spread_m": np.asarray(spread, dtype=np.float32),
-                         "reinitialised": np.asarray(restarted, dtype=bool)})
-    return MarkerTrack(poses, time.perf_counter() - t0)
+    markers3d[:, s.keep] = tracked
+    poses = Poses(fps=s.det.fps, frame_index=np.asarray(s.det.frame_index[s.start:s.start + T]),
+                  joint_names=list(s.skeleton.output_names), joints3d=fk.output_points.float().numpy(),
+                  dof_names=list(s.skeleton.dof_names), angles=A.float().numpy(), valid=valid.numpy().astype(bool),
+                  confidence=np.ones((T, len(s.skeleton.output_names)), dtype=np.float32),
+                  marker_names=list(s.det.marker_names), markers3d=markers3d.float().numpy(),
+                  extra={"particle_spread_m": spread.numpy().astype(np.float32),
+                         "reinitialised": restarted.numpy().astype(bool)})
+    return MarkerTrack(poses, seconds)
 
 
 def _log_frame(logger: RunLogger, step: int, video, rig, uv: np.ndarray, model: torch.Tensor,
@@ -192,21 +284,25 @@ def _log_frame(logger: RunLogger, step: int, video, rig, uv: np.ndarray, model: 
     logger.pose_cloud(step, "pose/markers", points, landmarks, colours)
 
 
-def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> bool:
-    """Whether the estimate ``angles (D,)`` has lost the body: more than ``LOST_SHARE`` of the markers that two
-    views triangulate this frame (``X (M, 3)``, NaN where not; at least ``LOST_MIN_MARKERS``) lie farther than
-    ``LOST_M`` from the estimate's. The particles' spread, the paper's test, barely grows when the whole cloud
-    follows a wrong pose (docs/results.md, "Marker-based capture")."""
-    seen = torch.isfinite(X).all(-1)
-    if int(seen.sum()) < LOST_MIN_MARKERS:
-        return False
-    d = (apf.markers(angles[None])[0][seen] - X[seen]).norm(dim=-1)
-    return float((d > LOST_M).double().mean()) > LOST_SHARE
+def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
+    """Which subjects' estimates ``angles (Q, D)`` have lost the body ``(Q,)``: more than ``LOST_SHARE`` of the
+    markers that two views triangulate this frame (``X (Q, M, 3)``, NaN where not; at least ``LOST_MIN_MARKERS``)
+    lie farther than ``LOST_M`` from the estimate's. The particles' spread, the paper's test, barely grows when the
+    whole cloud follows a wrong pose (docs/results.md, "Marker-based capture")."""
+    model = apf.markers_all(angles.double()[:, None])[..., 0]  # (Q, M, 3)
+    seen = torch.isfinite(X).all(-1) & apf.marker_mask[:, :X.shape[1]].to(X.device)
+    far = ((model[:, :X.shape[1]].to(X) - X).norm(dim=-1) > LOST_M) & seen
+    count = seen.sum(1)
+    return (count >= LOST_MIN_MARKERS) & (far.sum(1) > LOST_SHARE * count)
 
 
-def _restart(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor, first: torch.Tensor) -> torch.Tensor:
-    """The pose whose markers best fit the triangulated ``X (M, 3)``: inverse kinematics from the lost estimate and
-    from the first frame's pose moved onto the markers at four headings, all at once; the least error kept."""
+def _restart(apf: MarkerAPF, subject: int, angles: torch.Tensor, X: torch.Tensor, first: torch.Tensor
+             ) -> torch.Tensor:
+    """The pose of ``subject`` whose markers best fit the triangulated ``X (M, 3)`` (padded rows NaN): inverse
+    kinematics from the lost estimate and from the first frame's pose moved onto the markers at four headings, all
+    at once; the least error kept."""
+    m = apf.num_markers[subject]
+    X = X[:m]
     seen = torch.isfinite(X).all(-1)
     centre = X[seen].mean(0)
     starts = [angles.double()]
@@ -216,6 +312,6 @@ def _restart(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor, first: torch
         a[3] = first[3] + k * math.pi / 2
         starts.append(a)
     S = torch.stack(starts)
-    fit = fit_poses_to_markers(apf.skeleton, apf.marker_set, S, X[None].expand(S.shape[0], -1, -1))
-    err = (apf.markers(fit) - X).norm(dim=-1)[:, seen].mean(-1)
+    fit = fit_poses_to_markers(apf.skeletons[subject], apf.marker_sets[subject], S, X[None].expand(S.shape[0], -1, -1))
+    err = (apf.markers(fit, subject) - X).norm(dim=-1)[:, seen].mean(-1)
     return fit[int(err.argmin())]

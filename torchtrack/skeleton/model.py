@@ -325,12 +325,15 @@ class Skeleton(nn.Module):
     def bone_poses_last(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """:meth:`bone_poses` laid out states last: ``(nb, 3, 3, B)`` and ``(nb, 3, B)``."""
         check_shape(angles, ("B", self.num_dofs), "angles")
-        key = ("lean", angles.device, angles.dtype)
-        if key not in self._chains:
-            self._chains[key] = _LeanChain(self._chain_for(angles))
-        R, t = self._chains[key](angles)  # (F, 3, 3, B), (F, 3, B)
+        R, t = self._lean_chain(angles)(angles)  # (F, 3, 3, B), (F, 3, B)
         idx = self.bone_index.to(angles.device)
         return R[idx], t[idx]
+
+    def _lean_chain(self, x: torch.Tensor) -> _LeanChain:
+        key = ("lean", x.device, x.dtype)
+        if key not in self._chains:
+            self._chains[key] = _LeanChain(self._chain_for(x))
+        return self._chains[key]
 
     def forward(self, angles: torch.Tensor) -> FKResult:
         """Landmarks, kinematic joints and bone frames of a batch of poses.
@@ -372,25 +375,63 @@ class _LeanChain:
         parent = chain._direct_parent_idx
         self.levels = [(lvl.to(off.device), parent[lvl].to(off.device)) for lvl in chain._bfs_levels]
 
-    def __call__(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """(B, D) -> (F, 3, 3, B) link-to-world rotations and (F, 3, B) origins, states last, so that each operation
-        runs along the states' contiguous axis."""
-        q = angles.T[self.joint]  # (F, B)
-        turn = torch.where(self.revolute[:, None], q, 0.0)[:, None, None]  # (F, 1, 1, B)
-        eye = torch.eye(3, dtype=q.dtype, device=q.device)[..., None]
-        Rj = eye + turn.sin() * self.K[..., None] + (1 - turn.cos()) * self.K2[..., None]  # (F, 3, 3, B)
-        R = torch.einsum("fik,fkjb->fijb", self.R0, Rj)  # the local rotations: offset, then the joint's
-        t = self.t0[..., None] + torch.einsum("fik,fb->fib", self.R0 @ self.axis[..., None],
-                                              torch.where(self.prismatic[:, None], q, 0.0))  # (F, 3, B)
+    def __call__(self, angles: torch.Tensor, origins: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``angles (*batch, D)`` -> ``(F, 3, 3, *batch)`` link-to-world rotations and ``(F, 3, *batch)`` origins,
+        states last, so that each operation runs along the states' contiguous axis. ``origins``: the links' fixed
+        origins ``(F, 3, ...)`` broadcasting against ``(F, 3, *batch)``, for bodies of other bone lengths on the
+        same chain (:class:`LockstepBodies`); default: this chain's."""
+        q = angles.movedim(-1, 0)[self.joint]  # (F, *batch)
+        ones = (1,) * (q.dim() - 1)
+        turn = torch.where(self.revolute.view(-1, *ones), q, 0.0)[:, None, None]  # (F, 1, 1, *batch)
+        eye = torch.eye(3, dtype=q.dtype, device=q.device).view(3, 3, *ones)
+        K, K2 = self.K.view(*self.K.shape, *ones), self.K2.view(*self.K2.shape, *ones)
+        Rj = eye + turn.sin() * K + (1 - turn.cos()) * K2  # (F, 3, 3, *batch)
+        R = torch.einsum("fik,fkj...->fij...", self.R0, Rj)  # the local rotations: offset, then the joint's
+        t0 = self.t0.view(*self.t0.shape, *ones) if origins is None else origins
+        t = t0 + torch.einsum("fi,f...->fi...", (self.R0 @ self.axis[..., None])[..., 0],
+                              torch.where(self.prismatic.view(-1, *ones), q, 0.0))  # (F, 3, *batch)
         Rw, tw = torch.empty_like(R), torch.empty_like(t)
         for level, parent in self.levels:
             if int(parent[0]) < 0:  # the root
                 Rw[level], tw[level] = R[level], t[level]
                 continue
-            Rp = Rw[parent]  # (n, 3, 3, B); the products as sums of elementwise ones, along B
+            Rp = Rw[parent]  # (n, 3, 3, *batch); the products as sums of elementwise ones, along the states
             Rw[level] = (Rp[:, :, :, None] * R[level][:, None]).sum(2)
             tw[level] = (Rp * t[level][:, None]).sum(2) + tw[parent]
         return Rw, tw
+
+
+class LockstepBodies:
+    """The lean forward kinematics (:meth:`Skeleton.bone_poses`) of Q bodies in one batch: skeletons of one chain
+    (the same joints, axes and offsets' rotations) with their own bone lengths, each with its own states.
+
+    Args:
+        skeletons: the Q bodies. dtype, device: of the states to be given.
+
+    Raises:
+        InputError: skeletons of different chains.
+    """
+
+    def __init__(self, skeletons: Sequence[Skeleton], dtype: torch.dtype, device: torch.device | str) -> None:
+        probe = torch.empty(0, dtype=dtype, device=device)
+        chains = [s._lean_chain(probe) for s in skeletons]
+        first = chains[0]
+        for s, c in zip(skeletons[1:], chains[1:]):
+            same = (s.dof_names == skeletons[0].dof_names and s.frame_names == skeletons[0].frame_names
+                    and torch.equal(c.joint, first.joint) and torch.equal(c.revolute, first.revolute)
+                    and torch.allclose(c.R0, first.R0, atol=1e-9) and torch.allclose(c.axis, first.axis))
+            if not same:
+                raise InputError(f"lockstep bodies: {s.source} is not the chain of {skeletons[0].source}")
+        self.chain = first
+        self.origins = torch.stack([c.t0 for c in chains], -1)[..., None]  # (F, 3, Q, 1)
+        self.bone_index = skeletons[0].bone_index.to(device)
+
+    def __call__(self, angles: torch.Tensor, bodies: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
+        """``angles (Q, N, D)``, N states of each body (of the slice ``bodies`` of them) -> the bones' rotations
+        ``(nb, 3, 3, Q, N)`` and origins ``(nb, 3, Q, N)`` (world)."""
+        R, t = self.chain(angles, self.origins[:, :, bodies])
+        return R[self.bone_index], t[self.bone_index]
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -57,8 +58,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                     "shows one whole person, in any pose (or give --init-pose). Options marked 'default from --config' "
                     "override that setting of the tracking config.")
     p.add_argument("seq", type=Path, nargs="+", metavar="SEQ",
-                   help="sequence folder (calibration.toml, video/ or frames/, background/); several are tracked "
-                        "together in lockstep, --batch-size at a time, each into DIR/<its folder's name>")
+                   help="sequence folder (calibration.toml, video/ or frames/, background/; or markers2d.npz); "
+                        "several are tracked together in lockstep, --batch-size at a time, each into DIR/<its "
+                        "folder's name>")
     p.add_argument("--mode", choices=("auto", "markerless", "markers"), default="auto",
                    help="markerless: from the videos; markers: from markers2d.npz, marker detections, by the "
                         "annealed particle filter; auto: markers where SEQ has markers2d.npz and no video/ or "
@@ -137,8 +139,10 @@ def run(args: argparse.Namespace) -> int:
 
     markers = [args.mode == "markers" or (args.mode == "auto" and is_marker_folder(s)) for s in args.seq]
     if any(markers):
-        if len(args.seq) > 1:
-            raise InputError("marker mode tracks one folder at a time: give one SEQ")
+        if not all(markers):
+            video = [str(s) for s, m in zip(args.seq, markers) if not m]
+            raise InputError(f"marker folders (markers2d.npz, no video) and video folders ({', '.join(video)}) are "
+                             "tracked by different methods: track them in separate runs")
         return _run_markers(args)
     if len(args.seq) > 1:
         return _run_many(args)
@@ -168,36 +172,64 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run_markers(args: argparse.Namespace) -> int:
-    """``--mode markers``: the annealed particle filter on SEQ's marker detections into OUT/poses.npz."""
-
-    from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
-    from torchtrack.io.poses import save_poses
-    from torchtrack.logging import RunLogger
-    from torchtrack.markers.track import track_markers
-    from torchtrack.tracking.pipeline import intra_op_threads
-
-    seq = args.seq[0]
-    check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
-    try:
-        with intra_op_threads(args.threads), replacing(args.out, TRACK_DIR), RunLogger(args.out / "tb") as logger:
-            result = track_markers(seq, start=args.start, stop=args.stop, logger=logger, log_every=args.log_every)
-            save_poses(result.poses, args.out / "poses.npz")
-    except KeyboardInterrupt:
-        print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
-        return 130
-    T, M = result.poses.num_frames, len(result.poses.marker_names)
-    print(f"wrote {args.out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter; "
-          f"{result.seconds:.0f} s wall clock, {T / result.seconds:.2f} frames/s")
-    return 0
-
-
-def _run_many(args: argparse.Namespace) -> int:
-    """Several sequences, ``--batch-size`` at a time in lockstep, each into ``OUT/<name>`` (checked before any work);
-    one that fails is reported with its name and leaves its folder as it was, the others are written."""
+    """``--mode markers``: the annealed particle filter on each SEQ's marker detections into OUT/poses.npz (several:
+    ``--batch-size`` at a time in lockstep, each into ``OUT/<name>``; one that cannot be read is reported with its
+    name and leaves its folder as it was, the others are written)."""
     from torchtrack.checks import InputError
     from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
     from torchtrack.io.poses import save_poses
-    from torchtrack.tracking.pipeline import track_many
+    from torchtrack.logging import RunLogger
+    from torchtrack.markers.track import load_marker_sequence, track_marker_sequences
+    from torchtrack.tracking.pipeline import intra_op_threads
+
+    one = len(args.seq) == 1
+    outs = [args.out] if one else _many_outputs(args)
+    if one:
+        check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
+    failed = 0
+    with intra_op_threads(args.threads):
+        for first in range(0, len(args.seq), args.batch_size):
+            loaded, written = [], []
+            for seq, out in zip(args.seq[first:first + args.batch_size], outs[first:first + args.batch_size]):
+                try:
+                    loaded.append(load_marker_sequence(seq, args.start, args.stop))
+                    written.append(out)
+                except InputError as exc:
+                    if one:
+                        raise
+                    failed += 1
+                    print(f"torchtrack track: {seq}: failed: {exc}; no poses.npz written", file=sys.stderr)
+            if not loaded:
+                continue
+            try:
+                with contextlib.ExitStack() as stack:  # an error or Ctrl-C inside puts every earlier output back
+                    loggers = []
+                    for out in written:
+                        stack.enter_context(replacing(out, TRACK_DIR))
+                        loggers.append(stack.enter_context(RunLogger(out / "tb")))
+                    results = track_marker_sequences(loaded, loggers=loggers, log_every=args.log_every)
+                    for result, out in zip(results, written):
+                        save_poses(result.poses, out / "poses.npz")
+            except KeyboardInterrupt:
+                print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
+                return 130
+            for result, out in zip(results, written):
+                T, M = result.poses.num_frames, len(result.poses.marker_names)
+                print(f"wrote {out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter, "
+                      f"{int(result.poses.valid.sum())} tracked; {result.seconds:.0f} s wall clock, "
+                      f"{T / result.seconds:.2f} frames/s")
+    if failed:
+        print(f"torchtrack track: {failed} of {len(args.seq)} sequences failed (above); the others were written",
+              file=sys.stderr)
+        return 1
+    return 0
+
+
+def _many_outputs(args: argparse.Namespace) -> list[Path]:
+    """Several sequences' output folders ``OUT/<name>``, checked before any work: ``--batch-size``, names that
+    collide, an ``--out`` that is a file, an existing output without ``--overwrite``, options of one sequence."""
+    from torchtrack.checks import InputError
+    from torchtrack.io.outputs import TRACK_DIR, check_output
 
     if args.batch_size < 1:
         raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
@@ -216,6 +248,17 @@ def _run_many(args: argparse.Namespace) -> int:
     for s in ("init_pose", "background_from_track"):
         if getattr(args, s) is not None:
             raise InputError(f"--{s.replace('_', '-')} names one sequence's file: track that sequence alone")
+    return outs
+
+
+def _run_many(args: argparse.Namespace) -> int:
+    """Several sequences, ``--batch-size`` at a time in lockstep, each into ``OUT/<name>`` (checked before any work);
+    one that fails is reported with its name and leaves its folder as it was, the others are written."""
+    from torchtrack.io.outputs import TRACK_DIR, replacing
+    from torchtrack.io.poses import save_poses
+    from torchtrack.tracking.pipeline import track_many
+
+    outs = _many_outputs(args)
     outputs = [replacing(out, TRACK_DIR) for out in outs]  # an error puts a sequence's earlier output back
     for cm in outputs:
         cm.__enter__()

@@ -5,8 +5,10 @@ perturbs them by a truncated Gaussian inside the joint limits (its spread shrink
 ``exp(-beta * cost)`` with ``beta`` set for a target survival rate, and resamples. The cost of a state is the
 symmetric epipolar distance between each model marker's projection in one view and the marker's detections in
 another (the best of the candidates, capped at an outlier threshold; kornia's fundamental matrices), summed over
-markers and ordered pairs of views. The estimate is the weighted mean
-of the last layer. No I/O here; one frame is a few large tensor operations over the particles.
+markers and ordered pairs of views. The estimate is the weighted mean of the last layer, polished by
+Levenberg-Marquardt on the same cost. Several subjects (sequences) are tracked in lockstep by one filter: their
+particles a batch beside each other, their marker sets and rigs padded. No I/O here; one frame is a few large tensor
+operations over the subjects and their particles.
 
 Detections are compared in each camera's undistorted (pinhole) pixels, where the epipolar geometry holds.
 """
@@ -14,6 +16,7 @@ Detections are compared in each camera's undistorted (pinhole) pixels, where the
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -22,7 +25,7 @@ from torch import nn
 
 from torchtrack.checks import InputError, check_shape
 from torchtrack.markers.model import MarkerSet
-from torchtrack.skeleton.model import Skeleton
+from torchtrack.skeleton.model import LockstepBodies, Skeleton
 
 __all__ = ["APFConfig", "EpipolarCost", "MarkerAPF", "annealing_beta", "epipolar_cost", "fundamental_matrices",
            "pinhole_pixels", "projection_matrices", "resample", "truncated_normal"]
@@ -68,6 +71,11 @@ class APFConfig:
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
 #: the cost below which it stops (a ten-thousandth: well under a pixel's worth over the markers).
 FD_STEP, POLISH_TOL = 1e-6, 1e-4
+#: On a CPU the layers anneal at most about this many particles at once (subjects in lockstep in chunks, one
+#: subject's many particles weighed in chunks): a layer's tensors then stay in memory the allocator reuses, where
+#: those of 16 subjects' 1000 particles at once (50 MB each) were fresh pages every time, 2x slower a particle
+#: (docs/results.md, "Marker-based capture"). A GPU takes them all at once.
+CPU_CHUNK_STATES = 1000
 #: The limbs whose joints the filter resamples by their own markers: name prefixes of their DOFs and bones.
 LIMBS = (("l_shoulder", "l_elbow", "l_wrist", "l_upperarm", "l_forearm", "l_hand"),
          ("r_shoulder", "r_elbow", "r_wrist", "r_upperarm", "r_forearm", "r_hand"),
@@ -111,88 +119,97 @@ def projection_matrices(rig: nn.Module) -> torch.Tensor:
 
 
 class EpipolarCost:
-    """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), with the detections'
-    epipolar lines computed once for the frame: each layer of each frame then costs two small contractions per
-    view pair. Hand-written over kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the
-    same distance, tested against it) because that one recomputes every candidate's line for every state.
+    """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), of Q subjects at once,
+    with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two small
+    contractions per view pair. Hand-written over kornia's
+    :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it) because
+    that one recomputes every candidate's line for every state.
 
     The distance is invariant to each fundamental matrix's scale and to the lines' scale, so both are normalised
     here (in float64): the lines then give pixel distances directly, and the states' side runs in their own dtype
     (float32 for the particle filter's layers) without the ill-scaled products of a raw F.
 
     Args:
-        detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
-        P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
+        detections: (Q, C, M, K, 2) each subject's markers' candidate detections per view in pinhole pixels, NaN
+            where none (subjects of fewer views or markers padded with NaN); (C, M, K, 2): one subject.
+        P: (Q, C, 3, 4) pinhole projections (padded views: any finite camera). F: (Q, C, C, 3, 3) fundamental
+            matrices (:func:`fundamental_matrices`; zero for a padded view's pairs). Without Q for one subject.
         outlier_px: see :class:`APFConfig`.
     """
 
     def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor, outlier_px: float) -> None:
-        C, M, K, _ = detections.shape
+        if detections.dim() == 4:  # one subject
+            detections, P, F = detections[None], P[None], F[None]
+        Q, C, M, K, _ = detections.shape
         dtype, dev = detections.dtype, detections.device
-        self.P, self.cap = P.to(dtype), outlier_px ** 2
+        self.cap = outlier_px ** 2
         i, j = (~torch.eye(C, dtype=torch.bool, device=dev)).nonzero(as_tuple=True)  # the ordered view pairs
         self.j = j
-        Fij = F.to(dev, torch.float64)[i, j]  # (S, 3, 3): x_j^T Fij x_i = 0
-        Fij = Fij / Fij.flatten(1).norm(dim=1).clamp(min=1e-300)[:, None, None]
+        Fij = F.to(dev, torch.float64)[:, i, j]  # (Q, S, 3, 3): x_j^T Fij x_i = 0
+        Fij = Fij / Fij.flatten(2).norm(dim=2).clamp(min=1e-300)[..., None, None]
         z = detections.double()
-        seen = torch.isfinite(z).all(-1)  # (C, M, K)
-        z = torch.cat([torch.nan_to_num(z), torch.ones_like(z[..., :1])], -1)  # (C, M, K, 3)
-        lines = torch.einsum("scd,smkd->smkc", Fij, z[i])  # (S, M, K, 3): z_ik's epiline in view j
-        norm2 = lines[..., :2].square().sum(-1)  # (S, M, K)
-        self.ok = seen[i] & (norm2 > 1e-300)  # a candidate at the epipole has no line there
+        seen = torch.isfinite(z).all(-1)  # (Q, C, M, K)
+        z = torch.cat([torch.nan_to_num(z), torch.ones_like(z[..., :1])], -1)  # (Q, C, M, K, 3)
+        lines = torch.einsum("qscd,qsmkd->qsmkc", Fij, z[:, i])  # (Q, S, M, K, 3): z_ik's epiline in view j
+        norm2 = lines[..., :2].square().sum(-1)  # (Q, S, M, K)
+        self.ok = seen[:, i] & (norm2 > 1e-300)  # a candidate at the epipole (or of a padded view) has no line
         unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
-        # laid out for states last (B contiguous): each contraction is one batched product, each mask broadcast
-        # along B, each reduction over K runs along contiguous rows (several times faster than states first)
-        self.unit = unit.to(dtype)  # (S, M, K, 3)
-        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (S, M, K, 1)
-        self.F12_T = Fij[..., :2].transpose(-1, -2)[:, None].contiguous().to(dtype)  # (S, 1, 2, 3): (F^T y)_12
-        self.P = self.P[:, None]  # (C, 1, 3, 4)
-        self.not_ok = ~self.ok[..., None]  # (S, M, K, 1)
-        self.pair = self.ok.any(-1)  # (S, M): view i has a candidate of marker m
-        self.no_pair = ~self.pair[..., None]  # (S, M, 1)
+        # laid out for states last (N contiguous): each contraction is one batched product, each mask broadcast
+        # along N, each reduction over K runs along contiguous rows (several times faster than states first)
+        self.unit = unit.to(dtype)  # (Q, S, M, K, 3)
+        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, S, M, K, 1)
+        self.F12_T = Fij[..., :2].transpose(-1, -2)[:, :, None].contiguous().to(dtype)  # (Q, S, 1, 2, 3)
+        self.P = P.to(dtype)[:, :, None]  # (Q, C, 1, 3, 4)
+        self.not_ok = ~self.ok[..., None]  # (Q, S, M, K, 1)
+        self.pair = self.ok.any(-1)  # (Q, S, M): view i has a candidate of marker m
+        self.no_pair = ~self.pair[..., None]  # (Q, S, M, 1)
 
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Points ``(M, 3, B)``, states last -> each candidate's signed distance from the projection's epiline
-        ``(S, M, K, B)`` (px) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2`` ``(S, M, K, B)``: the symmetric distance is
-        their product with the first squared."""
-        h = torch.cat([points, torch.ones_like(points[:, :1])], 1)  # (M, 4, B)
-        y = self.P.to(h) @ h[None]  # (C, M, 3, B)
-        y = (y / y[:, :, 2:3])[self.j]  # (S, M, 3, B) each pair's second view's projection, w = 1
-        dist = self.unit.to(y) @ y  # (S, M, K, B): y_j from z_ik's epiline, px
-        b = self.F12_T.to(y) @ y  # (S, M, 2, B)
-        back = (b[:, :, 0].square() + b[:, :, 1].square()).clamp(min=1e-30)  # (S, M, B): |(F^T y_j)_12|^2
-        return dist, self.norm2.to(y) / back[:, :, None] + 1
+        """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
+        ``(Q, S, M, K, N)`` (px) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2`` (the same shape): the symmetric distance
+        is their product with the first squared."""
+        h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
+        y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
+        y = (y / y[:, :, :, 2:3])[:, self.j]  # (Q, S, M, 3, N) each pair's second view's projection, w = 1
+        dist = self.unit.to(y) @ y  # (Q, S, M, K, N): y_j from z_ik's epiline, px
+        b = self.F12_T.to(y) @ y  # (Q, S, M, 2, N)
+        back = (b[:, :, :, 0].square() + b[:, :, :, 1].square()).clamp(min=1e-30)  # (Q, S, M, N)
+        return dist, self.norm2.to(y) / back[:, :, :, None] + 1
 
-    def __call__(self, points: torch.Tensor, per_marker: bool = False, states_last: bool = False) -> torch.Tensor:
-        """``points (B, M, 3)`` (``states_last``: ``(M, 3, B)``) -> (B,) costs, or (B, M) with ``per_marker``. In
+    def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """``points (Q, M, 3, N)``, N states of each subject -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
         place where no gradient is asked for (the particle filter's layers)."""
-        if not states_last:
-            points = points.permute(1, 2, 0)
         dist, factor = self._terms(points)
         if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
             d = (dist.square() * factor).masked_fill(self.not_ok, math.inf)
-            d = d.amin(2).clamp(max=self.cap).masked_fill(self.no_pair, 0.0)
+            d = d.amin(3).clamp(max=self.cap).masked_fill(self.no_pair, 0.0)
         else:
             d = dist.square_().mul_(factor).masked_fill_(self.not_ok, math.inf)
-            d = d.amin(2).clamp_(max=self.cap).masked_fill_(self.no_pair, 0.0)  # (S, M, B)
-        cost = d.sum(0)  # (M, B)
-        return cost.T if per_marker else cost.sum(0)
+            d = d.amin(3).clamp_(max=self.cap).masked_fill_(self.no_pair, 0.0)  # (Q, S, M, N)
+        cost = d.sum(1)  # (Q, M, N)
+        return cost if per_marker else cost.sum(1)
+
+    def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """One subject's ``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``."""
+        cost = self.cost(points.permute(1, 2, 0)[None], per_marker)[0]
+        return cost.T if per_marker else cost
 
     def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``points (B, M, 3)`` -> (B, S * M) signed residuals whose squares sum to the cost's terms below the
-        outlier cap (0 for the others), each pair's and marker's nearest candidate, or the candidates ``pick (S, M)``
-        (the nearest are returned with the residuals, to keep them while a Jacobian is taken)."""
-        B = points.shape[0]
-        dist, factor = self._terms(points.permute(1, 2, 0))
-        r = dist * factor.sqrt()  # (S, M, K, B)
+        """``points (Q, M, 3, N)`` -> (Q, N, S * M) signed residuals whose squares sum to the cost's terms below the
+        outlier cap (0 for the others), each pair's and marker's nearest candidate to the first state, or the
+        candidates ``pick (Q, S, M)`` (the nearest are returned with the residuals, to keep them while a Jacobian
+        is taken)."""
+        Q, N = points.shape[0], points.shape[-1]
+        dist, factor = self._terms(points)
+        r = dist * factor.sqrt()  # (Q, S, M, K, N)
         r2 = r.square().masked_fill(self.not_ok, math.inf)
         if pick is None:
-            pick = r2[..., 0].argmin(-1)  # (S, M): the first state's nearest candidate
-        idx = pick[:, :, None, None].expand(*r.shape[:2], 1, r.shape[3])
-        use = self.pair[..., None] & (r2.gather(2, idx)[:, :, 0] < self.cap)  # (S, M, B)
-        out = torch.where(use, r.gather(2, idx)[:, :, 0], 0.0)
-        return out.permute(2, 0, 1).reshape(B, -1), pick
+            pick = r2[..., 0].argmin(-1)  # (Q, S, M)
+        idx = pick[..., None, None].expand(*r.shape[:3], 1, N)
+        use = self.pair[..., None] & (r2.gather(3, idx)[:, :, :, 0] < self.cap)  # (Q, S, M, N)
+        out = torch.where(use, r.gather(3, idx)[:, :, :, 0], 0.0)
+        return out.permute(0, 3, 1, 2).reshape(Q, N, -1), pick
 
 
 def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
@@ -234,21 +251,34 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 6, points:
     return torch.where(c.amax(-1) > 0, (0.5 * (lo + hi)).exp(), 0.0)
 
 
-def resample(weights: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+Generators = torch.Generator | Sequence[torch.Generator]
+
+
+def _rand(shape: tuple[int, ...], generator: Generators, device: torch.device) -> torch.Tensor:
+    """Uniform float64 draws of ``shape``; with a sequence of generators, row q of the leading axis from generator q
+    (a subject's draws then do not depend on the others tracked in lockstep with it)."""
+    if isinstance(generator, torch.Generator):
+        return torch.rand(shape, generator=generator, device=device, dtype=torch.float64)
+    if len(generator) != shape[0]:
+        raise InputError(f"{len(generator)} generators for draws of shape {tuple(shape)}")
+    return torch.stack([torch.rand(shape[1:], generator=g, device=device, dtype=torch.float64) for g in generator])
+
+
+def resample(weights: torch.Tensor, generator: Generators) -> torch.Tensor:
     """Indices ``(..., N)`` drawn by systematic resampling from each row of unnormalised ``weights (..., N)`` (one
-    uniform offset per row)."""
+    uniform offset per row; ``generator``: one, or one per leading row)."""
     w = weights.double()
     N = w.shape[-1]
     cdf = w.cumsum(-1) / w.sum(-1, keepdim=True)
-    u = (torch.rand((*w.shape[:-1], 1), generator=generator, device=w.device, dtype=torch.float64)
-         + torch.arange(N, device=w.device, dtype=torch.float64)) / N
+    u = (_rand((*w.shape[:-1], 1), generator, w.device) + torch.arange(N, device=w.device, dtype=torch.float64)) / N
     return torch.searchsorted(cdf.contiguous(), u.contiguous()).clamp(max=N - 1)
 
 
 def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor,
-                     generator: torch.Generator) -> torch.Tensor:
+                     generator: Generators) -> torch.Tensor:
     """Samples of N(mean, std^2) truncated to [lower, upper], elementwise (``mean (..., D)``, the others
-    broadcasting), by the inverse CDF: exact, no rejection loop. ``std`` 0 gives ``mean`` clamped."""
+    broadcasting), by the inverse CDF: exact, no rejection loop. ``std`` 0 gives ``mean`` clamped. ``generator``:
+    one, or one per leading row of ``mean``."""
     dt = torch.float64
     m, s = mean.to(dt), std.to(dt).expand_as(mean)
     lo, hi = lower.to(dt).expand_as(mean), upper.to(dt).expand_as(mean)
@@ -256,7 +286,7 @@ def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor,
     s1 = torch.where(safe, s, 1.0)
     a = torch.special.ndtr((lo - m) / s1)
     b = torch.special.ndtr((hi - m) / s1)
-    u = a + (b - a) * torch.rand(mean.shape, generator=generator, device=mean.device, dtype=dt)
+    u = a + (b - a) * _rand(mean.shape, generator, mean.device)
     eps = torch.finfo(dt).tiny
     x = m + s1 * torch.special.ndtri(u.clamp(eps, 1 - 1e-16))
     x = torch.where(safe, x, m)
@@ -264,118 +294,284 @@ def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor,
 
 
 class MarkerAPF:
-    """The annealed particle filter of one subject.
+    """The annealed particle filter of one subject, or of Q subjects in lockstep: one frame of all of them is the
+    same few large tensor operations, the subjects a batch dimension beside their particles.
 
     Args:
-        skeleton: the subject's skeleton (its bone lengths). marker_set: its markers. rig: the cameras.
-        config: the filter's settings. generator: every random draw's source.
+        skeleton: the subject's skeleton (its bone lengths), or a sequence of Q of one chain. marker_set: its
+            markers, or Q marker sets (their numbers may differ). rig: the cameras, or Q rigs (the same).
+        config: the filter's settings, every subject's. generator: every random draw's source, or one per subject
+            (each subject's track then the same whichever others it is tracked with).
     """
 
-    def __init__(self, skeleton: Skeleton, marker_set: MarkerSet, rig: nn.Module, config: APFConfig = APFConfig(),
-                 generator: torch.Generator | None = None) -> None:
-        self.skeleton, self.marker_set, self.rig, self.config = skeleton, marker_set, rig, config
+    def __init__(self, skeleton: Skeleton | Sequence[Skeleton], marker_set: MarkerSet | Sequence[MarkerSet],
+                 rig: nn.Module | Sequence[nn.Module], config: APFConfig = APFConfig(),
+                 generator: Generators | None = None) -> None:
+        many = isinstance(skeleton, (list, tuple))
+        self.skeletons = list(skeleton) if many else [skeleton]
+        self.marker_sets = list(marker_set) if many else [marker_set]
+        self.rigs = list(rig) if many else [rig]
+        Q = len(self.skeletons)
+        if not Q or len(self.marker_sets) != Q or len(self.rigs) != Q:
+            raise InputError(f"MarkerAPF: give as many marker sets and rigs as skeletons, at least one; got "
+                             f"{Q}, {len(self.marker_sets)}, {len(self.rigs)}")
+        self.config = config
         self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
-        self.P = projection_matrices(rig).double()
-        self.F = fundamental_matrices(rig)
-        D, dev = skeleton.num_dofs, skeleton.lower.device  # everything on the skeleton's device
+        first = self.skeletons[0]
+        D, dev = first.num_dofs, first.lower.device  # everything on the skeletons' device
+        self.bodies32 = LockstepBodies(self.skeletons, torch.float32, dev)  # the layers' forward kinematics
+        self.bodies64 = LockstepBodies(self.skeletons, torch.float64, dev)  # the polish's and the estimates'
+        # the subjects' markers and cameras, padded to the most of any (a padded marker has no detections, a
+        # padded view no epipolar geometry: neither adds to a cost)
+        self.num_markers = [m.num_markers for m in self.marker_sets]
+        M, C = max(self.num_markers), max(r.num_cameras for r in self.rigs)
+        self.bone = torch.zeros(Q, M, dtype=torch.long, device=dev)
+        self.offset = torch.zeros(Q, M, 3, dtype=torch.float64, device=dev)
+        self.marker_part = torch.zeros(Q, M, dtype=torch.long, device=dev)
+        self.marker_mask = torch.zeros(Q, M, dtype=torch.bool, device=dev)
+        self.P = torch.zeros(Q, C, 3, 4, dtype=torch.float64, device=dev)
+        self.F = torch.zeros(Q, C, C, 3, 3, dtype=torch.float64, device=dev)
+        for q, (skel, mset, r) in enumerate(zip(self.skeletons, self.marker_sets, self.rigs)):
+            m, c = mset.num_markers, r.num_cameras
+            self.bone[q, :m] = mset.bone.to(dev)
+            self.offset[q, :m] = mset.offset.to(dev, torch.float64)
+            self.marker_part[q, :m] = torch.tensor([_part(skel.bone_names[b]) for b in mset.bone.tolist()])
+            self.marker_mask[q, :m] = True
+            Pq = projection_matrices(r).to(dev, torch.float64)
+            self.P[q] = Pq[:1].expand(C, 3, 4)
+            self.P[q, :c] = Pq
+            self.F[q, :c, :c] = fundamental_matrices(r).to(dev)
+        self.subject = torch.arange(Q, device=dev)[:, None]
         std = torch.full((D,), config.joint_rad, dtype=torch.float64, device=dev)
         std[:3], std[3:6] = config.root_m, config.root_rad
         self.std = std
-        self.lower, self.upper = skeleton.lower.double(), skeleton.upper.double()
+        self.lower = torch.stack([s.lower.to(dev, torch.float64) for s in self.skeletons])  # (Q, D)
+        self.upper = torch.stack([s.upper.to(dev, torch.float64) for s in self.skeletons])
         # the body's parts: each limb's joints and the markers on its bones (the trunk, root and head: part 0)
-        self.dof_part = torch.tensor([_part(n) for n in skeleton.dof_names], device=dev)
-        self.marker_part = torch.tensor([_part(skeleton.bone_names[b]) for b in marker_set.bone.tolist()], device=dev)
-        self.state: torch.Tensor | None = None
-        self.spread: float = math.nan
+        self.dof_part = torch.tensor([_part(n) for n in first.dof_names], device=dev)
+        self.states: torch.Tensor | None = None  # (Q, D) the last estimates
+        self.previous: torch.Tensor | None = None  # (Q, D) the ones before
+        self.spreads = torch.full((Q,), math.nan, dtype=torch.float64)
 
-    def reset(self, angles: torch.Tensor) -> None:
-        """Start from the state ``angles (D,)``."""
-        check_shape(angles, (self.skeleton.num_dofs,), "angles")
-        self.state = angles.detach().double().clone()
-        self.previous = self.state.clone()
+    @property
+    def skeleton(self) -> Skeleton:
+        """The first subject's skeleton (the one of a single-subject filter)."""
+        return self.skeletons[0]
 
-    def _polish(self, angles: torch.Tensor, score: EpipolarCost) -> torch.Tensor:
-        """Levenberg-Marquardt on the cost's residuals from the filter's estimate, within the joint limits: the
-        Jacobian by forward differences, the estimate and every column's state in one batch (a single state's
-        autograd, as L-BFGS took it, cost several times as much per step for the same result). Hand-written over
-        scipy's ``least_squares`` because a step is kept only where the true cost falls (each marker's nearest
-        candidate and the outlier cap change under it): scipy's LM and TRF stalled on such frames
-        (docs/results.md, "Marker-based capture")."""
-        theta = angles.detach().double()
-        D = theta.shape[0]
-        step = torch.full((D,), FD_STEP, dtype=theta.dtype, device=theta.device)
-        eye = torch.eye(D, dtype=theta.dtype, device=theta.device)
-        cost = float(score(self.markers(theta[None]))[0])
-        lam = 1e-3
-        for _ in range(self.config.polish_steps):
-            states = torch.cat([theta[None], theta + torch.diag(step)])  # the estimate, then one DOF moved each
-            r, _ = score.residuals(self.markers(states))  # (D + 1, R), each candidate the estimate's nearest
-            J = (r[1:] - r[0]) / step[:, None]  # (D, R)
-            A, g = J @ J.T, J @ r[0]
-            for _ in range(4):  # damp until the cost falls
-                delta = torch.linalg.solve(A + lam * (torch.diag(A.diagonal()) + 1e-9 * eye), -g)
-                trial = self.skeleton.clamp(theta + delta)
-                trial_cost = float(score(self.markers(trial[None]))[0])
-                if trial_cost < cost:
-                    break
-                lam *= 10.0
-            else:
-                break
-            converged = cost - trial_cost < POLISH_TOL * cost
-            theta, cost, lam = trial, trial_cost, max(lam / 10.0, 1e-7)
-            if converged:
-                break
-        return theta
+    @property
+    def marker_set(self) -> MarkerSet:
+        """The first subject's marker set."""
+        return self.marker_sets[0]
 
-    def hold(self) -> None:
-        """A frame without detections: the state stays, and the next frame predicts without velocity."""
-        if self.state is not None:
-            self.previous = self.state.clone()
+    @property
+    def state(self) -> torch.Tensor | None:
+        """The first subject's last estimate ``(D,)`` (the one of a single-subject filter)."""
+        return None if self.states is None else self.states[0]
 
-    def markers(self, angles: torch.Tensor) -> torch.Tensor:
-        """(B, D) states -> (B, M, 3) their model markers, in the states' dtype."""
-        return self.markers_last(angles).permute(2, 0, 1)
+    @property
+    def spread(self) -> float:
+        """The first subject's particle spread (m; :meth:`step`)."""
+        return float(self.spreads[0])
 
-    def markers_last(self, angles: torch.Tensor) -> torch.Tensor:
-        """(B, D) states -> (M, 3, B) their model markers, states last."""
-        return self.marker_set.positions_last(*self.skeleton.bone_poses_last(angles))
+    def reset(self, angles: torch.Tensor, subject: int | None = None) -> None:
+        """Start from the states ``angles (Q, D)``, or one subject's (``angles (D,)``; without ``subject``: the
+        first, or every subject where the filter has one)."""
+        Q, D = len(self.skeletons), self.skeletons[0].num_dofs
+        angles = angles.detach().to(self.std)
+        if subject is None and angles.dim() == 1 and Q == 1:
+            subject = 0
+        if subject is None:
+            check_shape(angles, (Q, D), "angles")
+            self.states = angles.clone()
+        else:
+            check_shape(angles, (D,), "angles")
+            if self.states is None:
+                if Q > 1:
+                    raise InputError("MarkerAPF.reset: give every subject's start (Q, D) first")
+                self.states = angles[None].clone()
+            self.states[subject] = angles
+        if subject is None or self.previous is None:
+            self.previous = self.states.clone()
+        else:
+            self.previous[subject] = angles
 
-    def step(self, detections: torch.Tensor) -> torch.Tensor:
-        """One frame: ``detections (C, M, K, 2)`` in pinhole pixels (:func:`pinhole_pixels`) -> the estimate
-        ``(D,)``; :attr:`spread` is the last layer's weighted RMS distance of the particles' markers from the
-        estimate's (m), the paper's lost-track signal (it stays small where the whole cloud follows a wrong pose:
-        :mod:`torchtrack.markers.track` tests the estimate against the triangulated markers instead)."""
-        if self.state is None:
-            raise InputError("MarkerAPF.step: no state yet; call reset() with a start pose")
-        cfg, gen = self.config, self.generator
-        predicted = self.skeleton.clamp(self.state + cfg.velocity * (self.state - self.previous))
-        x = predicted[None].expand(cfg.particles, -1)
-        std = self.std
+    def clamp(self, angles: torch.Tensor) -> torch.Tensor:
+        """Each subject's states ``(Q, ..., D)`` clamped to its joint limits."""
+        shape = (angles.shape[0],) + (1,) * (angles.dim() - 2) + (angles.shape[-1],)
+        return torch.clamp(angles, self.lower.view(shape).to(angles), self.upper.view(shape).to(angles))
+
+    def hold(self, held: torch.Tensor | None = None) -> None:
+        """Frames without detections: the subjects ``held (Q,)`` (default: all) keep their states, and their next
+        frame predicts without velocity."""
+        if self.states is not None:
+            held = torch.ones(len(self.skeletons), dtype=torch.bool) if held is None else held
+            self.previous[held.to(self.states.device)] = self.states[held.to(self.states.device)]
+
+    def markers(self, angles: torch.Tensor, subject: int = 0) -> torch.Tensor:
+        """One subject's states ``(B, D)`` -> (B, M, 3) its model markers, in the states' dtype."""
+        mset = self.marker_sets[subject]
+        return mset.positions_last(*self.skeletons[subject].bone_poses_last(angles)).permute(2, 0, 1)
+
+    def markers_all(self, angles: torch.Tensor, subjects: slice = slice(None)) -> torch.Tensor:
+        """Every subject's states ``(Q, N, D)`` -> (Q, M, 3, N) their model markers, states last (padded markers:
+        the first bone's origin), float32 or float64 as the states; ``subjects``: the states are those of this
+        slice of the subjects."""
+        bodies = self.bodies32 if angles.dtype == torch.float32 else self.bodies64
+        R, t = bodies(angles.to(bodies.origins.dtype), subjects)  # (nb, 3, 3, Q, N), (nb, 3, Q, N)
+        bone, offset = self.bone[subjects], self.offset[subjects]
+        nb, Q, M, N = R.shape[0], *bone.shape, R.shape[-1]
+        rows = (bone * Q + self.subject[:Q]).view(-1)  # each marker's row of (bone, subject) pairs
+        Rm = R.movedim(3, 1).reshape(nb * Q, 3, 3, N).index_select(0, rows).view(Q, M, 3, 3, N)
+        tm = t.movedim(2, 1).reshape(nb * Q, 3, N).index_select(0, rows).view(Q, M, 3, N)
+        return (Rm * offset.to(Rm)[:, :, None, :, None]).sum(3) + tm
+
+    def _layer_costs(self, detections: torch.Tensor, x: torch.Tensor, subjects: slice) -> torch.Tensor:
+        """The per-marker costs ``(q, M, N)`` of the particles ``x (q, N, D)`` of a slice of the subjects against
+        their ``detections`` (float32), a CPU's many particles in chunks (:data:`CPU_CHUNK_STATES`)."""
+        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], self.config.outlier_px)
+        N = x.shape[1]
+        if x.device.type != "cpu" or N <= CPU_CHUNK_STATES:
+            return score.cost(self.markers_all(x, subjects), per_marker=True)
+        per = x.new_empty(x.shape[0], self.bone.shape[1], N)
+        for n in range(0, N, CPU_CHUNK_STATES):
+            chunk = slice(n, n + CPU_CHUNK_STATES)
+            per[..., chunk] = score.cost(self.markers_all(x[:, chunk], subjects), per_marker=True)
+        return per
+
+    def _anneal(self, detections: torch.Tensor, x: torch.Tensor, generator: Generators, subjects: slice
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The annealing layers of a slice of the subjects from their particles ``x (q, N, D)`` (each the predicted
+        state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)`` and weights
+        ``(q, N)``."""
+        cfg = self.config
+        q, N, D = x.shape
         G = len(LIMBS) + 1
-        # the layers weigh the particles in float32 (costs in px^2, a thousandth of a pixel's precision is plenty);
-        # the polish and the estimate stay in float64
-        layer_score = EpipolarCost(detections.float(), self.P, self.F, cfg.outlier_px)
+        std, lower, upper = self.std, self.lower[subjects, None], self.upper[subjects, None]
+        part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
+        by_part = self.marker_part[subjects, :, None].expand(q, -1, N)
         for _ in range(cfg.layers):
-            x = truncated_normal(x, std, self.lower, self.upper, gen)
-            per = layer_score(self.markers_last(x.float()), per_marker=True, states_last=True).double()
-            parts = per.new_zeros(per.shape[0], G).index_add_(1, self.marker_part, per)  # (N, G)
+            x = truncated_normal(x, std, lower, upper, generator)
+            per = self._layer_costs(detections, x.float(), subjects).double()  # (q, M, N)
+            parts = per.new_zeros(q, G, N).scatter_add_(1, by_part, per)  # (q, G, N)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
             # the limb's own markers (the trunk's as the whole particle drew them)
-            costs = torch.cat([parts.sum(1, keepdim=True), parts[:, 1:]], 1).T  # (G, N)
+            costs = torch.cat([parts.sum(1, keepdim=True), parts[:, 1:]], 1)
             if not cfg.partitioned:
-                costs = costs[:1]
-            W = torch.exp(-annealing_beta(costs, cfg.survival)[:, None] * (costs - costs.amin(1, keepdim=True)))
-            keep, w = x, W[0]
-            drawn = keep[resample(W, gen)]  # (G or 1, N, D): each row's draw of whole particles
-            part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
-            x = drawn.gather(0, part[None, None].expand(1, *drawn.shape[1:]))[0]
+                costs = costs[:, :1]
+            W = torch.exp(-annealing_beta(costs, cfg.survival)[..., None] * (costs - costs.amin(-1, keepdim=True)))
+            keep, w = x, W[:, 0]
+            idx = resample(W, generator)  # (q, rows, N): each row's draw of whole particles
+            x = keep.gather(1, idx[:, part].mT)  # each DOF from its part's row: keep[q, idx[q, part[d], n], d]
             std = std * cfg.shrink
-        w = w / w.sum()
-        estimate = (w[:, None] * keep).sum(0)
+        return keep, w / w.sum(-1, keepdim=True)
+
+    def _chunks(self, Q: int, N: int, device: torch.device) -> list[slice]:
+        """The slices of the subjects annealed together: all on a GPU; on a CPU, as many as make
+        :data:`CPU_CHUNK_STATES` particles (at least one)."""
+        step = Q if device.type != "cpu" else max(1, CPU_CHUNK_STATES // N)
+        return [slice(q, min(q + step, Q)) for q in range(0, Q, step)]
+
+    def pad_detections(self, detections: Sequence[torch.Tensor]) -> torch.Tensor:
+        """Each subject's detections ``(T_q, C_q, M_q, K_q, 2)`` in pinhole pixels -> ``(T, Q, C, M, K, 2)``, padded
+        with NaN to the longest, the most views, markers and candidates of any (:meth:`step_all`'s layout)."""
+        if len(detections) != len(self.skeletons):
+            raise InputError(f"MarkerAPF.pad_detections: {len(detections)} subjects' detections for "
+                             f"{len(self.skeletons)} subjects")
+        T = max(d.shape[0] for d in detections)
+        K = max(d.shape[3] for d in detections)
+        Q, C, M = self.P.shape[0], self.P.shape[1], self.bone.shape[1]
+        out = torch.full((T, Q, C, M, K, 2), math.nan, dtype=detections[0].dtype, device=detections[0].device)
+        for q, d in enumerate(detections):
+            out[:d.shape[0], q, :d.shape[1], :d.shape[2], :d.shape[3]] = d
+        return out
+
+    def _polish(self, angles: torch.Tensor, score: EpipolarCost, going: torch.Tensor) -> torch.Tensor:
+        """Levenberg-Marquardt on the cost's residuals from the filter's estimates ``(Q, D)`` (of the subjects
+        ``going (Q,)``), within the joint limits: the Jacobian by forward differences, each subject's estimate and
+        every column's state in one batch (a single state's autograd, as L-BFGS took it, cost several times as much
+        per step for the same result); each subject damps and stops on its own. Hand-written over scipy's
+        ``least_squares`` because a step is kept only where the true cost falls (each marker's nearest candidate
+        and the outlier cap change under it): scipy's LM and TRF stalled on such frames (docs/results.md,
+        "Marker-based capture")."""
+        theta = angles.detach().double()
+        Q, D = theta.shape
+        dev = theta.device
+        moves = torch.cat([torch.zeros(1, D, dtype=theta.dtype, device=dev),
+                           torch.eye(D, dtype=theta.dtype, device=dev) * FD_STEP])  # (D + 1, D)
+        eye = torch.eye(D, dtype=theta.dtype, device=dev)
+        cost = score.cost(self.markers_all(theta[:, None]))[:, 0]  # (Q,)
+        lam = torch.full((Q,), 1e-3, dtype=theta.dtype, device=dev)
+        going = going.to(dev).clone()
+        for _ in range(self.config.polish_steps):
+            if not bool(going.any()):
+                break
+            r, _ = score.residuals(self.markers_all(theta[:, None] + moves))  # (Q, D + 1, R), the estimate's nearest
+            J = (r[:, 1:] - r[:, :1]) / FD_STEP  # (Q, D, R)
+            A, g = J @ J.mT, (J @ r[:, 0, :, None])[..., 0]
+            trial_theta, trial_cost, pending = theta, cost, going.clone()
+            for _ in range(4):  # damp each subject until its cost falls
+                damping = lam[:, None, None] * (torch.diag_embed(A.diagonal(dim1=-2, dim2=-1)) + 1e-9 * eye)
+                trial = self.clamp(theta + torch.linalg.solve(A + damping, -g[..., None])[..., 0])
+                c = score.cost(self.markers_all(trial[:, None]))[:, 0]
+                ok = pending & (c < cost)
+                trial_theta = torch.where(ok[:, None], trial, trial_theta)
+                trial_cost = torch.where(ok, c, trial_cost)
+                pending = pending & ~ok
+                if not bool(pending.any()):
+                    break
+                lam = torch.where(pending, lam * 10.0, lam)
+            moved = going & ~pending  # a subject whose four dampings all failed stops
+            converged = cost - trial_cost < POLISH_TOL * cost
+            theta, cost = trial_theta, trial_cost
+            lam = torch.where(moved, (lam / 10.0).clamp(min=1e-7), lam)
+            going = moved & ~converged
+        return theta
+
+    def step(self, detections: torch.Tensor) -> torch.Tensor:
+        """One frame of a single-subject filter: ``detections (C, M, K, 2)`` in pinhole pixels
+        (:func:`pinhole_pixels`) -> the estimate ``(D,)`` (:meth:`step_all`)."""
+        if len(self.skeletons) != 1:
+            raise InputError(f"MarkerAPF.step: the filter has {len(self.skeletons)} subjects; use step_all")
+        return self.step_all(detections[None])[0]
+
+    def step_all(self, detections: torch.Tensor, active: torch.Tensor | None = None) -> torch.Tensor:
+        """One frame of every subject: ``detections (Q, C, M, K, 2)`` in pinhole pixels (:meth:`pad_detections`)
+        -> the estimates ``(Q, D)``. Subjects not ``active (Q,)`` (default: all are) are held (:meth:`hold`).
+        :attr:`spreads` ``(Q,)`` is the last layer's weighted RMS distance of the particles' markers from the
+        estimate's (m), the paper's lost-track signal (it stays small where the whole cloud follows a wrong pose:
+        :mod:`torchtrack.markers.track` tests the estimate against the triangulated markers instead)."""
+        if self.states is None:
+            raise InputError("MarkerAPF.step: no state yet; call reset() with a start pose")
+        cfg, gen = self.config, self.generator
+        Q, D = self.states.shape
+        N = cfg.particles
+        active = torch.ones(Q, dtype=torch.bool) if active is None else active
+        if not isinstance(gen, torch.Generator):  # a held subject's generator does not draw, as when it is alone
+            idle = torch.Generator(self.states.device)
+            gen = [g if a else idle for g, a in zip(gen, active.tolist())]
+        active = active.to(self.states.device)
+        predicted = self.clamp(self.states + cfg.velocity * (self.states - self.previous))
+        # the layers weigh the particles in float32 (costs in px^2, a thousandth of a pixel's precision is plenty);
+        # the polish and the estimate stay in float64
+        layer_detections = detections.float()
+        chunks = self._chunks(Q, N, predicted.device)
+        keep = predicted.new_empty(Q, N, D)
+        w = predicted.new_empty(Q, N)
+        for qs in chunks:
+            chunk_gen = gen if isinstance(gen, torch.Generator) else gen[qs]
+            keep[qs], w[qs] = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D), chunk_gen, qs)
+        estimate = (w[..., None] * keep).sum(1)  # (Q, D)
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px))
-        self.previous, self.state = self.state, estimate
+            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px),
+                                    active)
+        self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
+        spreads = torch.empty(Q, dtype=torch.float64)
         with torch.no_grad():
-            pts = self.markers(torch.cat([self.state[None], keep]).float())
-        self.spread = float((w * ((pts[1:] - pts[:1]) ** 2).sum(-1).mean(-1)).sum().sqrt())
-        return self.state.clone()
+            for qs in chunks:
+                pts = self.markers_all(torch.cat([self.states[qs, None], keep[qs]], 1).float(), qs)  # (q, M, 3, 1 + N)
+                d2 = (pts[..., 1:] - pts[..., :1]).square().sum(2)  # (q, M, N)
+                mask = self.marker_mask[qs]
+                d2 = (d2 * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
+                spreads[qs] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
+        self.spreads = torch.where(active.cpu(), spreads, math.nan)
+        return self.states.clone()
