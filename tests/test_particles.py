@@ -218,6 +218,28 @@ def test_mmta_and_mmtp_against_a_plain_loop():
     assert rep.markers == 4 and rep.frames == T
 
 
+def test_markers_the_prediction_does_not_name_are_said_and_left_out(caplog):
+    """A ground truth with markers the track does not name (a marker set that does not match): a warning names
+    them, and MMTA is over the markers both name, as a plain loop over those gives it."""
+    from torchtrack.conventions import LANDMARKS
+    from torchtrack.eval.metrics import evaluate
+    from torchtrack.io.poses import Poses
+
+    T, J = 3, 16
+    truth = np.random.default_rng(7).normal(size=(T, 3, 3))
+    pred = truth[:, :2] + np.array([0.0, 0.0, 0.03])  # the first two within 5 cm
+    pred[1, 1] += 0.1  # one miss
+
+    def poses(markers, names):
+        return Poses(30.0, np.arange(T), list(LANDMARKS), np.zeros((T, J, 3), np.float32), ["x"],
+                     np.zeros((T, 1), np.float32), np.ones(T, bool), np.ones((T, J), np.float32),
+                     marker_names=names, markers3d=markers.astype(np.float32))
+    with caplog.at_level("WARNING"):
+        rep = evaluate(poses(pred, ["LASI", "RASI"]), poses(truth, ["LASI", "RASI", "LFHD"])).markers
+    assert "['LFHD']" in caplog.text
+    assert rep.markers == 2 and rep.mmta == pytest.approx((1 + 0.5 + 1) / 3)
+
+
 def test_track_markers_follows_a_simulated_capture(tmp_path, capsys):
     """`torchtrack track` on a simulated Plug-in-Gait capture (real markers, the real 4-camera rig, misses, false
     detections and noise) picks marker mode, fits the subject from the triangulated detections alone and tracks

@@ -12,6 +12,7 @@ Missing data
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -21,6 +22,8 @@ import numpy as np
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.conventions import LANDMARKS
 from torchtrack.io.poses import Poses
+
+log = logging.getLogger(__name__)
 
 DEFAULT_PCK_THRESHOLDS_M: tuple[float, ...] = (0.05, 0.10, 0.15)
 #: MMTA's threshold (Canton-Ferrer's T): a marker estimate within 5 cm of the truth matches.
@@ -200,7 +203,8 @@ class EvalReport:
 class MarkerAccuracy:
     """Canton-Ferrer's marker figures (§4.1): a marker estimate matches where it lies within ``threshold_m`` of the
     truth; MMTA is the share of matched markers, MMTP their mean error (mm), each per frame and averaged over the
-    frames. A marker the prediction does not give counts as unmatched."""
+    frames. A marker the prediction names but does not give (NaN) counts as unmatched; one it does not name is left
+    out, with a warning that names it."""
 
     threshold_m: float
     mmta: float
@@ -216,6 +220,10 @@ def marker_accuracy(pred: Poses, truth: Poses, pred_idx: np.ndarray, truth_idx: 
     if pred.markers3d is None or truth.markers3d is None:
         return None
     names = [n for n in truth.marker_names if n in set(pred.marker_names)]
+    missing = [n for n in truth.marker_names if n not in set(pred.marker_names)]
+    if names and missing:  # scored on the markers both name; the others are said, not counted
+        log.warning("the prediction has no markers %s of the ground truth: MMTA and MMTP over the %d both name",
+                    missing, len(names))
     if not names:
         return None
     p = pred.markers3d[pred_idx][:, [pred.marker_names.index(n) for n in names]].astype(np.float64)
