@@ -149,17 +149,21 @@ def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: in
     Raises:
         InputError: see :func:`load_marker_sequence`.
     """
-    return track_marker_sequences([load_marker_sequence(folder, start, stop)], config, seed, progress,
-                                  [logger], log_every)[0]
+    result = track_marker_sequences([load_marker_sequence(folder, start, stop)], config, seed, progress,
+                                    [logger], log_every)[0]
+    if isinstance(result, Exception):
+        raise result
+    return result
 
 
 def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfig = APFConfig(), seed: int = 0,
                            progress: bool = True, loggers: Sequence[RunLogger | None] | None = None,
-                           log_every: int = 10) -> list[MarkerTrack]:
+                           log_every: int = 10) -> list[MarkerTrack | Exception]:
     """Track Q loaded sequences in lockstep: one annealed particle filter over all of them
     (:class:`~torchtrack.tracking.particles.MarkerAPF`), each frame one batched step; a sequence that has ended or
     whose frame has too few detections is held (that frame invalid), one that lost its body is started again from
-    its triangulated markers alone. One sequence alone is tracked by the same code.
+    its triangulated markers alone. One sequence alone is tracked by the same code. Returns each sequence's track,
+    or the exception its own part (its restart, its TensorBoard pictures) failed with while the others went on.
 
     Args:
         sequences: from :func:`load_marker_sequence` (subjects of one body chain; any rigs and marker sets).
@@ -177,29 +181,39 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
     apf = MarkerAPF([s.skeleton for s in sequences], [s.marker_set for s in sequences], [s.rig for s in sequences],
                     config, [torch.Generator().manual_seed(int(seed)) for _ in sequences])
     apf.reset(torch.stack([s.first.double() for s in sequences]))
-    Z = apf.pad_detections([s.z[:, :, s.keep] for s in sequences])  # (T, Q, C, M, K, 2)
-    Tmax, M = Z.shape[0], Z.shape[3]
-    Xk = torch.full((Tmax, Q, M, 3), math.nan, dtype=torch.float64)
     lengths = torch.tensor([s.num_frames for s in sequences])
+    Tmax, K = int(lengths.max()), max(s.z.shape[3] for s in sequences)
+    # each sequence's markers found in some view, per frame (0 after its end): fewer than MIN_DETECTED, it is held
+    detected = torch.zeros(Tmax, Q, dtype=torch.long)
     for q, s in enumerate(sequences):
-        Xk[:s.num_frames, q, :len(s.keep)] = s.X[:, s.keep]
-    detected = torch.isfinite(Z).all(-1).any(-1).any(2).sum(-1)  # (T, Q) markers found in some view
+        detected[:s.num_frames, q] = torch.isfinite(s.z[:, :, s.keep]).all(-1).any(-1).any(1).sum(-1)
     states = torch.empty(Tmax, Q, apf.states.shape[1], dtype=torch.float64)
     spread = torch.full((Tmax, Q), math.nan, dtype=torch.float64)
     restarted = torch.zeros(Tmax, Q, dtype=torch.bool)
     valid = torch.zeros(Tmax, Q, dtype=torch.bool)
+    failed: dict[int, Exception] = {}  # a sequence whose restart or logging failed: held from then on, reported
     name = sequences[0].folder.name if Q == 1 else f"{Q} sequences"
     bar = tqdm(range(Tmax), desc=f"track markers {name}", unit="frame", disable=not progress)
     with contextlib.ExitStack() as closing:
         videos: dict[int, object] = {}  # each sequence's video for the logged pictures, opened at the first
         for t in bar:
             active = (t < lengths) & (detected[t] >= MIN_DETECTED)  # nothing to weigh the particles by: held
+            for q in failed:
+                active[q] = False
+            # this frame of each sequence, padded (a frame at a time: the padded copy of whole captures is large)
+            Z = apf.pad_detections([s.z[t:t + 1, :, s.keep] for s in sequences], K)[0]  # (Q, C, M, K, 2)
+            X = torch.full((Q, Z.shape[2], 3), math.nan, dtype=torch.float64)
+            for q, s in enumerate(sequences):
+                X[q, :len(s.keep)] = s.X[t, s.keep] if t < s.num_frames else math.nan
             if bool(active.any()):
-                est = apf.step_all(Z[t], active)
-                lost = _lost(apf, est, Xk[t]) & active
+                est = apf.step_all(Z, active)
+                lost = _lost(apf, est, X) & active
                 for q in lost.nonzero()[:, 0].tolist():  # the filter lost the body: start it again from the markers
-                    est[q] = _restart(apf, q, est[q], Xk[t, q], sequences[q].first)
-                    apf.reset(est[q], subject=q)
+                    try:
+                        est[q] = _restart(apf, q, est[q], X[q], sequences[q].first)
+                        apf.reset(est[q], subject=q)
+                    except Exception as exc:  # this sequence fails; the others go on
+                        failed[q] = exc
                 restarted[t] = lost
             else:
                 apf.hold()
@@ -207,11 +221,15 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
             spread[t] = torch.where(active, apf.spreads, math.nan)
             bar.set_postfix(restarts=int(restarted.sum()))
             for q, (s, logger) in enumerate(zip(sequences, loggers)):
-                if logger is not None and t < s.num_frames:
-                    _log_step(logger, apf, s, q, t, states[t, q], Xk[t, q, :len(s.keep)], int(detected[t, q]),
-                              bool(active[q]), int(restarted[:t + 1, q].sum()), log_every, videos, closing)
+                if logger is not None and t < s.num_frames and q not in failed:
+                    try:
+                        _log_step(logger, apf, s, q, t, states[t, q], X[q, :len(s.keep)], int(detected[t, q]),
+                                  bool(active[q]), int(restarted[:t + 1, q].sum()), log_every, videos, closing)
+                    except Exception as exc:
+                        failed[q] = exc
     shared = time.perf_counter() - t0
-    return [_marker_track(s, states[:s.num_frames, q], spread[:s.num_frames, q], restarted[:s.num_frames, q],
+    return [failed[q] if q in failed else
+            _marker_track(s, states[:s.num_frames, q], spread[:s.num_frames, q], restarted[:s.num_frames, q],
                           valid[:s.num_frames, q], s.seconds + shared) for q, s in enumerate(sequences)]
 
 

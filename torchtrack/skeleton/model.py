@@ -419,7 +419,8 @@ class LockstepBodies:
         first = chains[0]
         for s, c in zip(skeletons[1:], chains[1:]):
             same = (s.dof_names == skeletons[0].dof_names and s.frame_names == skeletons[0].frame_names
-                    and torch.equal(c.joint, first.joint) and torch.equal(c.revolute, first.revolute)
+                    and s.bone_names == skeletons[0].bone_names and torch.equal(c.joint, first.joint)
+                    and torch.equal(c.revolute, first.revolute) and torch.equal(c.prismatic, first.prismatic)
                     and torch.allclose(c.R0, first.R0, atol=1e-9) and torch.allclose(c.axis, first.axis))
             if not same:
                 raise InputError(f"lockstep bodies: {s.source} is not the chain of {skeletons[0].source}")
@@ -427,9 +428,10 @@ class LockstepBodies:
         self.origins = torch.stack([c.t0 for c in chains], -1)[..., None]  # (F, 3, Q, 1)
         self.bone_index = skeletons[0].bone_index.to(device)
 
-    def __call__(self, angles: torch.Tensor, bodies: slice = slice(None)) -> tuple[torch.Tensor, torch.Tensor]:
-        """``angles (Q, N, D)``, N states of each body (of the slice ``bodies`` of them) -> the bones' rotations
-        ``(nb, 3, 3, Q, N)`` and origins ``(nb, 3, Q, N)`` (world)."""
+    def __call__(self, angles: torch.Tensor, bodies: slice | torch.Tensor = slice(None)
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``angles (Q, N, D)``, N states of each body (of those ``bodies``, a slice or indices) -> the bones'
+        rotations ``(nb, 3, 3, Q, N)`` and origins ``(nb, 3, Q, N)`` (world)."""
         R, t = self.chain(angles, self.origins[:, :, bodies])
         return R[self.bone_index], t[self.bone_index]
 

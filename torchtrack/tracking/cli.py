@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import contextlib
 import logging
 import sys
 from pathlib import Path
@@ -137,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     from torchtrack.checks import InputError
     from torchtrack.markers.track import is_marker_folder
 
+    if args.batch_size < 1:
+        raise InputError(f"--batch-size must be >= 1, got {args.batch_size}")
     markers = [args.mode == "markers" or (args.mode == "auto" and is_marker_folder(s)) for s in args.seq]
     if any(markers):
         if not all(markers):
@@ -186,34 +187,60 @@ def _run_markers(args: argparse.Namespace) -> int:
     outs = [args.out] if one else _many_outputs(args)
     if one:
         check_output(args.out, TRACK_DIR, args.overwrite)  # before any work
-    failed = 0
+    failed, written = 0, []
     with intra_op_threads(args.threads):
         for first in range(0, len(args.seq), args.batch_size):
-            loaded, written = [], []
+            batch = []  # (folder, its output, the loaded sequence)
             for seq, out in zip(args.seq[first:first + args.batch_size], outs[first:first + args.batch_size]):
                 try:
-                    loaded.append(load_marker_sequence(seq, args.start, args.stop))
-                    written.append(out)
+                    batch.append((seq, out, load_marker_sequence(seq, args.start, args.stop)))
                 except InputError as exc:
                     if one:
                         raise
                     failed += 1
                     print(f"torchtrack track: {seq}: failed: {exc}; no poses.npz written", file=sys.stderr)
-            if not loaded:
-                continue
+            outputs = []  # each output's replacement (an error puts its earlier output back) and logger
             try:
-                with contextlib.ExitStack() as stack:  # an error or Ctrl-C inside puts every earlier output back
-                    loggers = []
-                    for out in written:
-                        stack.enter_context(replacing(out, TRACK_DIR))
-                        loggers.append(stack.enter_context(RunLogger(out / "tb")))
-                    results = track_marker_sequences(loaded, loggers=loggers, log_every=args.log_every)
-                    for result, out in zip(results, written):
-                        save_poses(result.poses, out / "poses.npz")
-            except KeyboardInterrupt:
-                print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
-                return 130
-            for result, out in zip(results, written):
+                for _, out, _ in batch:
+                    cm = replacing(out, TRACK_DIR)
+                    cm.__enter__()  # the earlier output moved aside before the logger writes
+                    outputs.append([cm, None])
+                    outputs[-1][1] = RunLogger(out / "tb").__enter__()
+                results = track_marker_sequences([b[2] for b in batch], loggers=[o[1] for o in outputs],
+                                                 log_every=args.log_every) if batch else []
+            except BaseException as exc:  # Ctrl-C, or an error of the batch as a whole: its folders as they were
+                for cm, logger in outputs:
+                    if logger is not None:
+                        logger.__exit__(None, None, None)
+                    cm.__exit__(type(exc), exc, exc.__traceback__)
+                if isinstance(exc, KeyboardInterrupt):
+                    print("torchtrack track: interrupted: this batch's poses.npz not written"
+                          + (f"; written before it: {', '.join(map(str, written))}" if written else ""),
+                          file=sys.stderr)
+                    return 130
+                if one or not isinstance(exc, Exception):
+                    raise
+                failed += len(batch)
+                for seq, _, _ in batch:
+                    print(f"torchtrack track: {seq}: failed with its batch: {exc}; no poses.npz written",
+                          file=sys.stderr)
+                continue
+            for (seq, out, _), (cm, logger), result in zip(batch, outputs, results):
+                logger.__exit__(None, None, None)
+                if isinstance(result, Exception):
+                    cm.__exit__(type(result), result, result.__traceback__)
+                    if one:
+                        raise result
+                    failed += 1
+                    print(f"torchtrack track: {seq}: failed: {result}; no poses.npz written", file=sys.stderr)
+                    continue
+                try:
+                    save_poses(result.poses, out / "poses.npz")
+                except BaseException as exc:
+                    cm.__exit__(type(exc), exc, exc.__traceback__)
+                    raise
+                cm.__exit__(None, None, None)
+                written.append(out / "poses.npz")
                 T, M = result.poses.num_frames, len(result.poses.marker_names)
                 print(f"wrote {out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter, "
                       f"{int(result.poses.valid.sum())} tracked; {result.seconds:.0f} s wall clock, "

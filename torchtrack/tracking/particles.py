@@ -389,11 +389,12 @@ class MarkerAPF:
                 if Q > 1:
                     raise InputError("MarkerAPF.reset: give every subject's start (Q, D) first")
                 self.states = angles[None].clone()
-            self.states[subject] = angles
+            one = torch.arange(Q, device=angles.device)[:, None] == subject  # out of place: estimates handed out
+            self.states = torch.where(one, angles, self.states)             # earlier stay as they were
+            if self.previous is not None:
+                self.previous = torch.where(one, angles, self.previous)
         if subject is None or self.previous is None:
             self.previous = self.states.clone()
-        else:
-            self.previous[subject] = angles
 
     def clamp(self, angles: torch.Tensor) -> torch.Tensor:
         """Each subject's states ``(Q, ..., D)`` clamped to its joint limits."""
@@ -405,17 +406,17 @@ class MarkerAPF:
         frame predicts without velocity."""
         if self.states is not None:
             held = torch.ones(len(self.skeletons), dtype=torch.bool) if held is None else held
-            self.previous[held.to(self.states.device)] = self.states[held.to(self.states.device)]
+            self.previous = torch.where(held.to(self.states.device)[:, None], self.states, self.previous)
 
     def markers(self, angles: torch.Tensor, subject: int = 0) -> torch.Tensor:
         """One subject's states ``(B, D)`` -> (B, M, 3) its model markers, in the states' dtype."""
         mset = self.marker_sets[subject]
         return mset.positions_last(*self.skeletons[subject].bone_poses_last(angles)).permute(2, 0, 1)
 
-    def markers_all(self, angles: torch.Tensor, subjects: slice = slice(None)) -> torch.Tensor:
+    def markers_all(self, angles: torch.Tensor, subjects: slice | torch.Tensor = slice(None)) -> torch.Tensor:
         """Every subject's states ``(Q, N, D)`` -> (Q, M, 3, N) their model markers, states last (padded markers:
-        the first bone's origin), float32 or float64 as the states; ``subjects``: the states are those of this
-        slice of the subjects."""
+        the first bone's origin), float32 or float64 as the states; ``subjects``: the states are those of these
+        subjects (a slice or indices)."""
         bodies = self.bodies32 if angles.dtype == torch.float32 else self.bodies64
         R, t = bodies(angles.to(bodies.origins.dtype), subjects)  # (nb, 3, 3, Q, N), (nb, 3, Q, N)
         bone, offset = self.bone[subjects], self.offset[subjects]
@@ -425,10 +426,9 @@ class MarkerAPF:
         tm = t.movedim(2, 1).reshape(nb * Q, 3, N).index_select(0, rows).view(Q, M, 3, N)
         return (Rm * offset.to(Rm)[:, :, None, :, None]).sum(3) + tm
 
-    def _layer_costs(self, detections: torch.Tensor, x: torch.Tensor, subjects: slice) -> torch.Tensor:
-        """The per-marker costs ``(q, M, N)`` of the particles ``x (q, N, D)`` of a slice of the subjects against
-        their ``detections`` (float32), a CPU's many particles in chunks (:data:`CPU_CHUNK_STATES`)."""
-        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], self.config.outlier_px)
+    def _layer_costs(self, score: EpipolarCost, x: torch.Tensor, subjects: torch.Tensor) -> torch.Tensor:
+        """The per-marker costs ``(q, M, N)`` of the particles ``x (q, N, D)`` of the ``subjects (q,)`` by their
+        ``score``, a CPU's many particles in chunks (:data:`CPU_CHUNK_STATES`)."""
         N = x.shape[1]
         if x.device.type != "cpu" or N <= CPU_CHUNK_STATES:
             return score.cost(self.markers_all(x, subjects), per_marker=True)
@@ -438,9 +438,9 @@ class MarkerAPF:
             per[..., chunk] = score.cost(self.markers_all(x[:, chunk], subjects), per_marker=True)
         return per
 
-    def _anneal(self, detections: torch.Tensor, x: torch.Tensor, generator: Generators, subjects: slice
+    def _anneal(self, detections: torch.Tensor, x: torch.Tensor, generator: Generators, subjects: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The annealing layers of a slice of the subjects from their particles ``x (q, N, D)`` (each the predicted
+        """The annealing layers of the ``subjects (q,)`` from their particles ``x (q, N, D)`` (each the predicted
         state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)`` and weights
         ``(q, N)``."""
         cfg = self.config
@@ -449,9 +449,10 @@ class MarkerAPF:
         std, lower, upper = self.std, self.lower[subjects, None], self.upper[subjects, None]
         part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
         by_part = self.marker_part[subjects, :, None].expand(q, -1, N)
+        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], cfg.outlier_px)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, lower, upper, generator)
-            per = self._layer_costs(detections, x.float(), subjects).double()  # (q, M, N)
+            per = self._layer_costs(score, x.float(), subjects).double()  # (q, M, N)
             parts = per.new_zeros(q, G, N).scatter_add_(1, by_part, per)  # (q, G, N)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
             # the limb's own markers (the trunk's as the whole particle drew them)
@@ -465,20 +466,24 @@ class MarkerAPF:
             std = std * cfg.shrink
         return keep, w / w.sum(-1, keepdim=True)
 
-    def _chunks(self, Q: int, N: int, device: torch.device) -> list[slice]:
-        """The slices of the subjects annealed together: all on a GPU; on a CPU, as many as make
+    def _chunks(self, active: torch.Tensor, N: int) -> list[torch.Tensor]:
+        """The subjects annealed together, of those ``active (Q,)``: all of them on a GPU; on a CPU, as many as make
         :data:`CPU_CHUNK_STATES` particles (at least one)."""
-        step = Q if device.type != "cpu" else max(1, CPU_CHUNK_STATES // N)
-        return [slice(q, min(q + step, Q)) for q in range(0, Q, step)]
+        which = active.nonzero()[:, 0]
+        if not len(which):
+            return []
+        step = len(which) if which.device.type != "cpu" else max(1, CPU_CHUNK_STATES // N)
+        return list(which.split(step))
 
-    def pad_detections(self, detections: Sequence[torch.Tensor]) -> torch.Tensor:
+    def pad_detections(self, detections: Sequence[torch.Tensor], candidates: int | None = None) -> torch.Tensor:
         """Each subject's detections ``(T_q, C_q, M_q, K_q, 2)`` in pinhole pixels -> ``(T, Q, C, M, K, 2)``, padded
-        with NaN to the longest, the most views, markers and candidates of any (:meth:`step_all`'s layout)."""
+        with NaN to the longest, the most views and markers, and ``candidates`` (default: the most of any)
+        candidates (:meth:`step_all`'s layout)."""
         if len(detections) != len(self.skeletons):
             raise InputError(f"MarkerAPF.pad_detections: {len(detections)} subjects' detections for "
                              f"{len(self.skeletons)} subjects")
         T = max(d.shape[0] for d in detections)
-        K = max(d.shape[3] for d in detections)
+        K = max(d.shape[3] for d in detections) if candidates is None else candidates
         Q, C, M = self.P.shape[0], self.P.shape[1], self.bone.shape[1]
         out = torch.full((T, Q, C, M, K, 2), math.nan, dtype=detections[0].dtype, device=detections[0].device)
         for q, d in enumerate(detections):
@@ -546,32 +551,29 @@ class MarkerAPF:
         Q, D = self.states.shape
         N = cfg.particles
         active = torch.ones(Q, dtype=torch.bool) if active is None else active
-        if not isinstance(gen, torch.Generator):  # a held subject's generator does not draw, as when it is alone
-            idle = torch.Generator(self.states.device)
-            gen = [g if a else idle for g, a in zip(gen, active.tolist())]
         active = active.to(self.states.device)
         predicted = self.clamp(self.states + cfg.velocity * (self.states - self.previous))
         # the layers weigh the particles in float32 (costs in px^2, a thousandth of a pixel's precision is plenty);
         # the polish and the estimate stay in float64
         layer_detections = detections.float()
-        chunks = self._chunks(Q, N, predicted.device)
-        keep = predicted.new_empty(Q, N, D)
-        w = predicted.new_empty(Q, N)
+        chunks = self._chunks(active, N)  # a held subject is not annealed
+        keep = predicted[:, None].expand(Q, N, D).clone()
+        w = predicted.new_full((Q, N), 1.0 / N)
         for qs in chunks:
-            chunk_gen = gen if isinstance(gen, torch.Generator) else gen[qs]
+            chunk_gen = gen if isinstance(gen, torch.Generator) else [gen[i] for i in qs.tolist()]
             keep[qs], w[qs] = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D), chunk_gen, qs)
-        estimate = (w[..., None] * keep).sum(1)  # (Q, D)
+        estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
             estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px),
                                     active)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
-        spreads = torch.empty(Q, dtype=torch.float64)
+        spreads = torch.full((Q,), math.nan, dtype=torch.float64)
         with torch.no_grad():
             for qs in chunks:
                 pts = self.markers_all(torch.cat([self.states[qs, None], keep[qs]], 1).float(), qs)  # (q, M, 3, 1 + N)
                 d2 = (pts[..., 1:] - pts[..., :1]).square().sum(2)  # (q, M, N)
                 mask = self.marker_mask[qs]
                 d2 = (d2 * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
-                spreads[qs] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
-        self.spreads = torch.where(active.cpu(), spreads, math.nan)
+                spreads[qs.cpu()] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
+        self.spreads = spreads
         return self.states.clone()
