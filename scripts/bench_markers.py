@@ -54,32 +54,17 @@ def main() -> int:
     rig = load_calibration(RIG, warn_units=False).double()
     if args.lockstep:
         return lockstep(args, rig, dev)
-    det, _ = simulated_capture(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0,
-                               DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=0)
-    uv = torch.from_numpy(det.uv.astype("float64"))
-    z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)  # (T, C, M, K, 2)
-    X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
-    skel, mset, angles = subject_from_markers(X, det.marker_names, det.fps)
-    rig_d, skel_d = rig.to(dev), skel.to(dev)
-    mset_d = replace(mset, bone=mset.bone.to(dev), offset=mset.offset.to(dev))
-    zd = z.to(dev)
+    skel_d, mset_d, start, zd = capture(rig, args.frames, 0, dev)
+    rig_d = rig.to(dev)
     print(f"{'particles x layers':<19} {'polish':>6} {'frames/s':>9} {'ms/frame':>9}   ({args.device}, "
-          f"{args.threads} thread(s), {len(det.marker_names)} markers, {rig.num_cameras} cameras)")
+          f"{args.threads} thread(s), {mset_d.num_markers} markers, {rig.num_cameras} cameras)")
     for setting in args.settings:
         P, L = (int(v) for v in setting.lower().split("x"))
         for polish in args.polish:
             cfg = APFConfig(particles=P, layers=L, polish_steps=polish)
             apf = MarkerAPF(skel_d, mset_d, rig_d, cfg, torch.Generator(device=dev).manual_seed(0))
-            apf.reset(angles[59].to(dev))
-            apf.step(zd[60])  # warm-up
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
-            t0 = time.perf_counter()
-            for t in range(61, 61 + args.frames):
-                apf.step(zd[t])
-            if dev.type == "cuda":
-                torch.cuda.synchronize()
-            dt = (time.perf_counter() - t0) / args.frames
+            apf.reset(start)
+            dt = seconds_per_frame(apf.step, zd, args.frames, dev)
             print(f"{setting:<19} {polish:>6} {1 / dt:>9.1f} {1e3 * dt:>9.1f}", flush=True)
     # the part of a layer that the forward kinematics of the particles takes: the filter's lean chain
     # (Skeleton.bone_poses) and pytorch-kinematics' general one (Skeleton.forward)
@@ -87,7 +72,7 @@ def main() -> int:
         P = int(setting.lower().split("x")[0])
         for name, fk in (("lean", skel_d.bone_poses), ("pytorch-kinematics", skel_d.forward)):
             for dtype in (torch.float64, torch.float32):
-                states = angles[59].to(dev, dtype)[None].repeat(P, 1)
+                states = start.to(dtype)[None].repeat(P, 1)
                 fk(states)
                 if dev.type == "cuda":
                     torch.cuda.synchronize()
@@ -101,22 +86,40 @@ def main() -> int:
     return 0
 
 
+def capture(rig, frames: int, seed: int, dev: torch.device) -> tuple:
+    """The simulated capture's detections drawn with ``seed`` (61 + ``frames`` frames at 30 frames/s) and its
+    subject fitted on the first 60 frames' triangulated markers: the skeleton, the marker set, the pose of frame 59
+    and the detections ``(T, C, M, K, 2)`` in pinhole pixels, on ``dev``."""
+    det, _ = simulated_capture(CAPTURE, rig, 30.0, (frames + 61) / 30.0,
+                               DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=seed)
+    uv = torch.from_numpy(det.uv.astype("float64"))
+    z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
+    X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
+    skel, mset, angles = subject_from_markers(X, det.marker_names, det.fps)
+    return (skel.to(dev), replace(mset, bone=mset.bone.to(dev), offset=mset.offset.to(dev)), angles[59].to(dev),
+            z.to(dev))
+
+
+def seconds_per_frame(step, z: torch.Tensor, frames: int, dev: torch.device) -> float:
+    """Seconds a frame of ``step`` over ``z``'s frames 61 to 60 + ``frames`` (frame 60 a warm-up)."""
+    step(z[60])
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    t0 = time.perf_counter()
+    for t in range(61, 61 + frames):
+        step(z[t])
+    if dev.type == "cuda":
+        torch.cuda.synchronize()
+    return (time.perf_counter() - t0) / frames
+
+
 def lockstep(args: argparse.Namespace, rig, dev: torch.device) -> int:
     """Frames/s summed over Q sequences in lockstep (one batched filter step a frame), for each Q of
     ``--lockstep``: the sequences are the capture's detections drawn with seeds 0, 1, ... (each subject fitted on
     its own), the largest Q's sequences the pool of the others."""
     Q_max = max(args.lockstep)
     P, L = (int(v) for v in args.lockstep_setting.lower().split("x"))
-    pool = []
-    for seed in range(Q_max):
-        det, _ = simulated_capture(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0,
-                                   DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=seed)
-        uv = torch.from_numpy(det.uv.astype("float64"))
-        z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
-        X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
-        skel, mset, angles = subject_from_markers(X, det.marker_names, det.fps)
-        pool.append((skel.to(dev), replace(mset, bone=mset.bone.to(dev), offset=mset.offset.to(dev)),
-                     angles[59].to(dev), z.to(dev)))
+    pool = [capture(rig, args.frames, seed, dev) for seed in range(Q_max)]
     print(f"{'sequences':<10} {'frames/s summed':>15} {'ms/frame':>9}   ({args.device}, {args.threads} thread(s), "
           f"{P} particles x {L} layers with the polish, {rig.num_cameras} cameras)")
     base = None
@@ -127,15 +130,7 @@ def lockstep(args: argparse.Namespace, rig, dev: torch.device) -> int:
                         [torch.Generator(device=dev).manual_seed(q) for q in range(Q)])
         apf.reset(torch.stack([s[2] for s in subjects]))
         Z = apf.pad_detections([s[3] for s in subjects])  # (T, Q, C, M, K, 2)
-        apf.step_all(Z[60])  # warm-up
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-        t0 = time.perf_counter()
-        for t in range(61, 61 + args.frames):
-            apf.step_all(Z[t])
-        if dev.type == "cuda":
-            torch.cuda.synchronize()
-        dt = (time.perf_counter() - t0) / args.frames
+        dt = seconds_per_frame(apf.step_all, Z, args.frames, dev)
         base = base or Q / dt
         print(f"{Q:<10} {Q / dt:>15.1f} {1e3 * dt:>9.1f}   ({Q / dt / base:.1f}x the first)", flush=True)
     return 0

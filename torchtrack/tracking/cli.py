@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -178,7 +179,6 @@ def _run_markers(args: argparse.Namespace) -> int:
     name and leaves its folder as it was, the others are written)."""
     from torchtrack.checks import InputError
     from torchtrack.io.outputs import TRACK_DIR, check_output, replacing
-    from torchtrack.io.poses import save_poses
     from torchtrack.logging import RunLogger
     from torchtrack.markers.track import load_marker_sequence, track_marker_sequences
     from torchtrack.tracking.pipeline import intra_op_threads
@@ -227,24 +227,13 @@ def _run_markers(args: argparse.Namespace) -> int:
                 continue
             for (seq, out, _), (cm, logger), result in zip(batch, outputs, results):
                 logger.__exit__(None, None, None)
-                if isinstance(result, Exception):
+                if one and isinstance(result, Exception):
                     cm.__exit__(type(result), result, result.__traceback__)
-                    if one:
-                        raise result
+                    raise result
+                if _write_result(seq, out, cm, result, _marker_summary):
+                    written.append(out / "poses.npz")
+                else:
                     failed += 1
-                    print(f"torchtrack track: {seq}: failed: {result}; no poses.npz written", file=sys.stderr)
-                    continue
-                try:
-                    save_poses(result.poses, out / "poses.npz")
-                except BaseException as exc:
-                    cm.__exit__(type(exc), exc, exc.__traceback__)
-                    raise
-                cm.__exit__(None, None, None)
-                written.append(out / "poses.npz")
-                T, M = result.poses.num_frames, len(result.poses.marker_names)
-                print(f"wrote {out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter, "
-                      f"{int(result.poses.valid.sum())} tracked; {result.seconds:.0f} s wall clock, "
-                      f"{T / result.seconds:.2f} frames/s")
     if failed:
         print(f"torchtrack track: {failed} of {len(args.seq)} sequences failed (above); the others were written",
               file=sys.stderr)
@@ -282,7 +271,6 @@ def _run_many(args: argparse.Namespace) -> int:
     """Several sequences, ``--batch-size`` at a time in lockstep, each into ``OUT/<name>`` (checked before any work);
     one that fails is reported with its name and leaves its folder as it was, the others are written."""
     from torchtrack.io.outputs import TRACK_DIR, replacing
-    from torchtrack.io.poses import save_poses
     from torchtrack.tracking.pipeline import track_many
 
     outs = _many_outputs(args)
@@ -304,25 +292,41 @@ def _run_many(args: argparse.Namespace) -> int:
             print("torchtrack track: interrupted: no poses.npz written", file=sys.stderr)
             return 130
         raise
-    failed = 0
-    for seq, out, cm, result in zip(args.seq, outs, outputs, results):
-        if isinstance(result, Exception):
-            failed += 1
-            cm.__exit__(type(result), result, result.__traceback__)
-            print(f"torchtrack track: {seq}: failed: {result}; no poses.npz written", file=sys.stderr)
-            continue
-        try:
-            save_poses(result.poses, out / "poses.npz")
-        except BaseException as exc:
-            cm.__exit__(type(exc), exc, exc.__traceback__)
-            raise
-        cm.__exit__(None, None, None)
-        print(_summary(out, result))
+    failed = sum(not _write_result(seq, out, cm, result, _summary)
+                 for seq, out, cm, result in zip(args.seq, outs, outputs, results))
     if failed:
         print(f"torchtrack track: {failed} of {len(results)} sequences failed (above); the others were written",
               file=sys.stderr)
         return 1
     return 0
+
+
+def _write_result(seq: Path, out: Path, replacement: Any, result: Any, summary: Callable[[Path, Any], str]) -> bool:
+    """One sequence's result of a batch: its poses.npz written and ``summary`` printed (True), or the exception it
+    failed with reported by name and its earlier output put back (False); ``replacement`` is the entered
+    :func:`~torchtrack.io.outputs.replacing` of ``out``, closed here."""
+    from torchtrack.io.poses import save_poses
+
+    if isinstance(result, Exception):
+        replacement.__exit__(type(result), result, result.__traceback__)
+        print(f"torchtrack track: {seq}: failed: {result}; no poses.npz written", file=sys.stderr)
+        return False
+    try:
+        save_poses(result.poses, out / "poses.npz")
+    except BaseException as exc:
+        replacement.__exit__(type(exc), exc, exc.__traceback__)
+        raise
+    replacement.__exit__(None, None, None)
+    print(summary(out, result))
+    return True
+
+
+def _marker_summary(out: Path, result: Any) -> str:
+    """A marker track's closing line: frames, markers, frames tracked and the wall-clock rate."""
+    T, M = result.poses.num_frames, len(result.poses.marker_names)
+    return (f"wrote {out / 'poses.npz'}: {T} frames of {M} markers by the annealed particle filter, "
+            f"{int(result.poses.valid.sum())} tracked; {result.seconds:.0f} s wall clock, {T / result.seconds:.2f} "
+            "frames/s")
 
 
 def _summary(out: Path, result: Any) -> str:
