@@ -373,7 +373,8 @@ class _LeanChain:
         K = torch.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z], -1).reshape(-1, 3, 3)
         self.K, self.K2, self.axis = K, K @ K, a
         parent = chain._direct_parent_idx
-        self.levels = [(lvl.to(off.device), parent[lvl].to(off.device)) for lvl in chain._bfs_levels]
+        self.levels = [(lvl.to(off.device), parent[lvl].to(off.device), bool(parent[lvl[0]] < 0))
+                       for lvl in chain._bfs_levels]
 
     def __call__(self, angles: torch.Tensor, origins: torch.Tensor | None = None
                  ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -392,8 +393,8 @@ class _LeanChain:
         t = t0 + torch.einsum("fi,f...->fi...", (self.R0 @ self.axis[..., None])[..., 0],
                               torch.where(self.prismatic.view(-1, *ones), q, 0.0))  # (F, 3, *batch)
         Rw, tw = torch.empty_like(R), torch.empty_like(t)
-        for level, parent in self.levels:
-            if int(parent[0]) < 0:  # the root
+        for level, parent, root in self.levels:
+            if root:
                 Rw[level], tw[level] = R[level], t[level]
                 continue
             Rp = Rw[parent]  # (n, 3, 3, *batch); the products as sums of elementwise ones, along the states
