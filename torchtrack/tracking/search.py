@@ -5,7 +5,9 @@ the observation in both directions (:func:`two_way_score`): the share of the vox
 and the share of the body's volume on occupied voxels; or, where the observation keeps each camera's foreground
 (``observation.silhouettes``), the same two shares camera by camera in the images (:func:`image_terms`), where the
 phantom volume of a few views' hull does not count against the true body and one camera's miss costs only that
-camera's share (docs/results.md, "The start search"). The best are refined by an annealed search (the
+camera's share (docs/results.md, "The start search"). Each limb of the best is swept over a grid of its main
+joints, one limb after another (the prior's poses are a few per limb: a walker's arm swung between two of them is
+otherwise left to the annealing, which rarely gets there), and they are refined by an annealed search (the
 hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps; where the images score
 them, half of those kept face away from the best, so that a body turned round stays among them until the score
 tells it). The tracker's own EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage
@@ -45,6 +47,10 @@ STEP_RAD = 0.3
 INSIDE_GROW = 1.2
 #: Occupancy of the body's volume is looked up on a grid of this cell, dilated by one cell (m).
 CELL_M = 0.03
+#: The limb sweep's grids (rad): per arm, shoulder flexion x abduction x elbow flexion; per leg, hip flexion x
+#: abduction x knee flexion. Each limb of each kept hypothesis is set to every point, the rest of the body kept.
+ARM_GRID = ((-0.6, 0.0, 0.6, 1.2, 1.8, 2.6), (0.1, 0.5, 1.0, 1.6), (0.1, 0.8, 1.6))
+LEG_GRID = ((-0.4, 0.0, 0.5, 1.0, 1.5), (0.0, 0.3), (0.1, 0.9, 1.8))
 
 
 @dataclass(frozen=True)
@@ -61,6 +67,10 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
+        sweep: after this many annealing layers, each limb of each kept hypothesis swept over a grid of its
+            main joints (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept; -1: none.
+            Only where the images score the body (``observation.silhouettes``), unless ``sweep_voxels``: on a
+            few views' hull the sweep fits limbs into phantom volume (docs/results.md, "The limb sweep").
         real_poses: add the real captures' poses (:func:`~torchtrack.tracking.poses.real_pose_prior`) to the
             structured prior (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
@@ -75,6 +85,8 @@ class SearchConfig:
     max_voxels: int = 1500
     samples: int = 24
     scale_range: tuple[float, float] = (0.8, 1.2)
+    sweep: int = 0
+    sweep_voxels: bool = False
     real_poses: bool = False
     prior_exclude: tuple[str, ...] = ()
 
@@ -340,6 +352,19 @@ GROUPS = (("root_ry", "root_rx"), ("spine_", "neck_"), ("l_shoulder", "l_elbow",
           ("r_shoulder", "r_elbow", "r_wrist"), ("l_hip", "l_knee", "l_ankle"), ("r_hip", "r_knee", "r_ankle"))
 
 
+def _limb_grids(skel: Skeleton) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """Per limb, its swept DOFs' indices ``(3,)`` and the grid's values ``(V, 3)`` (:data:`ARM_GRID`,
+    :data:`LEG_GRID`)."""
+    names, dev = list(skel.dof_names), skel.lower.device
+    out = []
+    for side in "lr":
+        for joints, grid in ((("shoulder_flex", "shoulder_abd", "elbow_flex"), ARM_GRID),
+                             (("hip_flex", "hip_abd", "knee_flex"), LEG_GRID)):
+            idx = torch.tensor([names.index(f"{side}_{j}") for j in joints], device=dev)
+            out.append((idx, torch.cartesian_prod(*(torch.tensor(g, device=dev) for g in grid)).float()))
+    return out
+
+
 def _dof_groups(skel: Skeleton) -> torch.Tensor:
     """(G, D) float masks of :data:`GROUPS`' DOFs."""
     out = torch.zeros(len(GROUPS), skel.num_dofs, device=skel.lower.device)
@@ -444,9 +469,30 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
     # stage 3: annealed search around them; each new hypothesis changes one part of the body (the place, the
     # trunk, one limb), as a partitioned search: a step in every joint at once mostly makes a hypothesis worse
     lo, hi = skel.lower.float(), skel.upper.float()
+
+    def sweep(poses, heading, scale, shift, score):
+        # each limb in turn over its grid, every hypothesis keeping the best of its own (itself included)
+        H = poses.shape[0]
+        for idx, values in _limb_grids(skel):
+            V = values.shape[0]
+            cand = poses.repeat_interleave(V, 0)
+            cand[:, idx] = values.repeat(H, 1)
+            cand = torch.maximum(torch.minimum(cand, hi), lo)
+            (c_score, *_), _ = scored(cand, heading.repeat_interleave(V), scale.repeat_interleave(V),
+                                      shift.repeat_interleave(V, 0))
+            top, pick = c_score.view(H, V).max(1)
+            better = top > score
+            poses = torch.where(better[:, None], cand.view(H, V, -1)[torch.arange(H, device=dev), pick], poses)
+            score = torch.where(better, top, score)
+        return poses, score
+
     groups = _dof_groups(skel)  # (G, D) bool; group 0: the place (heading, shift, scale, tilt)
     step = 1.0
-    for _ in range(config.layers):
+    for layer in range(config.layers + 1):
+        if layer == config.sweep and (vox.views is not None or config.sweep_voxels):
+            poses, score = sweep(poses, heading, scale, shift, score)
+        if layer == config.layers:
+            break
         m = config.particles
         parent = torch.randint(poses.shape[0], (m,), generator=generator, device=dev)
         group = torch.randint(groups.shape[0], (m,), generator=generator, device=dev)
