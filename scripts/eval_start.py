@@ -17,6 +17,7 @@ error before EM/CCD; and the share within 50 mm before the race (``--search-only
     .venv/bin/python scripts/eval_start.py --frames 3 --real-poses          # with the real captured poses
     .venv/bin/python scripts/eval_start.py --motions cmu:131_01 --cameras 8 --frames 5 --search-only --truth-score
     .venv/bin/python scripts/eval_start.py --frames 8 --search-only --search particles=384   # a larger search
+    .venv/bin/python scripts/eval_start.py --cameras 8 --frames 3 --search-only --search sweep=false  # no limb sweep
     .venv/bin/python scripts/eval_start.py --from-truth          # the ceiling: the tracker's fit from the true pose
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --tracker init_passes=6   # a tracker setting
 
@@ -122,7 +123,7 @@ def main() -> None:
                          "instead of the voxels")
     ap.add_argument("--search", nargs="*", default=[], metavar="KEY=VALUE",
                     help="with --search-only, SearchConfig fields for the script's own search (e.g. particles=192 "
-                         "layers=20); the tracker's start keeps the defaults")
+                         "layers=20 sweep=false); the tracker's start keeps the defaults")
     ap.add_argument("--from-truth", action="store_true",
                     help="no search: the tracker started from the true pose and body fits the start frame; the "
                          "ceiling of any start")
@@ -134,11 +135,17 @@ def main() -> None:
         ap.error("--from-truth runs no search: give it without --search-only")
     fields = {f.name: f.type for f in dataclasses.fields(SearchConfig)}
     overrides = {}
+    simple = ("int", "float", "bool")
     for item in args.search:
         key, sep, value = item.partition("=")
-        if not sep or key not in fields or fields[key] not in ("int", "float"):
-            ap.error(f"--search {item!r}: KEY=VALUE with KEY one of the numeric SearchConfig fields "
-                     f"({', '.join(k for k, t in fields.items() if t in ('int', 'float'))})")
+        if not sep or key not in fields or fields[key] not in simple:
+            ap.error(f"--search {item!r}: KEY=VALUE with KEY one of the numeric or true/false SearchConfig fields "
+                     f"({', '.join(k for k, t in fields.items() if t in simple)})")
+        if fields[key] == "bool":
+            if value.lower() not in ("true", "false"):
+                ap.error(f"--search {item!r}: {value!r} is not true or false")
+            overrides[key] = value.lower() == "true"
+            continue
         try:
             overrides[key] = int(value) if fields[key] == "int" else float(value)
         except ValueError:

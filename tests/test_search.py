@@ -109,10 +109,10 @@ def test_the_limb_sweep_finds_limbs_off_the_prior(case):
     obs = voxelised_observation(subj, BlobModel.from_config(subj), truth)
     want = subj.forward(truth[None]).output_points[0, idx]
     err = {}
-    for sweep in (-1, 0):
+    for sweep in (False, True):
         config = SearchConfig(layers=0, sweep=sweep, sweep_voxels=True)  # the voxels score it: no silhouettes
         found = search_pose(obs, skel, BlobModel.from_config(skel), config, torch.Generator().manual_seed(0), n=1)
         body = skel.scaled_to_height(skel.height() * float(found.scale[0]))
         got = body.forward(found.angles[:1].double()).output_points[0, idx]
         err[sweep] = float((got - want).norm(dim=-1).mean())
-    assert err[0] < 0.05 and err[0] < err[-1] - 0.01, err
+    assert err[True] < 0.05 and err[True] < err[False] - 0.01, err

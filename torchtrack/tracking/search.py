@@ -67,10 +67,10 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
-        sweep: after this many annealing layers, each limb of each kept hypothesis swept over a grid of its
-            main joints (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept; -1: none.
-            Only where the images score the body (``observation.silhouettes``), unless ``sweep_voxels``: on a
-            few views' hull the sweep fits limbs into phantom volume (docs/results.md, "The limb sweep").
+        sweep: before the annealing, each limb of each kept hypothesis swept over a grid of its main joints
+            (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept. Only where the images
+            score the body (``observation.silhouettes``), unless ``sweep_voxels``: on a few views' hull the sweep
+            fits limbs into phantom volume (docs/results.md, "The limb sweep").
         real_poses: add the real captures' poses (:func:`~torchtrack.tracking.poses.real_pose_prior`) to the
             structured prior (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
@@ -85,7 +85,7 @@ class SearchConfig:
     max_voxels: int = 1500
     samples: int = 24
     scale_range: tuple[float, float] = (0.8, 1.2)
-    sweep: int = 0
+    sweep: bool = True
     sweep_voxels: bool = False
     real_poses: bool = False
     prior_exclude: tuple[str, ...] = ()
@@ -487,12 +487,10 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         return poses, score
 
     groups = _dof_groups(skel)  # (G, D) bool; group 0: the place (heading, shift, scale, tilt)
+    if config.sweep and (vox.views is not None or config.sweep_voxels):
+        poses, score = sweep(poses, heading, scale, shift, score)
     step = 1.0
-    for layer in range(config.layers + 1):
-        if layer == config.sweep and (vox.views is not None or config.sweep_voxels):
-            poses, score = sweep(poses, heading, scale, shift, score)
-        if layer == config.layers:
-            break
+    for _ in range(config.layers):
         m = config.particles
         parent = torch.randint(poses.shape[0], (m,), generator=generator, device=dev)
         group = torch.randint(groups.shape[0], (m,), generator=generator, device=dev)
