@@ -6,12 +6,13 @@ and the share of the body's volume on occupied voxels; or, where the observation
 (``observation.silhouettes``), the same two shares camera by camera in the images (:func:`image_terms`), where the
 phantom volume of a few views' hull does not count against the true body and one camera's miss costs only that
 camera's share (docs/results.md, "The start search"). Each limb of the best is swept over a grid of its main
-joints, one limb after another (the prior's poses are a few per limb: a walker's arm swung between two of them is
-otherwise left to the annealing, which rarely gets there), and they are refined by an annealed search (the
-hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps; where the images score
-them, half of those kept face away from the best, so that a body turned round stays among them until the score
-tells it). The tracker's own EM/CCD then finishes the best few (:meth:`MarkerlessTracker.initialize`). Every stage
-is one batched tensor computation over the hypotheses, on the device of the voxels.
+joints, one limb after another, each candidate sized anew (the prior's poses are a few per limb: a walker's arm
+swung between two of them is otherwise left to the annealing, which rarely gets there), and they are refined by an
+annealed search (the hypotheses perturbed, re-scored and the best kept, layer after layer, with shrinking steps).
+Where the images score them, half of those kept at every stage face away from the best, so that a body turned
+round stays among them until the score tells it. The tracker's own EM/CCD then finishes the best few
+(:meth:`MarkerlessTracker.initialize`). Every stage is one batched tensor computation over the hypotheses, on the
+device of the voxels.
 
 The hypotheses: the skeleton's poses from a structured prior (:func:`~torchtrack.tracking.poses.pose_prior`: arms
 hanging, bent, forward, sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee
@@ -68,9 +69,10 @@ class SearchConfig:
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
         sweep: before the annealing, each limb of each kept hypothesis swept over a grid of its main joints
-            (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept. Only where the images
-            score the body (``observation.silhouettes``), unless ``sweep_voxels``: on a few views' hull the sweep
-            fits limbs into phantom volume (docs/results.md, "The limb sweep").
+            (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept, each candidate sized as the
+            first stages size a pose (its top at the voxels' top). Only where the images score the body
+            (``observation.silhouettes``), unless ``sweep_voxels``: on a few views' hull the sweep fits limbs into
+            phantom volume (docs/results.md, "The limb sweep").
         real_poses: add the real captures' poses (:func:`~torchtrack.tracking.poses.real_pose_prior`) to the
             structured prior (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
@@ -395,10 +397,10 @@ def _top(score: torch.Tensor, n: int) -> torch.Tensor:
 def _top_both_ways(score: torch.Tensor, heading: torch.Tensor, n: int) -> torch.Tensor:
     """``n`` hypotheses: the best ceil(n / 2) facing within 90 deg of the best one's heading (the best among them),
     then the best floor(n / 2) facing away, then, where one side is short, the best of the other's rest. A walker's
-    silhouette is nearly the same turned round, and the annealed search otherwise settles in whichever basin leads
-    early on: both are kept where the images score the body (their knees and feet tell its front), not on a few
-    views' hull, whose phantom volume the far basin then fits (docs/results.md, "Both headings kept, the race
-    decided by the fit cost too"). One sort and no host synchronisation."""
+    silhouette is nearly the same turned round, and the search otherwise settles in whichever basin the prior's
+    coarse poses match best: both are kept at every stage where the images score the body (their knees and feet
+    tell its front), not on a few views' hull, whose phantom volume the far basin then fits (docs/results.md,
+    "Both headings kept, the race decided by the fit cost too"). One sort and no host synchronisation."""
     order = score.argsort(descending=True, stable=True)
     rel = torch.remainder(heading[order] - heading[order[0]] + math.pi, 2 * math.pi) - math.pi
     ahead = rel.abs() < 0.5 * math.pi
@@ -436,6 +438,9 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         total += poses.shape[0]
         return two_way_score(c, R, a, vox, samples), state
 
+    def keep(score, heading):  # the hypotheses a stage passes on
+        return _top(score, config.keep) if vox.views is None else _top_both_ways(score, heading, config.keep)
+
     # stage 1: the structured prior's legs x arms alike, and the real captures' poses, each at every heading
     base = pose_prior(skel, symmetric_arms=True).float()
     structured = base.shape[0] * headings.shape[0]  # the first hypotheses; the real poses' after them
@@ -446,7 +451,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
     scale = hyp.initial_scale(poses, config.scale_range)
     shift = poses.new_zeros(poses.shape[0], 2)
     (score, *_), _ = scored(poses, heading, scale, shift)
-    best = _top(score, config.keep)
+    best = keep(score, heading)
     # stage 2: each kept hypothesis with every pair of the structured prior's arm poses (a structured pose's own
     # arms are one of them), and a kept real pose also as it is
     arms = pose_prior(skel).float()  # (legs x arm pairs, D), grouped by legs
@@ -464,31 +469,34 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
     poses, heading = torch.cat([kept[0], poses]), torch.cat([kept[1], heading])
     scale, score = torch.cat([kept[2], scale]), torch.cat([kept[3], score])
     shift = poses.new_zeros(poses.shape[0], 2)
-    best = _top(score, config.keep)
+    best = keep(score, heading)
     poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
     # stage 3: annealed search around them; each new hypothesis changes one part of the body (the place, the
     # trunk, one limb), as a partitioned search: a step in every joint at once mostly makes a hypothesis worse
     lo, hi = skel.lower.float(), skel.upper.float()
 
     def sweep(poses, heading, scale, shift, score):
-        # each limb in turn over its grid, every hypothesis keeping the best of its own (itself included)
-        H = poses.shape[0]
+        # each limb in turn over its grid, every hypothesis keeping the best of its own (itself included); each
+        # candidate sized as the first stages size a pose (its top at the voxels' top), since a leg's bend or a
+        # raised arm changes the body's height
+        H, rows = poses.shape[0], torch.arange(poses.shape[0], device=dev)
         for idx, values in _limb_grids(skel):
             V = values.shape[0]
             cand = poses.repeat_interleave(V, 0)
             cand[:, idx] = values.repeat(H, 1)
             cand = torch.maximum(torch.minimum(cand, hi), lo)
-            (c_score, *_), _ = scored(cand, heading.repeat_interleave(V), scale.repeat_interleave(V),
-                                      shift.repeat_interleave(V, 0))
+            c_scale = hyp.initial_scale(cand, config.scale_range)
+            (c_score, *_), _ = scored(cand, heading.repeat_interleave(V), c_scale, shift.repeat_interleave(V, 0))
             top, pick = c_score.view(H, V).max(1)
             better = top > score
-            poses = torch.where(better[:, None], cand.view(H, V, -1)[torch.arange(H, device=dev), pick], poses)
+            poses = torch.where(better[:, None], cand.view(H, V, -1)[rows, pick], poses)
+            scale = torch.where(better, c_scale.view(H, V)[rows, pick], scale)
             score = torch.where(better, top, score)
-        return poses, score
+        return poses, scale, score
 
     groups = _dof_groups(skel)  # (G, D) bool; group 0: the place (heading, shift, scale, tilt)
     if config.sweep and (vox.views is not None or config.sweep_voxels):
-        poses, score = sweep(poses, heading, scale, shift, score)
+        poses, scale, score = sweep(poses, heading, scale, shift, score)
     step = 1.0
     for _ in range(config.layers):
         m = config.particles
@@ -505,7 +513,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         poses = torch.cat([poses, child])
         heading, scale = torch.cat([heading, c_heading]), torch.cat([scale, c_scale])
         shift, score = torch.cat([shift, c_shift]), torch.cat([score, c_score])
-        best = _top(score, config.keep) if vox.views is None else _top_both_ways(score, heading, config.keep)
+        best = keep(score, heading)
         poses, heading, scale, shift, score = poses[best], heading[best], scale[best], shift[best], score[best]
         step *= config.shrink
     best = _top(score, n)
