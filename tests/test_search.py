@@ -123,9 +123,9 @@ def test_a_turned_round_decoy_that_the_coarse_poses_match_better_does_not_take_e
     """Where the images score the body, every stage keeps both headings. A closed-form score stands in for the
     images': 1 at the true body's blobs, 0.97 at a decoy (a prior pose, hanging arms and standing legs, facing the
     other way), falling off with the blobs' mean distance from either (their layouts about their means). The
-    prior's coarse poses match the decoy best, so a search that kept only the leaders' heading before the annealing would never turn round; the true
-    pose (arms at the limb sweep's grid points, off every prior pose; a heading of the first stage's) is found
-    within 30 mm, facing its way."""
+    prior's coarse poses match the decoy best, so a search that kept only the leaders' heading before the annealing
+    would never turn round; the true pose (arms at the limb sweep's grid points, off every prior pose; a heading of
+    the first stage's) is found within 30 mm, facing its way."""
     from conftest import facing_pair_rig, voxelised_observation
     from torchtrack.blobs import BlobModel
     from torchtrack.conventions import LANDMARKS
