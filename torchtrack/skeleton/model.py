@@ -357,6 +357,16 @@ class Skeleton(nn.Module):
         return self.forward(angles).landmarks
 
 
+def _as_slice(index: torch.Tensor) -> slice | torch.Tensor:
+    """Indices that run one by one (``[4, 5, 6]``) as a slice, a view where an index would copy; others as they are.
+    The chain's levels and most of their parents run so: a small batch's forward kinematics is mostly such
+    per-level operations."""
+    first = int(index[0])
+    if torch.equal(index.cpu(), torch.arange(first, first + len(index))):
+        return slice(first, first + len(index))
+    return index
+
+
 class _LeanChain:
     """Forward kinematics of a pytorch-kinematics chain in 3 x 3 rotations and origins (:meth:`Skeleton.bone_poses`):
     each link's local transform is its static offset times its joint's rotation (Rodrigues' formula) or
@@ -373,7 +383,7 @@ class _LeanChain:
         K = torch.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z], -1).reshape(-1, 3, 3)
         self.K, self.K2, self.axis = K, K @ K, a
         parent = chain._direct_parent_idx
-        self.levels = [(lvl.to(off.device), parent[lvl].to(off.device), bool(parent[lvl[0]] < 0))
+        self.levels = [(_as_slice(lvl.to(off.device)), _as_slice(parent[lvl].to(off.device)), bool(parent[lvl[0]] < 0))
                        for lvl in chain._bfs_levels]
 
     def __call__(self, angles: torch.Tensor, origins: torch.Tensor | None = None
@@ -393,11 +403,14 @@ class _LeanChain:
         t = t0 + torch.einsum("fi,f...->fi...", (self.R0 @ self.axis[..., None])[..., 0],
                               torch.where(self.prismatic.view(-1, *ones), q, 0.0))  # (F, 3, *batch)
         Rw, tw = torch.empty_like(R), torch.empty_like(t)
+        grad = torch.is_grad_enabled() and (R.requires_grad or t.requires_grad)
         for level, parent, root in self.levels:
             if root:
                 Rw[level], tw[level] = R[level], t[level]
                 continue
             Rp = Rw[parent]  # (n, 3, 3, *batch); the products as sums of elementwise ones, along the states
+            if grad and isinstance(parent, slice):  # a view of Rw, which the next levels write: autograd keeps a copy
+                Rp = Rp.clone()
             Rw[level] = (Rp[:, :, :, None] * R[level][:, None]).sum(2)
             tw[level] = (Rp * t[level][:, None]).sum(2) + tw[parent]
         return Rw, tw

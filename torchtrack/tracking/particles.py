@@ -71,6 +71,11 @@ class APFConfig:
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
 #: the cost below which it stops (a ten-thousandth: well under a pixel's worth over the markers).
 FD_STEP, POLISH_TOL = 1e-6, 1e-4
+#: The distance (px) of every point from the line of a candidate that has none (:class:`EpipolarCost`): far beyond
+#: any outlier cap, and its square within float32's range.
+FAR_PX = 1e6
+#: The polish's dampings a step tries (each ten times the one before), all in one batch.
+DAMPING_TRIES = 4
 #: On a CPU the layers anneal at most about this many particles at once (subjects in lockstep in chunks, one
 #: subject's many particles weighed in chunks): a layer's tensors then stay in memory the allocator reuses, where
 #: those of 16 subjects' 1000 particles at once (50 MB each) were fresh pages every time, 2x slower a particle
@@ -154,15 +159,20 @@ class EpipolarCost:
         norm2 = lines[..., :2].square().sum(-1)  # (Q, S, M, K)
         self.ok = seen[:, i] & (norm2 > 1e-300)  # a candidate at the epipole (or of a padded view) has no line
         unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
-        # laid out for states last (N contiguous): each contraction is one batched product, each mask broadcast
-        # along N, each reduction over K runs along contiguous rows (several times faster than states first)
+        self.pair = self.ok.any(-1)  # (Q, S, M): view i has a candidate of marker m
+        # the masks folded into the lines, so that a layer's cost needs no pass of its own over them: a candidate
+        # without a line is FAR from every point (beyond the cap, never the nearest of one that has), and a marker
+        # without a candidate in view i is at distance 0 from every line of its pair (it adds nothing)
+        far = torch.zeros_like(unit)
+        far[..., 2] = torch.where(self.pair[..., None], FAR_PX, 0.0)
+        unit = torch.where(self.ok[..., None], unit, far)
+        # laid out for states last (N contiguous): each contraction is one batched product, each reduction over K
+        # runs along contiguous rows (several times faster than states first)
         self.unit = unit.to(dtype)  # (Q, S, M, K, 3)
         self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, S, M, K, 1)
         self.F12_T = Fij[..., :2].transpose(-1, -2)[:, :, None].contiguous().to(dtype)  # (Q, S, 1, 2, 3)
         self.P = P.to(dtype)[:, :, None]  # (Q, C, 1, 3, 4)
         self.not_ok = ~self.ok[..., None]  # (Q, S, M, K, 1)
-        self.pair = self.ok.any(-1)  # (Q, S, M): view i has a candidate of marker m
-        self.no_pair = ~self.pair[..., None]  # (Q, S, M, 1)
 
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
@@ -181,11 +191,9 @@ class EpipolarCost:
         place where no gradient is asked for (the particle filter's layers)."""
         dist, factor = self._terms(points)
         if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
-            d = (dist.square() * factor).masked_fill(self.not_ok, math.inf)
-            d = d.amin(3).clamp(max=self.cap).masked_fill(self.no_pair, 0.0)
+            d = (dist.square() * factor).amin(3).clamp(max=self.cap)
         else:
-            d = dist.square_().mul_(factor).masked_fill_(self.not_ok, math.inf)
-            d = d.amin(3).clamp_(max=self.cap).masked_fill_(self.no_pair, 0.0)  # (Q, S, M, N)
+            d = dist.square_().mul_(factor).amin(3).clamp_(max=self.cap)  # (Q, S, M, N)
         cost = d.sum(1)  # (Q, M, N)
         return cost if per_marker else cost.sum(1)
 
@@ -426,23 +434,27 @@ class MarkerAPF:
         tm = t.movedim(2, 1).reshape(nb * Q, 3, N).index_select(0, rows).view(Q, M, 3, N)
         return (Rm * offset.to(Rm)[:, :, None, :, None]).sum(3) + tm
 
-    def _layer_costs(self, score: EpipolarCost, x: torch.Tensor, subjects: torch.Tensor) -> torch.Tensor:
+    def _layer_costs(self, score: EpipolarCost, x: torch.Tensor, subjects: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The per-marker costs ``(q, M, N)`` of the particles ``x (q, N, D)`` of the ``subjects (q,)`` by their
-        ``score``, a CPU's many particles in chunks (:data:`CPU_CHUNK_STATES`)."""
+        ``score``, and their markers ``(q, M, 3, N)``; a CPU's many particles in chunks (:data:`CPU_CHUNK_STATES`)."""
         N = x.shape[1]
         if x.device.type != "cpu" or N <= CPU_CHUNK_STATES:
-            return score.cost(self.markers_all(x, subjects), per_marker=True)
+            pts = self.markers_all(x, subjects)
+            return score.cost(pts, per_marker=True), pts
         per = x.new_empty(x.shape[0], self.bone.shape[1], N)
+        pts = x.new_empty(x.shape[0], self.bone.shape[1], 3, N)
         for n in range(0, N, CPU_CHUNK_STATES):
             chunk = slice(n, n + CPU_CHUNK_STATES)
-            per[..., chunk] = score.cost(self.markers_all(x[:, chunk], subjects), per_marker=True)
-        return per
+            pts[..., chunk] = self.markers_all(x[:, chunk], subjects)
+            per[..., chunk] = score.cost(pts[..., chunk], per_marker=True)
+        return per, pts
 
     def _anneal(self, detections: torch.Tensor, x: torch.Tensor, generator: Generators, subjects: torch.Tensor
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The annealing layers of the ``subjects (q,)`` from their particles ``x (q, N, D)`` (each the predicted
-        state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)`` and weights
-        ``(q, N)``."""
+        state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)``, weights
+        ``(q, N)`` and markers ``(q, M, 3, N)`` (float32)."""
         cfg = self.config
         q, N, D = x.shape
         G = len(LIMBS) + 1
@@ -452,7 +464,8 @@ class MarkerAPF:
         score = EpipolarCost(detections, self.P[subjects], self.F[subjects], cfg.outlier_px)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, lower, upper, generator)
-            per = self._layer_costs(score, x.float(), subjects).double()  # (q, M, N)
+            per, pts = self._layer_costs(score, x.float(), subjects)
+            per = per.double()  # (q, M, N)
             parts = per.new_zeros(q, G, N).scatter_add_(1, by_part, per)  # (q, G, N)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
             # the limb's own markers (the trunk's as the whole particle drew them)
@@ -464,7 +477,7 @@ class MarkerAPF:
             idx = resample(W, generator)  # (q, rows, N): each row's draw of whole particles
             x = keep.gather(1, idx[:, part].mT)  # each DOF from its part's row: keep[q, idx[q, part[d], n], d]
             std = std * cfg.shrink
-        return keep, w / w.sum(-1, keepdim=True)
+        return keep, w / w.sum(-1, keepdim=True), pts
 
     def _chunks(self, active: torch.Tensor, N: int) -> list[torch.Tensor]:
         """The subjects annealed together, of those ``active (Q,)``: all of them on a GPU; on a CPU, as many as make
@@ -504,31 +517,34 @@ class MarkerAPF:
         moves = torch.cat([torch.zeros(1, D, dtype=theta.dtype, device=dev),
                            torch.eye(D, dtype=theta.dtype, device=dev) * FD_STEP])  # (D + 1, D)
         eye = torch.eye(D, dtype=theta.dtype, device=dev)
-        cost = score.cost(self.markers_all(theta[:, None]))[:, 0]  # (Q,)
+        tries = 10.0 ** torch.arange(DAMPING_TRIES, dtype=theta.dtype, device=dev)  # each step's dampings, in turn
         lam = torch.full((Q,), 1e-3, dtype=theta.dtype, device=dev)
         going = going.to(dev).clone()
+        cost = None
         for _ in range(self.config.polish_steps):
             if not bool(going.any()):
                 break
-            r, _ = score.residuals(self.markers_all(theta[:, None] + moves))  # (Q, D + 1, R), the estimate's nearest
+            pts = self.markers_all(theta[:, None] + moves)  # (Q, M, 3, D + 1)
+            if cost is None:
+                cost = score.cost(pts[..., :1])[:, 0]  # (Q,)
+            r, _ = score.residuals(pts)  # (Q, D + 1, R), the estimate's nearest candidates
             J = (r[:, 1:] - r[:, :1]) / FD_STEP  # (Q, D, R)
             A, g = J @ J.mT, (J @ r[:, 0, :, None])[..., 0]
-            trial_theta, trial_cost, pending = theta, cost, going.clone()
-            for _ in range(4):  # damp each subject until its cost falls
-                damping = lam[:, None, None] * (torch.diag_embed(A.diagonal(dim1=-2, dim2=-1)) + 1e-9 * eye)
-                trial = self.clamp(theta + torch.linalg.solve(A + damping, -g[..., None])[..., 0])
-                c = score.cost(self.markers_all(trial[:, None]))[:, 0]
-                ok = pending & (c < cost)
-                trial_theta = torch.where(ok[:, None], trial, trial_theta)
-                trial_cost = torch.where(ok, c, trial_cost)
-                pending = pending & ~ok
-                if not bool(pending.any()):
-                    break
-                lam = torch.where(pending, lam * 10.0, lam)
-            moved = going & ~pending  # a subject whose four dampings all failed stops
+            # every damping tried at once; each subject takes the least one whose cost falls, as trying them in
+            # turn would (a subject none of them lowers stops)
+            lams = lam[:, None] * tries  # (Q, T)
+            damping = lams[..., None, None] * (torch.diag_embed(A.diagonal(dim1=-2, dim2=-1)) + 1e-9 * eye)[:, None]
+            trial = self.clamp(theta[:, None] + torch.linalg.solve(A[:, None] + damping, -g[:, None, :, None])[..., 0])
+            c = score.cost(self.markers_all(trial))  # (Q, T)
+            ok = going[:, None] & (c < cost[:, None])
+            moved = ok.any(1)
+            k = ok.to(torch.uint8).argmax(1)  # the first that fell
+            rows = torch.arange(Q, device=dev)
+            trial_theta = torch.where(moved[:, None], trial[rows, k], theta)
+            trial_cost = torch.where(moved, c[rows, k], cost)
             converged = cost - trial_cost < POLISH_TOL * cost
             theta, cost = trial_theta, trial_cost
-            lam = torch.where(moved, (lam / 10.0).clamp(min=1e-7), lam)
+            lam = torch.where(moved, (lams[rows, k] / 10.0).clamp(min=1e-7), lam)
             going = moved & ~converged
         return theta
 
@@ -559,9 +575,12 @@ class MarkerAPF:
         chunks = self._chunks(active, N)  # a held subject is not annealed
         keep = predicted[:, None].expand(Q, N, D).clone()
         w = predicted.new_full((Q, N), 1.0 / N)
+        clouds = []  # each chunk's last layer's markers, for the spread
         for qs in chunks:
             chunk_gen = gen if isinstance(gen, torch.Generator) else [gen[i] for i in qs.tolist()]
-            keep[qs], w[qs] = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D), chunk_gen, qs)
+            keep[qs], w[qs], pts = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D),
+                                                chunk_gen, qs)
+            clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
             estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px),
@@ -569,9 +588,8 @@ class MarkerAPF:
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
         with torch.no_grad():
-            for qs in chunks:
-                pts = self.markers_all(torch.cat([self.states[qs, None], keep[qs]], 1).float(), qs)  # (q, M, 3, 1 + N)
-                d2 = (pts[..., 1:] - pts[..., :1]).square().sum(2)  # (q, M, N)
+            for qs, pts in zip(chunks, clouds):
+                d2 = (pts - self.markers_all(self.states[qs, None].float(), qs)).square().sum(2)  # (q, M, N)
                 mask = self.marker_mask[qs]
                 d2 = (d2 * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
                 spreads[qs.cpu()] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
