@@ -322,6 +322,58 @@ def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
     assert float(err.mean()) < 0.03
 
 
+def test_a_limb_left_elsewhere_or_a_body_a_few_cm_off_is_lost_too(tmp_path):
+    """Two losses the share of far markers misses (fewer than 30 % of the triangulated markers over 10 cm off, counted
+    by a plain loop): an arm bent 1.5 rad away from the capture's, and the whole body 6 cm off. Both are lost (the
+    limb's markers mostly far; the markers' median distance over 4 cm), the true pose and one 1 cm off are not, and
+    the restart from the arm's estimate brings the arm back (its markers within 3 cm of the capture's)."""
+    from torchtrack.cli import main
+    from torchtrack.io.markers2d import load_markers2d
+    from torchtrack.io.poses import load_poses
+    from torchtrack.markers.model import subject_from_markers
+    from torchtrack.markers.track import _lost, _restart
+    from torchtrack.markers.triangulate import triangulate_candidates
+    from torchtrack.tracking.particles import MarkerAPF
+
+    cap = tmp_path / "cap"
+    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out",
+                 str(cap), "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
+    rig = load_calibration(cap / "calibration.toml", warn_units=False).double()
+    det, gt = load_markers2d(cap / "markers2d.npz"), load_poses(cap / "gt.npz")
+    m3 = torch.from_numpy(gt.markers3d.astype(np.float64))
+    skel, mset, angles = subject_from_markers(m3, gt.marker_names, gt.fps)
+    apf = MarkerAPF(skel, mset, rig)
+    t = 20
+    z = pinhole_pixels(rig, torch.from_numpy(det.uv[t].astype(np.float64)))
+    X, _ = triangulate_candidates(z[None], projection_matrices(rig))
+
+    def far_share(a):  # a plain loop over the triangulated markers
+        model, n, far = apf.markers(a[None])[0], 0, 0
+        for m in range(X.shape[1]):
+            if bool(torch.isfinite(X[0, m]).all()):
+                n += 1
+                far += float((model[m] - X[0, m]).norm()) > 0.1
+        return far / n
+
+    names = list(skel.dof_names)
+    arm = angles[t].clone()
+    arm[names.index("r_shoulder_flex")] += 1.5
+    arm[names.index("r_elbow_flex")] = 0.0
+    arm = skel.clamp(arm[None])[0]
+    shifted, near = angles[t].clone(), angles[t].clone()
+    shifted[0] += 0.06
+    near[0] += 0.01
+    for a, lost in ((angles[t], False), (near, False), (arm, True), (shifted, True)):
+        assert far_share(a) < 0.3
+        assert bool(_lost(apf, a[None], X)[0]) == lost
+    found = _restart(apf, 0, arm, X[0], angles[0])
+    on_arm = [i for i, n in enumerate(mset.names) if n.startswith(("RSHO", "RUPA", "RELB", "RFRA", "RWR", "RFIN"))]
+    assert len(on_arm) >= 3
+    err = (apf.markers(found[None])[0, on_arm] - m3[t, on_arm]).norm(dim=-1)
+    assert float(err.mean()) < 0.03, err
+
+
 def test_frames_without_detections_are_invalid_and_the_track_goes_on(tmp_path):
     """Frames whose detections are all gone (NaN): marked invalid, the filter holds and tracks the frames after."""
     from torchtrack.cli import main
@@ -390,7 +442,9 @@ def test_sequences_tracked_in_lockstep_get_their_tracks_alone(tmp_path):
     one in a rig of five cameras with fewer markers (the others' views and markers padded). Each gets the track it
     gets alone: the same invalid frames and restarts, and the same markers on most frames (each sequence draws from
     its own generator; where the padding changes a sum in the last place and that flips a resampling draw, a frame's
-    markers differ by millimetres: at most 1 cm, under 1 mm on 3 frames in 4), and follows its capture's markers."""
+    markers differ by millimetres: at most 1 cm, under 1 mm on 3 frames in 4; where it moves the lost-track test
+    across its threshold, the restart comes a frame earlier or later and the tracks agree again two frames after it),
+    and follows its capture's markers."""
     from torchtrack.cameras import CameraRig, save_calibration
     from torchtrack.cli import main
     from torchtrack.io.markers2d import load_markers2d, save_markers2d
@@ -432,11 +486,17 @@ def test_sequences_tracked_in_lockstep_get_their_tracks_alone(tmp_path):
         got = lockstep.poses
         assert got.angles.shape == alone.angles.shape and got.marker_names == alone.marker_names
         apart = np.nanmean(np.linalg.norm(got.markers3d - alone.markers3d, axis=-1), 1)  # (T,) mean per frame
-        assert float(apart.max()) < 0.01 and float(np.mean(apart < 1e-3)) >= 0.75, (name, apart)
         assert got.valid.tolist() == alone.valid.tolist()
         assert got.valid.tolist() == [name != "held" or t not in (10, 11) for t in range(len(got.valid))]
         restarts = got.extra["reinitialised"]
-        assert restarts.tolist() == alone.extra["reinitialised"].tolist()
+        # a restart decision the rounding moves across its threshold: the two restart at most a frame apart, and
+        # agree again two frames after
+        mine, its = np.flatnonzero(restarts), np.flatnonzero(alone.extra["reinitialised"])
+        assert len(mine) == len(its) and np.all(np.abs(mine - its) <= 1), (name, mine, its)
+        settling = np.zeros(len(apart), dtype=bool)
+        for t in np.concatenate([mine, its]):
+            settling[t:t + 2] = True
+        assert float(apart[~settling].max()) < 0.01 and float(np.mean(apart < 1e-3)) >= 0.75, (name, apart)
         assert bool(restarts[12:15].any()) == (name == "jump"), (name, restarts)
         gt = load_poses(tmp_path / name / "gt.npz")
         truth = gt.markers3d[spliced] if name == "jump" else gt.markers3d

@@ -23,7 +23,7 @@ from torchtrack.logging import RunLogger
 from torchtrack.markers.model import MarkerSet, fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.skeleton.model import Skeleton
-from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
+from torchtrack.tracking.particles import LIMBS, APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
 
 __all__ = ["MarkerSequence", "MarkerTrack", "is_marker_folder", "load_marker_sequence", "track_marker_sequences",
            "track_markers"]
@@ -35,8 +35,13 @@ FIT_SECONDS = 2.0
 #: ... or, where those do not place every joint centre (markers hidden from all but one camera), up to this many.
 MAX_FIT_SECONDS = 10.0
 #: The track is lost where more than LOST_SHARE of the markers two views triangulate (at least LOST_MIN_MARKERS)
-#: lie farther than LOST_M from the estimate's: a few markers off is a limb's error, most of them the body's.
-LOST_M, LOST_SHARE, LOST_MIN_MARKERS = 0.1, 0.3, 6
+#: lie farther than LOST_M from the estimate's: a few markers off is a limb's error, most of them the body's; or
+#: where their median distance is over LOST_MEDIAN_M: the whole body a few centimetres off, as a filter that half
+#: followed a jump is.
+LOST_M, LOST_SHARE, LOST_MIN_MARKERS, LOST_MEDIAN_M = 0.1, 0.3, 6, 0.04
+#: ... and where more than half of a limb's triangulated markers (at least LOST_LIMB_MARKERS) lie farther than LOST_M:
+#: a limb the filter left in another place, which its own markers' resampling does not bring back.
+LOST_LIMB_MARKERS = 3
 #: A frame with fewer markers detected in any view is not tracked (marked invalid; the filter holds its state).
 MIN_DETECTED = 3
 
@@ -309,9 +314,16 @@ def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> torch.Tensor
     whole cloud follows a wrong pose (docs/results.md, "Marker-based capture")."""
     model = apf.markers_all(angles.double()[:, None])[..., 0]  # (Q, M, 3)
     seen = torch.isfinite(X).all(-1) & apf.marker_mask[:, :X.shape[1]].to(X.device)
-    far = ((model[:, :X.shape[1]].to(X) - X).norm(dim=-1) > LOST_M) & seen
+    dist = (model[:, :X.shape[1]].to(X) - X).norm(dim=-1)  # (Q, M), NaN where not triangulated
+    far = (dist > LOST_M) & seen
     count = seen.sum(1)
-    return (count >= LOST_MIN_MARKERS) & (far.sum(1) > LOST_SHARE * count)
+    median = torch.where(seen, dist, math.nan).nanmedian(1).values
+    # each limb's markers (parts 1-4; 0 the trunk): a limb stuck in another place is lost too
+    part = apf.marker_part[:, :X.shape[1]].to(X.device)
+    limbs = torch.arange(1, len(LIMBS) + 1, device=X.device)[:, None, None] == part  # (4, Q, M)
+    limb_seen, limb_far = (limbs & seen).sum(-1), (limbs & far).sum(-1)  # (4, Q)
+    limb_lost = ((limb_seen >= LOST_LIMB_MARKERS) & (limb_far > 0.5 * limb_seen)).any(0)
+    return (count >= LOST_MIN_MARKERS) & ((far.sum(1) > LOST_SHARE * count) | (median > LOST_MEDIAN_M) | limb_lost)
 
 
 def _restart(apf: MarkerAPF, subject: int, angles: torch.Tensor, X: torch.Tensor, first: torch.Tensor
