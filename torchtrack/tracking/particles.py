@@ -148,18 +148,21 @@ class EpipolarCost:
         Q, C, M, K, _ = detections.shape
         dtype, dev = detections.dtype, detections.device
         self.cap = outlier_px ** 2
-        i, j = (~torch.eye(C, dtype=torch.bool, device=dev)).nonzero(as_tuple=True)  # the ordered view pairs
-        self.j = j
-        Fij = F.to(dev, torch.float64)[:, i, j]  # (Q, S, 3, 3): x_j^T Fij x_i = 0
-        Fij = Fij / Fij.flatten(2).norm(dim=2).clamp(min=1e-300)[..., None, None]
+        # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
+        # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
+        A = C - 1
+        src = torch.tensor([[i for i in range(C) if i != j] for j in range(C)], dtype=torch.long, device=dev)  # (C, A)
+        Fji = F.to(dev, torch.float64)[:, src, torch.arange(C, device=dev)[:, None]]  # (Q, C, A, 3, 3): x_j^T F x_i
+        Fji = Fji / Fji.flatten(3).norm(dim=3).clamp(min=1e-300)[..., None, None]
         z = detections.double()
         seen = torch.isfinite(z).all(-1)  # (Q, C, M, K)
         z = torch.cat([torch.nan_to_num(z), torch.ones_like(z[..., :1])], -1)  # (Q, C, M, K, 3)
-        lines = torch.einsum("qscd,qsmkd->qsmkc", Fij, z[:, i])  # (Q, S, M, K, 3): z_ik's epiline in view j
-        norm2 = lines[..., :2].square().sum(-1)  # (Q, S, M, K)
-        self.ok = seen[:, i] & (norm2 > 1e-300)  # a candidate at the epipole (or of a padded view) has no line
+        lines = torch.einsum("qjacd,qjamkd->qjmakc", Fji, z[:, src])  # (Q, C, M, A, K, 3): z_ik's epiline in view j
+        norm2 = lines[..., :2].square().sum(-1)  # (Q, C, M, A, K)
+        # a candidate at the epipole (or of a padded view) has no line
+        self.ok = seen[:, src].permute(0, 1, 3, 2, 4) & (norm2 > 1e-300)
         unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
-        self.pair = self.ok.any(-1)  # (Q, S, M): view i has a candidate of marker m
+        self.pair = self.ok.any(-1)  # (Q, C, M, A): view i has a candidate of marker m
         # the masks folded into the lines, so that a layer's cost needs no pass of its own over them: a candidate
         # without a line is FAR from every point (beyond the cap, never the nearest of one that has), and a marker
         # without a candidate in view i is at distance 0 from every line of its pair (it adds nothing)
@@ -168,33 +171,35 @@ class EpipolarCost:
         unit = torch.where(self.ok[..., None], unit, far)
         # laid out for states last (N contiguous): each contraction is one batched product, each reduction over K
         # runs along contiguous rows (several times faster than states first)
-        self.unit = unit.to(dtype)  # (Q, S, M, K, 3)
-        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, S, M, K, 1)
-        self.F12_T = Fij[..., :2].transpose(-1, -2)[:, :, None].contiguous().to(dtype)  # (Q, S, 1, 2, 3)
+        self.unit = unit.reshape(Q, C, M, A * K, 3).to(dtype)
+        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, C, M, A, K, 1)
+        self.F12_T = Fji[..., :2].transpose(-1, -2).reshape(Q, C, 1, A * 2, 3).contiguous().to(dtype)
         self.P = P.to(dtype)[:, :, None]  # (Q, C, 1, 3, 4)
-        self.not_ok = ~self.ok[..., None]  # (Q, S, M, K, 1)
+        self.not_ok = ~self.ok[..., None]  # (Q, C, M, A, K, 1)
 
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
-        ``(Q, S, M, K, N)`` (px) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2`` (the same shape): the symmetric distance
-        is their product with the first squared."""
+        ``(Q, C, M, A, K, N)`` (px; view j, marker, view i, candidate) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2``
+        (the same shape): the symmetric distance is their product with the first squared."""
+        Q, C, M, A, K, _ = self.norm2.shape
+        N = points.shape[-1]
         h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
         y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
-        y = (y / y[:, :, :, 2:3])[:, self.j]  # (Q, S, M, 3, N) each pair's second view's projection, w = 1
-        dist = self.unit.to(y) @ y  # (Q, S, M, K, N): y_j from z_ik's epiline, px
-        b = self.F12_T.to(y) @ y  # (Q, S, M, 2, N)
-        back = (b[:, :, :, 0].square() + b[:, :, :, 1].square()).clamp(min=1e-30)  # (Q, S, M, N)
-        return dist, self.norm2.to(y) / back[:, :, :, None] + 1
+        y = y / y[:, :, :, 2:3]  # each view's projection, w = 1
+        dist = (self.unit.to(y) @ y).view(Q, C, M, A, K, N)  # y_j from z_ik's epiline, px
+        b = (self.F12_T.to(y) @ y).view(Q, C, M, A, 2, N)
+        back = b.square().sum(4).clamp(min=1e-30)  # (Q, C, M, A, N)
+        return dist, self.norm2.to(y) / back[:, :, :, :, None] + 1
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
         """``points (Q, M, 3, N)``, N states of each subject -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
         place where no gradient is asked for (the particle filter's layers)."""
         dist, factor = self._terms(points)
         if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
-            d = (dist.square() * factor).amin(3).clamp(max=self.cap)
+            d = (dist.square() * factor).amin(4).clamp(max=self.cap)
         else:
-            d = dist.square_().mul_(factor).amin(3).clamp_(max=self.cap)  # (Q, S, M, N)
-        cost = d.sum(1)  # (Q, M, N)
+            d = dist.square_().mul_(factor).amin(4).clamp_(max=self.cap)  # (Q, C, M, A, N)
+        cost = d.sum(3).sum(1)  # (Q, M, N)
         return cost if per_marker else cost.sum(1)
 
     def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
@@ -204,20 +209,20 @@ class EpipolarCost:
 
     def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
                   ) -> tuple[torch.Tensor, torch.Tensor]:
-        """``points (Q, M, 3, N)`` -> (Q, N, S * M) signed residuals whose squares sum to the cost's terms below the
-        outlier cap (0 for the others), each pair's and marker's nearest candidate to the first state, or the
-        candidates ``pick (Q, S, M)`` (the nearest are returned with the residuals, to keep them while a Jacobian
-        is taken)."""
+        """``points (Q, M, 3, N)`` -> (Q, N, R) signed residuals (R = views x markers x other views) whose squares
+        sum to the cost's terms below the outlier cap (0 for the others), each pair's and marker's nearest
+        candidate to the first state, or the candidates ``pick (Q, C, M, A)`` (the nearest are returned with the
+        residuals, to keep them while a Jacobian is taken)."""
         Q, N = points.shape[0], points.shape[-1]
         dist, factor = self._terms(points)
-        r = dist * factor.sqrt()  # (Q, S, M, K, N)
+        r = dist * factor.sqrt()  # (Q, C, M, A, K, N)
         r2 = r.square().masked_fill(self.not_ok, math.inf)
         if pick is None:
-            pick = r2[..., 0].argmin(-1)  # (Q, S, M)
-        idx = pick[..., None, None].expand(*r.shape[:3], 1, N)
-        use = self.pair[..., None] & (r2.gather(3, idx)[:, :, :, 0] < self.cap)  # (Q, S, M, N)
-        out = torch.where(use, r.gather(3, idx)[:, :, :, 0], 0.0)
-        return out.permute(0, 3, 1, 2).reshape(Q, N, -1), pick
+            pick = r2[..., 0].argmin(-1)  # (Q, C, M, A)
+        idx = pick[..., None, None].expand(*r.shape[:4], 1, N)
+        use = self.pair[..., None] & (r2.gather(4, idx)[..., 0, :] < self.cap)  # (Q, C, M, A, N)
+        out = torch.where(use, r.gather(4, idx)[..., 0, :], 0.0)
+        return out.reshape(Q, -1, N).mT, pick
 
 
 def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
@@ -243,17 +248,19 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 6, points:
     """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
     sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
     evaluates it at ``points`` values of log beta in one tensor operation and keeps the bracket where it crosses
-    ``survival`` (from [-30, 30]: log beta to within 60 / (points - 1)^stages, 5e-4 by default). Returns ``(...,)``
-    float64; 0 where a row's costs are all equal."""
+    ``survival`` (from [-30, 30]: log beta to within 60 / (points - 1)^stages, 5e-4 by default). The weights are
+    summed in float32 (half float64's cost; the rate's rounding is far below the bracket's width). Returns
+    ``(...,)`` float64; 0 where a row's costs are all equal."""
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
+    c32 = c.float()
     n = c.shape[-1]
     lo = c.new_full(c.shape[:-1], -30.0)
     hi = c.new_full(c.shape[:-1], 30.0)
     steps = torch.linspace(0.0, 1.0, points, dtype=c.dtype, device=c.device)
     for _ in range(stages):
         grid = lo[..., None] + (hi - lo)[..., None] * steps  # (..., P) log beta
-        w = torch.exp(-grid.exp()[..., None] * c[..., None, :])  # (..., P, N)
-        rate = w.sum(-1) ** 2 / (n * (w * w).sum(-1))  # (..., P), falling along P
+        w = torch.exp(-grid.exp().float()[..., None] * c32[..., None, :])  # (..., P, N)
+        rate = (w.sum(-1) ** 2 / (n * w.square().sum(-1))).double()  # (..., P), falling along P
         k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
         lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
     return torch.where(c.amax(-1) > 0, (0.5 * (lo + hi)).exp(), 0.0)
