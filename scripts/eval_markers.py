@@ -52,7 +52,7 @@ def main() -> int:
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_markers.py", empty=False)
     rig = load_calibration(RIG, warn_units=False)
-    print(f"{'capture':<12} {'setting':<10} {'frames':>6} {'markers':>7} {'MMTA@50':>8} {'MMTP mm':>8} "
+    print(f"{'capture':<12} {'setting':<12} {'frames':>6} {'markers':>7} {'MMTA@50':>8} {'MMTP mm':>8} "
           f"{'landmarks mm':>12} {'lost':>5} {'s/frame':>8}")
     for name in args.captures:
         for setting in args.settings:
@@ -69,16 +69,16 @@ def main() -> int:
                 m = rep.markers
                 T = result.poses.num_frames
                 runs.append((100 * m.mmta, m.mmtp_mm, rep.mpjpe_mm, rep.frames_lost))
-                label = setting if args.seeds == 1 else f"{setting} s{seed}"
-                print(f"{name:<12} {label:<10} {T:>6} {m.markers:>7} {100 * m.mmta:>7.2f}% {m.mmtp_mm:>8.1f} "
+                label = setting if args.seeds == 1 else f"{setting} {seed}"
+                print(f"{name:<12} {label:<12} {T:>6} {m.markers:>7} {100 * m.mmta:>7.2f}% {m.mmtp_mm:>8.1f} "
                       f"{rep.mpjpe_mm:>12.1f} {rep.frames_lost:>5} {seconds / T:>8.2f}", flush=True)
                 if not math.isfinite(m.mmta):
                     return 1
             if args.seeds > 1:
                 mean = [sum(r[i] for r in runs) / len(runs) for i in range(3)]
-                print(f"{name:<12} {setting + ' mean':<18} {'':>7} {mean[0]:>7.2f}% {mean[1]:>8.1f} {mean[2]:>12.1f} "
-                      f"{sum(r[3] for r in runs):>5}   (worst MMTA {min(r[0] for r in runs):.2f}%, worst MMTP "
-                      f"{max(r[1] for r in runs):.1f} mm)", flush=True)
+                print(f"{name:<12} {setting + ' mean':<12} {'':>6} {'':>7} {mean[0]:>7.2f}% {mean[1]:>8.1f} "
+                      f"{mean[2]:>12.1f} {sum(r[3] for r in runs):>5}   (lost: summed over the seeds; worst MMTA "
+                      f"{min(r[0] for r in runs):.2f}%, worst MMTP {max(r[1] for r in runs):.1f} mm)", flush=True)
     return 0
 
 

@@ -20,10 +20,11 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.particles import (APFConfig, annealing_beta, epipolar_cost, fundamental_matrices,
                                            pinhole_pixels, projection_matrices, resample, truncated_normal)
 
-def test_epipolar_cost_matches_a_plain_loop():
+@pytest.mark.parametrize("tau", [20.0, 1e8])  # a cap beyond the far line of a missing candidate too
+def test_epipolar_cost_matches_a_plain_loop(tau):
     rig = demo_rig()
     gen = torch.Generator().manual_seed(0)
-    C, M, K, B, tau = rig.num_cameras, 6, 3, 4, 20.0
+    C, M, K, B = rig.num_cameras, 6, 3, 4
     truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
         [-1.6, -0.5, 0.2])
     P = projection_matrices(rig)
@@ -34,6 +35,7 @@ def test_epipolar_cost_matches_a_plain_loop():
     det[:, :, 1:] += 200 * torch.randn(C, M, K - 1, 2, generator=gen, dtype=torch.float64)  # false candidates
     det[0, 0] = math.nan  # marker 0 unseen in view 0
     det[1, 2, 0] = math.nan  # one candidate missing
+    det[2, 3, 0], det[2, 3, 1:] = math.nan, uv[2, 3] + 1e7  # one missing, the others wild: only a huge cap counts them
     points = truth[None] + 0.01 * torch.randn(B, M, 3, generator=gen, dtype=torch.float64)
     F = fundamental_matrices(rig)
     got = epipolar_cost(points, det, P, F, tau)
@@ -289,29 +291,37 @@ def test_triangulation_ignores_false_candidates():
     torch.testing.assert_close(chunked, got, equal_nan=True)
 
 
-def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
-    """A filter whose estimate is a body turned round 1 m away: the lost test fires, and the restart from the
-    frame's triangulated markers lands on the body (the markers within 3 cm of the capture's)."""
+def _walk_frame(tmp_path, t: int = 20):
+    """The Plug-in-Gait walk simulated in the demo rig (no misses or false detections, 1 px noise), its subject
+    fitted from the capture's markers, and frame ``t``: the filter, the subject's skeleton, marker set and poses,
+    the capture's markers ``(T, M, 3)`` and the frame's triangulated markers ``(1, M, 3)``."""
     from torchtrack.cli import main
     from torchtrack.io.markers2d import load_markers2d
     from torchtrack.io.poses import load_poses
     from torchtrack.markers.model import subject_from_markers
-    from torchtrack.markers.track import _lost, _restart
     from torchtrack.markers.triangulate import triangulate_candidates
     from torchtrack.tracking.particles import MarkerAPF
 
     cap = tmp_path / "cap"
     pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
-    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out", str(cap),
-                 "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
+    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out",
+                 str(cap), "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
     rig = load_calibration(cap / "calibration.toml", warn_units=False).double()
     det, gt = load_markers2d(cap / "markers2d.npz"), load_poses(cap / "gt.npz")
     m3 = torch.from_numpy(gt.markers3d.astype(np.float64))
     skel, mset, angles = subject_from_markers(m3, gt.marker_names, gt.fps)
-    apf = MarkerAPF(skel, mset, rig)
-    t = 20
     z = pinhole_pixels(rig, torch.from_numpy(det.uv[t].astype(np.float64)))
     X, _ = triangulate_candidates(z[None], projection_matrices(rig))
+    return MarkerAPF(skel, mset, rig), skel, mset, angles, m3, X
+
+
+def test_a_lost_filter_is_started_again_from_the_markers(tmp_path):
+    """A filter whose estimate is a body turned round 1 m away: the lost test fires, and the restart from the
+    frame's triangulated markers lands on the body (the markers within 3 cm of the capture's)."""
+    from torchtrack.markers.track import _lost, _restart
+
+    t = 20
+    apf, skel, mset, angles, m3, X = _walk_frame(tmp_path, t)
     assert not bool(_lost(apf, angles[t][None], X)[0])
     wrong = angles[t].clone()
     wrong[0] += 1.0
@@ -327,26 +337,10 @@ def test_a_limb_left_elsewhere_or_a_body_a_few_cm_off_is_lost_too(tmp_path):
     by a plain loop): an arm bent 1.5 rad away from the capture's, and the whole body 6 cm off. Both are lost (the
     limb's markers mostly far; the markers' median distance over 4 cm), the true pose and one 1 cm off are not, and
     the restart from the arm's estimate brings the arm back (its markers within 3 cm of the capture's)."""
-    from torchtrack.cli import main
-    from torchtrack.io.markers2d import load_markers2d
-    from torchtrack.io.poses import load_poses
-    from torchtrack.markers.model import subject_from_markers
     from torchtrack.markers.track import _lost, _restart
-    from torchtrack.markers.triangulate import triangulate_candidates
-    from torchtrack.tracking.particles import MarkerAPF
 
-    cap = tmp_path / "cap"
-    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
-    assert main(["synth", "markers", "--motion", str(pig), "--calibration", str(shared_data(*DEMO_RIG)), "--out",
-                 str(cap), "--duration", "1.0", "--p-miss", "0", "--false-rate", "0", "--sigma", "1"]) == 0
-    rig = load_calibration(cap / "calibration.toml", warn_units=False).double()
-    det, gt = load_markers2d(cap / "markers2d.npz"), load_poses(cap / "gt.npz")
-    m3 = torch.from_numpy(gt.markers3d.astype(np.float64))
-    skel, mset, angles = subject_from_markers(m3, gt.marker_names, gt.fps)
-    apf = MarkerAPF(skel, mset, rig)
     t = 20
-    z = pinhole_pixels(rig, torch.from_numpy(det.uv[t].astype(np.float64)))
-    X, _ = triangulate_candidates(z[None], projection_matrices(rig))
+    apf, skel, mset, angles, m3, X = _walk_frame(tmp_path, t)
 
     def far_share(a):  # a plain loop over the triangulated markers
         model, n, far = apf.markers(a[None])[0], 0, 0

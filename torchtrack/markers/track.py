@@ -308,10 +308,12 @@ def _log_frame(logger: RunLogger, step: int, video, rig, uv: np.ndarray, model: 
 
 
 def _lost(apf: MarkerAPF, angles: torch.Tensor, X: torch.Tensor) -> torch.Tensor:
-    """Which subjects' estimates ``angles (Q, D)`` have lost the body ``(Q,)``: more than ``LOST_SHARE`` of the
-    markers that two views triangulate this frame (``X (Q, M, 3)``, NaN where not; at least ``LOST_MIN_MARKERS``)
-    lie farther than ``LOST_M`` from the estimate's. The particles' spread, the paper's test, barely grows when the
-    whole cloud follows a wrong pose (docs/results.md, "Marker-based capture")."""
+    """Which subjects' estimates ``angles (Q, D)`` have lost the body ``(Q,)``, judged on the markers that two
+    views triangulate this frame (``X (Q, M, 3)``, NaN where not; at least ``LOST_MIN_MARKERS``): more than
+    ``LOST_SHARE`` of them lie farther than ``LOST_M`` from the estimate's, or more than half of one limb's (at
+    least ``LOST_LIMB_MARKERS``), or their median distance (the lower middle one of an even count) is over
+    ``LOST_MEDIAN_M``. The particles' spread, the paper's test, barely grows when the whole cloud follows a wrong
+    pose (docs/results.md, "Marker-based capture")."""
     model = apf.markers_all(angles.double()[:, None])[..., 0]  # (Q, M, 3)
     seen = torch.isfinite(X).all(-1) & apf.marker_mask[:, :X.shape[1]].to(X.device)
     dist = (model[:, :X.shape[1]].to(X) - X).norm(dim=-1)  # (Q, M), NaN where not triangulated

@@ -62,8 +62,10 @@ class APFConfig:
     polish_steps: int = 20
 
     def __post_init__(self) -> None:
-        if self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1 or not self.outlier_px > 0:
-            raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), outlier_px > 0; got {self}")
+        if (self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1
+                or not 0 < self.outlier_px < math.inf):
+            raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), finite outlier_px > 0; "
+                             f"got {self}")
         if min(self.root_m, self.root_rad, self.joint_rad) < 0 or not 0 < self.shrink <= 1:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
 
@@ -71,8 +73,8 @@ class APFConfig:
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
 #: the cost below which it stops (a ten-thousandth: well under a pixel's worth over the markers).
 FD_STEP, POLISH_TOL = 1e-6, 1e-4
-#: The distance (px) of every point from the line of a candidate that has none (:class:`EpipolarCost`): far beyond
-#: any outlier cap, and its square within float32's range.
+#: The distance (px) of every point from the line of a candidate that has none (:class:`EpipolarCost`; ten times
+#: the outlier cap where that is more): beyond the cap, and its square within float32's range.
 FAR_PX = 1e6
 #: The polish's dampings a step tries (each ten times the one before), all in one batch.
 DAMPING_TRIES = 4
@@ -126,7 +128,7 @@ def projection_matrices(rig: nn.Module) -> torch.Tensor:
 class EpipolarCost:
     """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), of Q subjects at once,
     with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two small
-    contractions per view pair. Hand-written over kornia's
+    contractions per view and marker. Hand-written over kornia's
     :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it) because
     that one recomputes every candidate's line for every state.
 
@@ -147,7 +149,10 @@ class EpipolarCost:
             detections, P, F = detections[None], P[None], F[None]
         Q, C, M, K, _ = detections.shape
         dtype, dev = detections.dtype, detections.device
+        if not 0 < outlier_px < math.inf:
+            raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
         self.cap = outlier_px ** 2
+        far_px = max(FAR_PX, 10.0 * outlier_px)  # beyond the cap, whatever it is
         # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
         # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
         A = C - 1
@@ -167,7 +172,7 @@ class EpipolarCost:
         # without a line is FAR from every point (beyond the cap, never the nearest of one that has), and a marker
         # without a candidate in view i is at distance 0 from every line of its pair (it adds nothing)
         far = torch.zeros_like(unit)
-        far[..., 2] = torch.where(self.pair[..., None], FAR_PX, 0.0)
+        far[..., 2] = torch.where(self.pair[..., None], far_px, 0.0)
         unit = torch.where(self.ok[..., None], unit, far)
         # laid out for states last (N contiguous): each contraction is one batched product, each reduction over K
         # runs along contiguous rows (several times faster than states first)
@@ -192,7 +197,8 @@ class EpipolarCost:
         return dist, self.norm2.to(y) / back[:, :, :, :, None] + 1
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
-        """``points (Q, M, 3, N)``, N states of each subject -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
+        """``points (Q, M, 3, N)``, N finite states of each subject (padded markers too: a marker without
+        candidates adds its zero lines times its projection) -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
         place where no gradient is asked for (the particle filter's layers)."""
         dist, factor = self._terms(points)
         if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
