@@ -147,6 +147,65 @@ def test_annealing_beta_hits_the_survival_rate():
     assert float(betas[2]) == 0.0
 
 
+def test_the_polish_takes_each_subjects_least_damping_as_trying_them_in_turn_does():
+    """The polish tries its four dampings in one batch. A plain loop, one subject at a time, trying lambda, 10
+    lambda, 100 lambda and 1000 lambda in turn and keeping the first whose cost falls (the textbook
+    Levenberg-Marquardt step), reaches the same states; two subjects start at different distances from the
+    detections' pose, so their dampings and stops differ."""
+    from torchtrack.tracking.particles import FD_STEP, POLISH_TOL, EpipolarCost, MarkerAPF
+
+    rig = demo_rig()
+    skel = Skeleton.from_urdf().double()
+    gen = torch.Generator().manual_seed(5)
+    M = 14
+    bones = torch.arange(M) % len(skel.bone_names)
+    mset = MarkerSet(tuple(f"m{i}" for i in range(M)), bones, 0.05 * torch.randn(M, 3, generator=gen,
+                                                                               dtype=torch.float64))
+    apf = MarkerAPF([skel, skel], [mset, mset], [rig, rig], APFConfig(polish_steps=8))
+    truth = skel.rest_angles().double()
+    truth[:3] = torch.tensor([-0.8, 0.1, 0.95])
+    X = apf.markers(truth[None])[0]
+    P, F = projection_matrices(rig), fundamental_matrices(rig)
+    h = torch.cat([X, torch.ones(M, 1, dtype=torch.float64)], -1)
+    uv = torch.einsum("cij,mj->cmi", P, h)
+    det = (uv[..., :2] / uv[..., 2:])[:, :, None] + 0.5 * torch.randn(rig.num_cameras, M, 1, 2, generator=gen,
+                                                                        dtype=torch.float64)
+    score = EpipolarCost(det[None].expand(2, -1, -1, -1, -1), apf.P, apf.F, 20.0)
+    start = truth[None] + torch.tensor([[0.02], [0.08]], dtype=torch.float64) * torch.randn(
+        2, skel.num_dofs, generator=gen, dtype=torch.float64)
+    start = apf.clamp(start)
+    got = apf._polish(start, score, torch.ones(2, dtype=torch.bool))
+
+    D = skel.num_dofs
+    moves = torch.cat([torch.zeros(1, D, dtype=torch.float64), torch.eye(D, dtype=torch.float64) * FD_STEP])
+    for q in range(2):
+        def cost(a):
+            pts = apf.markers_all(a.expand(2, -1)[:, None])
+            return float(score.cost(pts)[q, 0])
+
+        theta, lam, c0 = start[q].clone(), 1e-3, cost(start[q])
+        for _ in range(8):
+            pts = apf.markers_all(theta.expand(2, -1)[:, None] + moves)
+            r = score.residuals(pts)[0][q]  # (D + 1, R)
+            J = (r[1:] - r[:1]) / FD_STEP
+            A, g = J @ J.T, J @ r[0]
+            for _ in range(4):
+                trial = apf.clamp((theta + torch.linalg.solve(A + lam * (torch.diag(A.diag()) + 1e-9 * torch.eye(D,
+                                   dtype=torch.float64)), -g))[None, None].expand(2, 1, -1))[q, 0]
+                c1 = cost(trial)
+                if c1 < c0:
+                    break
+                lam *= 10.0
+            else:
+                break  # no damping lowered the cost: stop
+            done = c0 - c1 < POLISH_TOL * c0
+            theta, c0, lam = trial, c1, max(lam / 10.0, 1e-7)
+            if done:
+                break
+        torch.testing.assert_close(got[q], theta, rtol=0, atol=1e-9)
+    assert float((got[1] - start[1]).abs().max()) > 1e-3  # the far subject did move
+
+
 def test_bad_filter_settings_are_refused():
     with pytest.raises(InputError):
         APFConfig(survival=1.5)
