@@ -165,7 +165,7 @@ def test_the_polish_takes_each_subjects_least_damping_as_trying_them_in_turn_doe
     truth = skel.rest_angles().double()
     truth[:3] = torch.tensor([-0.8, 0.1, 0.95])
     X = apf.markers(truth[None])[0]
-    P, F = projection_matrices(rig), fundamental_matrices(rig)
+    P = projection_matrices(rig)
     h = torch.cat([X, torch.ones(M, 1, dtype=torch.float64)], -1)
     uv = torch.einsum("cij,mj->cmi", P, h)
     det = (uv[..., :2] / uv[..., 2:])[:, :, None] + 0.5 * torch.randn(rig.num_cameras, M, 1, 2, generator=gen,
