@@ -6,11 +6,11 @@ is rendered once under --work (a drawn body, colours and shadow as scripts/eval_
 --frames random frames of it (fixed seed) the tracker is started cold, as on the first frame of a recording
 (:meth:`MarkerlessTracker.step` on it: the search, then EM/CCD and the bone fit), tracked on over the start race
 (``TrackerConfig.start_race_s``: the start turned round tracked beside it, the better kept) and the track back
-(``settle_back_s``, where the sequence lasts that long), and the start frame's pose as it stands then is scored
-against the ground truth (the search's prior of real poses without the
-captured subject's own: ``TrackerConfig.start_prior_exclude``): MPJPE over the 16 landmarks. Prints per motion
-and rig the share within 50 mm, the median error and the seconds per start (the race included); the search's own
-error before EM/CCD; and the share within 50 mm before the race (``--search-only`` skips the tracker).
+(``settle_back_s``; where the sequence ends first, as the tracker ends it: :meth:`MarkerlessTracker.finish`), and
+the start frame's pose as it stands then is scored against the ground truth (the search's prior of real poses
+without the captured subject's own: ``TrackerConfig.start_prior_exclude``): MPJPE over the 16 landmarks. Prints
+per motion and rig the share within 50 mm, the median error and the seconds per start (the race included); the
+search's own error before EM/CCD; and the share within 50 mm before the race (``--search-only`` skips the tracker).
 
     .venv/bin/python scripts/eval_start.py                       # 50 frames per motion and rig
     .venv/bin/python scripts/eval_start.py --motions walk squat --cameras 8 --frames 10
@@ -243,6 +243,11 @@ def main() -> None:
                             first = revised[-1 - since][0]
                         if not (tracker.racing or tracker.settling):
                             break
+                    else:  # the sequence ended first: the race and track back as the tracker ends a sequence
+                        tracker.finish()
+                        revised = tracker.take_revised()
+                        if len(revised) > since:
+                            first = revised[-1 - since][0]
                 seconds.append(time.perf_counter() - t0)
                 errors.append(landmark_error_mm(first, truth.joints3d[t, idx]))
                 if args.per_start:

@@ -29,11 +29,13 @@ def skel() -> Skeleton:
     return Skeleton.from_urdf()
 
 
-def _track_reacquired(skel: Skeleton, monkeypatch, settle_s: float) -> tuple[list, np.ndarray, list[int]]:
+def _track_reacquired(skel: Skeleton, monkeypatch, settle_s: float, frames: int = 42,
+                      finish: bool = False) -> tuple[list, np.ndarray, list[int]]:
     """A walker tracked for 1 s, lost for three frames, back with the re-acquired pose's right arm raised wrongly
-    (just before the re-acquired frame learns its colours); the next 1.5 s tracked with ``settle_back_s =
-    settle_s`` (the start race off, to leave the settle-back alone). Returns the results after revisions, each
-    frame's MPJPE (m) against the walk's forward kinematics, and the lengths of the revisions."""
+    (just before the re-acquired frame learns its colours); the next ``frames`` (at 30 frames/s) tracked with
+    ``settle_back_s = settle_s`` (the start race off, to leave the settle-back alone), then, with ``finish``, the
+    sequence ended (:meth:`MarkerlessTracker.finish`). Returns the results after revisions, each frame's MPJPE (m)
+    against the walk's forward kinematics, and the lengths of the revisions."""
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 2.5, 30, starfish_s=0.0)
@@ -63,8 +65,11 @@ def _track_reacquired(skel: Skeleton, monkeypatch, settle_s: float) -> tuple[lis
 
     monkeypatch.setattr(MarkerlessTracker, "_learn_colour", wrong_arm)
     out, lengths = [], []
-    for t in range(33, 75):
-        out.append(tracker.step(_observation(subj, blobs, walk[t])))
+    for t in range(33, 33 + frames + 1):
+        if t < 33 + frames:
+            out.append(tracker.step(_observation(subj, blobs, walk[t])))
+        elif finish:
+            tracker.finish()
         late = tracker.take_revised()
         for j, (res, version) in enumerate(late):
             out[len(out) - len(late) + j] = res
@@ -88,6 +93,52 @@ def test_a_wrong_reacquisition_is_mended_by_the_track_back(skel, monkeypatch):
     assert lengths == [30], lengths
     assert (settled[:2] < 0.015).all() and settled.max() < 0.04, settled
     np.testing.assert_allclose(settled[30:], plain[30:], atol=2e-3)
+
+
+def test_a_wrong_reacquisition_near_the_end_is_tracked_back_when_the_sequence_ends(skel, monkeypatch):
+    """The same wrong re-acquisition 12 frames before the sequence ends (under the 1 s the track back waits for):
+    without :meth:`MarkerlessTracker.finish` its first frames stay wrong; with it the 12 frames are tracked back
+    from the last one (one revision of 12 frames) and the first two come within 15 mm of the truth."""
+    _, plain, none = _track_reacquired(skel, monkeypatch, 1.0, frames=12)
+    assert none == [] and (plain[:2] > 0.02).all(), plain
+    _, ended, lengths = _track_reacquired(skel, monkeypatch, 1.0, frames=12, finish=True)
+    assert lengths == [12], lengths
+    assert (ended[:2] < 0.015).all() and ended.max() < 0.04, ended
+
+
+@pytest.mark.parametrize("still", [False, True])
+def test_a_race_still_on_when_the_sequence_ends(skel, monkeypatch, still):
+    """The search's answer forced to face backwards and the sequence ended 8 frames later, before the 0.5 s start
+    race: :meth:`MarkerlessTracker.finish` decides the race on those frames where the body moved in them (a walker:
+    every frame within 50 mm of the truth, none turned round, as without it the frames stay turned round); where
+    it stood still (a still body looks the same turned round) the search's start stays and the race is dropped."""
+    search_turned_round(monkeypatch)
+    subj = skel.scaled_to_height(1.8)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)[10:18]
+    if still:
+        walk = walk[:1].repeat(8, 1)
+    errors = []
+    for finish in (False, True):
+        tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.5, settle_back_s=1.0))
+        tracker.set_frame_rate(30.0)
+        out = []
+        for t in range(walk.shape[0]):
+            out.append(tracker.step(_observation(subj, blobs, walk[t])))
+            apply_revised(out, tracker.take_revised())
+        assert tracker.racing
+        if finish:
+            tracker.finish()
+            apply_revised(out, tracker.take_revised())
+            assert not tracker.racing and not tracker.settling
+        errors.append(np.array([float((r.output_points[:16].double() - _landmarks(subj, walk[t]).double())
+                                      .norm(dim=-1).mean()) for t, r in enumerate(out)]))
+    plain, ended = errors
+    assert plain.min() > 0.1, plain  # turned round
+    if still:  # the search's start stays (tracked back over the 8 frames, still turned round)
+        assert ended.min() > 0.1, ended
+    else:
+        assert ended.max() < 0.05, ended
 
 
 def test_a_race_decided_on_the_frame_of_the_track_back_keeps_its_revision(skel, monkeypatch):

@@ -66,7 +66,8 @@ class TrackerConfig:
             bend one way only (0: off).
         settle_back_s: after a start or a re-acquisition, once the track has held this long (and any start race is
             decided), the frames since are tracked again backwards from there and the two tracks spliced once,
-            where their summed fit cost is least (:mod:`~torchtrack.tracking.settle`; 0: off): the first frames after a
+            where their summed fit cost is least (:mod:`~torchtrack.tracking.settle`; 0: off; a sequence that ends
+            sooner is tracked back from its last frame, :meth:`MarkerlessTracker.finish`): the first frames after a
             re-acquisition at the volume's edge, tracked from a guess, are the track's worst
             (docs/results.md, "Robustness", the subject who leaves).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one

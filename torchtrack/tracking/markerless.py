@@ -340,6 +340,21 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self._settle_step(obs, res, version)
         return res
 
+    def finish(self) -> None:
+        """The sequence has ended: a start in its last second gets what an earlier start gets later. A start race
+        still on is decided on its frames where the body has moved in them (else the search's start stays: a still
+        body looks the same turned round), and the frames since the last start or re-acquisition, where they did
+        not yet hold ``settle_back_s``, are tracked back from the last one. :meth:`take_revised` then gives the
+        frames these revise."""
+        if self._race is not None:
+            if self._race.moved_at is None:
+                self._race = None
+            else:
+                self._decide_race()
+                self._settle_revised()
+        if self._settle is not None:
+            self._settle_back()
+
     def _step(self, obs: VoxelObservation) -> FrameResult:
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap

@@ -100,9 +100,13 @@ class RaceMixin:
                     race.moved_at = len(race.fits) - 1
                     race.frames_left = self._race_frames()
         race.frames_left -= 1
-        if race.frames_left > 0:
-            return
-        self._race = None
+        if race.frames_left <= 0:
+            self._decide_race()
+
+    def _decide_race(self) -> None:
+        """End the race: the twin goes on in this tracker's place where it won (module docstring), its results
+        then revising the race's frames (:meth:`take_revised`)."""
+        race, self._race = self._race, None
         fits = race.fits[race.moved_at or 0:]
         if not fits:  # nothing both fitted during the race: the search's start stays
             return

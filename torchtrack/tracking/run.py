@@ -116,6 +116,7 @@ class _Pass:
         self.cameras_valid = np.zeros((T, C), bool)
         self.need = min_readable_cameras(C)
         self.t_start = time.perf_counter()
+        self.last: int | None = None  # the last frame recorded
         keep = log_every if logger is not None else 0
         self.stream = observe_batches(folder, observer, start, self.stop, batch, device, keep, workers,
                                       cell_m=tracker.config.em_cell_m, step=step)
@@ -172,19 +173,26 @@ class _Pass:
 
     def record(self, frame: _Frame, res, seconds: float) -> None:  # noqa: ANN001
         """Store ``frame``'s result (and the frames a start race revised); log it."""
-        k = frame.k
+        k = self.last = frame.k
         self._put(k, res)
-        revised = self.tracker.take_revised()  # a won start race's frames, or the frames tracked back
-        for j, (r, v) in enumerate(revised):
-            self._put(k - len(revised) + 1 + j, r)
-            self.version[k - len(revised) + 1 + j] = v
+        self._revise(k)
         if self.logger is not None:
             _log_frame(self.logger, frame.t, frame.observed, res, frame.images, self.observer.rig,
                        frame.wait_s + seconds, frame.observe_s)
 
+    def _revise(self, k: int) -> None:
+        """The frames up to ``k`` that the tracker revised: a won start race's, or the frames tracked back."""
+        revised = self.tracker.take_revised()
+        for j, (r, v) in enumerate(revised):
+            self._put(k - len(revised) + 1 + j, r)
+            self.version[k - len(revised) + 1 + j] = v
+
     def finish(self) -> tuple[Poses, float]:
         """The pass's poses (re-stated in the final body) and its seconds; the reports on cameras and start."""
         tracker, rig = self.tracker, self.observer.rig
+        if self.last is not None:  # a start in the last second: its race and track back at the end
+            tracker.finish()
+            self._revise(self.last)
         restate(tracker, self.angles, self.joints3d, self.version)
         if self.step == 1:  # once per folder: from a track of every frame (after passes with a step, one follows)
             _report_cameras(self.folder, list(rig.names), self.cameras_valid, self.frame_index, self.need)

@@ -67,6 +67,18 @@ class SettleMixin:
         if self._race is None and len(self._settle) >= self._race_frames(self.config.settle_back_s):
             self._settle_back()
 
+    def _settle_revised(self) -> None:
+        """A race decided after its last frame (:meth:`finish`): the twin's results, where it won, take the place
+        of the kept frames they revise."""
+        if self._settle is None or not self._revised:
+            return
+        m = min(len(self._revised), len(self._settle))
+        if not all(r.valid for r, _ in self._revised[-m:]):
+            self._settle = None
+            return
+        kept = self._settle[len(self._settle) - m:]
+        self._settle[len(self._settle) - m:] = [(o, r, v) for (o, _, _), (r, v) in zip(kept, self._revised[-m:])]
+
     def _settle_back(self) -> None:
         """Track the kept frames back from the last one and splice (module docstring). A backward track that
         loses the body on some frame offers only the frames after it."""
