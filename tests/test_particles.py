@@ -63,6 +63,10 @@ def test_epipolar_cost_matches_a_plain_loop(tau):
                         best = min(best, d)
                     total += min(best, tau ** 2)
         assert float(got[b]) == pytest.approx(total, rel=1e-6)
+    # padded with empty candidate slots (before and between the real ones), as a sequence's detections are: the same
+    padded = torch.full((C, M, K + 2, 2), math.nan, dtype=torch.float64)
+    padded[:, :, 1], padded[:, :, 3:] = det[:, :, 0], det[:, :, 1:]
+    torch.testing.assert_close(epipolar_cost(points, padded, P, F, tau), got, rtol=1e-9, atol=0.0)
     # a point on the markers' rays costs nothing: the true points against exact detections
     exact = epipolar_cost(truth[None], uv[:, :, None], P, F, tau)
     assert float(exact[0]) < 1e-12

@@ -148,6 +148,14 @@ class EpipolarCost:
         if detections.dim() == 4:  # one subject
             detections, P, F = detections[None], P[None], F[None]
         Q, C, M, K, _ = detections.shape
+        # each marker's candidates first in each view, and as many kept as the most any marker has here (one host
+        # synchronisation): a frame's cost then runs over the candidates it has, not the sequence's padding
+        has = torch.isfinite(detections).all(-1)  # (Q, C, M, K)
+        used = max(1, int(has.sum(-1).amax())) if has.numel() else K
+        if used < K:
+            order = torch.sort((~has).to(torch.uint8), dim=-1, stable=True).indices[..., :used]
+            detections = detections.gather(3, order[..., None].expand(*order.shape, 2))
+            K = used
         dtype, dev = detections.dtype, detections.device
         if not 0 < outlier_px < math.inf:
             raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
