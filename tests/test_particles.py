@@ -554,7 +554,11 @@ def test_sequences_tracked_in_lockstep_get_their_tracks_alone(tmp_path):
         for t in np.concatenate([mine, its]):
             settling[t:t + 2] = True
         assert float(apart[~settling].max()) < 0.01 and float(np.mean(apart < 1e-3)) >= 0.75, (name, apart)
-        assert bool(restarts[12:15].any()) == (name == "jump"), (name, restarts)
+        # the jump restarts there; the held sequence may restart only just after its held frames (a leg that moved
+        # meanwhile and that the filter did not catch up is a limb lost); the other never
+        assert bool(restarts[12:15].any()) or name != "jump", (name, restarts)
+        assert not (restarts[:12].any() or restarts[15:].any()) and (name != "five" or not restarts.any()), (
+            name, restarts)
         gt = load_poses(tmp_path / name / "gt.npz")
         truth = gt.markers3d[spliced] if name == "jump" else gt.markers3d
         idx = [list(gt.marker_names).index(n) for n in got.marker_names]

@@ -312,29 +312,30 @@ def truncated_normal(mean: torch.Tensor, std: torch.Tensor, lower: torch.Tensor,
     broadcasting); exact, no rejection loop: a plain normal draw where it falls inside, the inverse CDF of the
     truncated law where it does not (a mixture of the two is the truncated law itself). On a CPU the inverse CDF,
     most of the cost, runs only where it is needed. ``std`` 0 gives ``mean`` clamped. ``generator``: one, or one per
-    leading row of ``mean``."""
-    dt = torch.float64
-    m, s = mean.to(dt), std.to(dt).expand_as(mean)
+    leading row of ``mean``. In ``mean``'s dtype, the inverse CDF in float64."""
+    dt = mean.dtype
+    s = std.to(dt).expand_as(mean)
     lo, hi = lower.to(dt).expand_as(mean), upper.to(dt).expand_as(mean)
     # the draws in float32 (a fifth of float64's normal draws' cost; their resolution is far below the spreads')
-    x = m + s * _rand(mean.shape, generator, mean.device, normal=True, dtype=torch.float32)
-    u = _rand(mean.shape, generator, mean.device, dtype=torch.float32).to(dt)
+    x = mean + s * _rand(mean.shape, generator, mean.device, normal=True, dtype=torch.float32).to(dt)
+    u = _rand(mean.shape, generator, mean.device, dtype=torch.float32)
     out = (x < lo) | (x > hi)
 
-    def inverse(m, s, lo, hi, u):  # the truncated law's inverse CDF at u
+    def inverse(m, s, lo, hi, u):  # the truncated law's inverse CDF at u, in float64 (its tails need it)
+        m, s, lo, hi, u = (v.double() for v in (m, s, lo, hi, u))
         safe = s > 0
         s1 = torch.where(safe, s, 1.0)
         a = torch.special.ndtr((lo - m) / s1)
         b = torch.special.ndtr((hi - m) / s1)
-        v = (a + (b - a) * u).clamp(torch.finfo(dt).tiny, 1 - 1e-16)
-        return torch.where(safe, m + s1 * torch.special.ndtri(v), m)
+        v = (a + (b - a) * u).clamp(torch.finfo(torch.float64).tiny, 1 - 1e-16)
+        return torch.where(safe, m + s1 * torch.special.ndtri(v), m).to(dt)
 
     if mean.device.type == "cpu":
         idx = out.nonzero(as_tuple=True)
-        x[idx] = inverse(m[idx], s[idx], lo[idx], hi[idx], u[idx])
+        x[idx] = inverse(mean[idx], s[idx], lo[idx], hi[idx], u[idx])
     else:  # no host synchronisation: every element's inverse, taken where needed
-        x = torch.where(out, inverse(m, s, lo, hi, u), x)
-    return torch.minimum(torch.maximum(x, lo), hi).to(mean.dtype)
+        x = torch.where(out, inverse(mean, s, lo, hi, u), x)
+    return torch.minimum(torch.maximum(x, lo), hi)
 
 
 class MarkerAPF:
@@ -489,7 +490,7 @@ class MarkerAPF:
     def _anneal(self, detections: torch.Tensor, x: torch.Tensor, generator: Generators, subjects: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The annealing layers of the ``subjects (q,)`` from their particles ``x (q, N, D)`` (each the predicted
-        state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)``, weights
+        state) against their ``detections`` (float32) -> the last layer's particles ``(q, N, D)`` (float32), weights
         ``(q, N)`` and markers ``(q, M, 3, N)`` (float32)."""
         cfg = self.config
         q, N, D = x.shape
@@ -498,9 +499,10 @@ class MarkerAPF:
         part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
         by_part = self.marker_part[subjects, :, None].expand(q, -1, N)
         score = EpipolarCost(detections, self.P[subjects], self.F[subjects], cfg.outlier_px)
+        x = x.float()  # the particles in float32 (a ten-millionth of a radian: far below any spread)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, lower, upper, generator)
-            per, pts = self._layer_costs(score, x.float(), subjects)
+            per, pts = self._layer_costs(score, x, subjects)
             per = per.double()  # (q, M, N)
             parts = per.new_zeros(q, G, N).scatter_add_(1, by_part, per)  # (q, G, N)
             # row 0 weighs whole particles by the total cost; with ``partitioned``, row g weighs limb g's joints by
@@ -614,8 +616,8 @@ class MarkerAPF:
         clouds = []  # each chunk's last layer's markers, for the spread
         for qs in chunks:
             chunk_gen = gen if isinstance(gen, torch.Generator) else [gen[i] for i in qs.tolist()]
-            keep[qs], w[qs], pts = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D),
-                                                chunk_gen, qs)
+            last, w[qs], pts = self._anneal(layer_detections[qs], predicted[qs, None].expand(-1, N, D), chunk_gen, qs)
+            keep[qs] = last.to(keep)
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
