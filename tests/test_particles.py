@@ -149,6 +149,11 @@ def test_annealing_beta_hits_the_survival_rate():
         w = torch.exp(-betas[r] * (rows[r] - rows[r].min()))
         assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
     assert float(betas[2]) == 0.0
+    # costs of any scale, a tie at the least among them
+    for scale in (1e-12, 1e12):
+        row = torch.cat([cost[:1], cost]) * scale
+        w = torch.exp(-annealing_beta(row, 0.5) * (row - row.min()))
+        assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
 
 
 def test_the_polish_takes_each_subjects_least_damping_as_trying_them_in_turn_does():

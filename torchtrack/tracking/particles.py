@@ -258,18 +258,23 @@ def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tenso
     return EpipolarCost(detections.to(points), P, F, outlier_px)(points, per_marker)
 
 
-def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 6, points: int = 8) -> torch.Tensor:
+def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 5, points: int = 8) -> torch.Tensor:
     """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
     sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
     evaluates it at ``points`` values of log beta in one tensor operation and keeps the bracket where it crosses
-    ``survival`` (from [-30, 30]: log beta to within 60 / (points - 1)^stages, 5e-4 by default). The weights are
-    summed in float32 (half float64's cost; the rate's rounding is far below the bracket's width). Returns
-    ``(...,)`` float64; 0 where a row's costs are all equal."""
+    ``survival``. The first bracket starts where the rate is surely above ``survival`` (every weight at least
+    ``survival^(1/2)``: beta = -log(survival) / (2 max(cost - min))) and spans 30 in log beta (a factor of 1e13:
+    then only the costs tied with the least keep a weight): log beta to within 30 / (points - 1)^stages, 2e-3 by
+    default. The weights are summed in float32 (half float64's cost; the rate's rounding is far below the
+    bracket's width). Returns ``(...,)`` float64; 0 where a row's costs are all equal."""
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
     c32 = c.float()
     n = c.shape[-1]
-    lo = c.new_full(c.shape[:-1], -30.0)
-    hi = c.new_full(c.shape[:-1], 30.0)
+    top = c.amax(-1)
+    # (at most 50: beta then stays within float32's range, and a row whose costs all lie within 1e-22 of each
+    # other keeps every weight near 1 anyway)
+    lo = torch.log(-math.log(survival) / (2 * top.clamp(min=1e-300))).clamp(max=50.0)
+    hi = lo + 30.0
     steps = torch.linspace(0.0, 1.0, points, dtype=c.dtype, device=c.device)
     for _ in range(stages):
         grid = lo[..., None] + (hi - lo)[..., None] * steps  # (..., P) log beta
@@ -277,7 +282,7 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 6, points:
         rate = (w.sum(-1) ** 2 / (n * w.square().sum(-1))).double()  # (..., P), falling along P
         k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
         lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
-    return torch.where(c.amax(-1) > 0, (0.5 * (lo + hi)).exp(), 0.0)
+    return torch.where(top > 0, (0.5 * (lo + hi)).exp(), 0.0)
 
 
 Generators = torch.Generator | Sequence[torch.Generator]
