@@ -28,7 +28,8 @@ from torchtrack.markers.capture import simulated_capture  # noqa: E402
 from torchtrack.markers.model import subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.triangulate import triangulate_candidates  # noqa: E402
-from torchtrack.tracking.particles import APFConfig, MarkerAPF, pinhole_pixels, projection_matrices  # noqa: E402
+from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices  # noqa: E402
+from torchtrack.tracking.particles import APFConfig, MarkerAPF  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 CAPTURE = DATA / "mocap" / "btk" / "c3d" / "PiG_Motion-FlatFoot-Full.c3d"

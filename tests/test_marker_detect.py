@@ -60,7 +60,7 @@ def test_detector_finds_shaded_discs_at_their_centres():
 def test_epipolar_cost_differentiates_with_respect_to_the_cameras():
     """The cost's in-place path is taken only where nothing asks for a gradient (a camera matrix may)."""
     from conftest import demo_rig
-    from torchtrack.tracking.particles import epipolar_cost, fundamental_matrices, projection_matrices
+    from torchtrack.tracking.epipolar import epipolar_cost, fundamental_matrices, projection_matrices
 
     rig = demo_rig()
     P = projection_matrices(rig).double().clone().requires_grad_(True)

@@ -234,7 +234,7 @@ def link_detections(blobs: Sequence[Sequence[np.ndarray]], labels: np.ndarray, r
         (T, C, M, K, 2) float32 candidates, NaN where none.
     """
     from torchtrack.markers.triangulate import triangulate_candidates
-    from torchtrack.tracking.particles import pinhole_pixels, projection_matrices
+    from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices
 
     C, M, _ = labels.shape
     T = len(blobs)

@@ -23,7 +23,8 @@ from torchtrack.logging import RunLogger
 from torchtrack.markers.model import MarkerSet, fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.skeleton.model import Skeleton
-from torchtrack.tracking.particles import LIMBS, APFConfig, MarkerAPF, pinhole_pixels, projection_matrices
+from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices
+from torchtrack.tracking.particles import LIMBS, APFConfig, MarkerAPF
 
 __all__ = ["MarkerSequence", "MarkerTrack", "is_marker_folder", "load_marker_sequence", "track_marker_sequences",
            "track_markers"]

@@ -32,7 +32,7 @@ def triangulate_candidates(detections: torch.Tensor, P: torch.Tensor, inlier_px:
 
     Args:
         detections: (T, C, M, K, 2) candidates in pinhole pixels
-            (:func:`~torchtrack.tracking.particles.pinhole_pixels`), NaN where none.
+            (:func:`~torchtrack.tracking.epipolar.pinhole_pixels`), NaN where none.
         P: (C, 3, 4) the cameras' pinhole projections.
         inlier_px: a view agrees with a point where one of its candidates lies within this of the point's
             projection.

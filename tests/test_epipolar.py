@@ -1,0 +1,137 @@
+"""The epipolar cost of model markers against 2D detections (torchtrack.tracking.epipolar) against independent
+references: a plain loop of the closed-form point-to-epiline distances, kornia's symmetric epipolar distance, the
+rig's own projection for the undistorted pixels; subjects padded into one batch against each alone."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from conftest import demo_rig
+from torchtrack.tracking.epipolar import (EpipolarCost, epipolar_cost, fundamental_matrices, pinhole_pixels,
+                                          projection_matrices)
+
+
+@pytest.mark.parametrize("tau", [20.0, 1e8])  # a cap beyond the far line of a missing candidate too
+def test_epipolar_cost_matches_a_plain_loop(tau):
+    rig = demo_rig()
+    gen = torch.Generator().manual_seed(0)
+    C, M, K, B = rig.num_cameras, 6, 3, 4
+    truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
+        [-1.6, -0.5, 0.2])
+    P = projection_matrices(rig)
+    h = torch.cat([truth, torch.ones(M, 1, dtype=torch.float64)], -1)
+    uv = torch.einsum("cij,mj->cmi", P, h)
+    uv = uv[..., :2] / uv[..., 2:]  # (C, M, 2) pinhole pixels
+    det = uv[:, :, None].repeat(1, 1, K, 1) + 3 * torch.randn(C, M, K, 2, generator=gen, dtype=torch.float64)
+    det[:, :, 1:] += 200 * torch.randn(C, M, K - 1, 2, generator=gen, dtype=torch.float64)  # false candidates
+    det[0, 0] = math.nan  # marker 0 unseen in view 0
+    det[1, 2, 0] = math.nan  # one candidate missing
+    det[2, 3, 0], det[2, 3, 1:] = math.nan, uv[2, 3] + 1e7  # one missing, the others wild: only a huge cap counts them
+    points = truth[None] + 0.01 * torch.randn(B, M, 3, generator=gen, dtype=torch.float64)
+    F = fundamental_matrices(rig)
+    got = epipolar_cost(points, det, P, F, tau)
+    Pn, Fn, zn = P.numpy(), F.numpy(), det.numpy()
+    for b in range(B):
+        total = 0.0
+        for m in range(M):
+            X = np.append(points[b, m].numpy(), 1.0)
+            for i in range(C):
+                cands = [z for z in zn[i, m] if np.isfinite(z).all()]
+                if not cands:
+                    continue
+                for j in range(C):
+                    if i == j:
+                        continue
+                    y = Pn[j] @ X
+                    y = np.append(y[:2] / y[2], 1.0)
+                    best = math.inf
+                    for z in cands:
+                        z = np.append(z, 1.0)
+                        line_j = Fn[i, j] @ z  # z's epiline in view j
+                        line_i = Fn[i, j].T @ y  # the epiline of y in view i
+                        d = (y @ line_j) ** 2 / (line_j[0] ** 2 + line_j[1] ** 2) + (z @ line_i) ** 2 / (
+                            line_i[0] ** 2 + line_i[1] ** 2)
+                        best = min(best, d)
+                    total += min(best, tau ** 2)
+        assert float(got[b]) == pytest.approx(total, rel=1e-6)
+    # padded with empty candidate slots (before and between the real ones), as a sequence's detections are: the same
+    padded = torch.full((C, M, K + 2, 2), math.nan, dtype=torch.float64)
+    padded[:, :, 1], padded[:, :, 3:] = det[:, :, 0], det[:, :, 1:]
+    torch.testing.assert_close(epipolar_cost(points, padded, P, F, tau), got, rtol=1e-9, atol=0.0)
+    # a point on the markers' rays costs nothing: the true points against exact detections
+    exact = epipolar_cost(truth[None], uv[:, :, None], P, F, tau)
+    assert float(exact[0]) < 1e-12
+
+
+def test_epipolar_cost_is_kornias_symmetric_distance():
+    from kornia.geometry.epipolar import symmetrical_epipolar_distance
+
+    rig = demo_rig()
+    gen = torch.Generator().manual_seed(8)
+    C = rig.num_cameras
+    z = torch.tensor([[[[812.0, 640.0]]]], dtype=torch.float64).expand(C, 1, 1, 2).clone()
+    z[1:] = math.nan  # one detection, in view 0
+    points = torch.rand(6, 1, 3, generator=gen, dtype=torch.float64) + torch.tensor([-1.5, -0.5, 0.5])
+    P, F = projection_matrices(rig), fundamental_matrices(rig)
+    got = epipolar_cost(points, z, P, F, outlier_px=1e6)
+    h = torch.cat([points[:, 0], torch.ones(6, 1, dtype=torch.float64)], -1)
+    want = torch.zeros(6, dtype=torch.float64)
+    for j in range(1, C):
+        y = h @ P[j].T
+        y = y[:, :2] / y[:, 2:]
+        want += symmetrical_epipolar_distance(z[0, 0].expand(6, 2)[:, None], y[:, None], F[0, j])[:, 0]
+    torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)
+
+
+def test_pinhole_pixels_undo_the_lens():
+    rig = demo_rig()
+    pts = torch.tensor([[-1.0, 0.0, 1.0], [-0.5, 0.3, 0.2]], dtype=torch.float64)
+    distorted, _ = rig.project(pts)  # (C, 2, 2)
+    h = torch.cat([pts, torch.ones(2, 1, dtype=torch.float64)], -1)
+    pin = torch.einsum("cij,mj->cmi", projection_matrices(rig), h)
+    # the undistortion is iterative: within a thousandth of a pixel
+    torch.testing.assert_close(pinhole_pixels(rig, distorted), pin[..., :2] / pin[..., 2:], atol=1e-3, rtol=0)
+    assert torch.isnan(pinhole_pixels(rig, torch.full((rig.num_cameras, 1, 2), math.nan))).all()
+
+
+def test_epipolar_cost_of_padded_subjects_is_each_ones_own():
+    """Two subjects in one cost, of 4 and 3 views and 6 and 4 markers (the second padded with NaN detections and a
+    view without epipolar geometry): each subject's costs and residuals are those of its own cost alone."""
+    rig = demo_rig()
+    gen = torch.Generator().manual_seed(1)
+    P4, F4 = projection_matrices(rig), fundamental_matrices(rig)
+    sub = rig.subset([0, 2, 3])
+    P3, F3 = projection_matrices(sub), fundamental_matrices(sub)
+    N = 5
+    own, points = [], []
+    for P, F, C, M in ((P4, F4, 4, 6), (P3, F3, 3, 4)):
+        X = torch.rand(M, 3, generator=gen, dtype=torch.float64) + torch.tensor([-1.2, -0.4, 0.4])
+        h = torch.cat([X, torch.ones(M, 1, dtype=torch.float64)], -1)
+        uv = torch.einsum("cij,mj->cmi", P, h)
+        det = (uv[..., :2] / uv[..., 2:])[:, :, None] + 2 * torch.randn(C, M, 2, 2, generator=gen,
+                                                                         dtype=torch.float64)
+        det[0, 1] = math.nan
+        pts = X[None] + 0.02 * torch.randn(N, M, 3, generator=gen, dtype=torch.float64)
+        own.append((EpipolarCost(det, P, F, 20.0), det, pts))
+        points.append(pts)
+    det = torch.full((2, 4, 6, 2, 2), math.nan, dtype=torch.float64)
+    det[0], det[1, :3, :4] = own[0][1], own[1][1]
+    P = torch.stack([P4, torch.cat([P3, P3[:1]])])
+    F = torch.zeros(2, 4, 4, 3, 3, dtype=torch.float64)
+    F[0], F[1, :3, :3] = F4, F3
+    pts = torch.zeros(2, 6, 3, N, dtype=torch.float64)
+    pts[0], pts[1, :4] = points[0].permute(1, 2, 0), points[1].permute(1, 2, 0)
+    both = EpipolarCost(det, P, F, 20.0)
+    cost, per = both.cost(pts), both.cost(pts, per_marker=True)
+    r, _ = both.residuals(pts)
+    for q, (alone, _, x) in enumerate(own):
+        M = x.shape[1]
+        torch.testing.assert_close(cost[q], alone(x), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(per[q, :M], alone(x, per_marker=True).T, rtol=1e-12, atol=1e-12)
+        assert float(per[q, M:].abs().sum()) == 0.0
+        r_alone, _ = alone.residuals(x.permute(1, 2, 0)[None])
+        torch.testing.assert_close(r[q].square().sum(-1), r_alone[0].square().sum(-1), rtol=1e-12, atol=1e-12)

@@ -1,0 +1,181 @@
+"""The symmetric epipolar distance of model markers to 2D marker detections, the marker filter's likelihood
+(:mod:`torchtrack.tracking.particles`; Canton-Ferrer et al. 2010): each model marker projected into one view against
+its candidate detections in another, summed over markers and ordered pairs of views, in each camera's undistorted
+(pinhole) pixels, where the epipolar geometry holds.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from kornia.geometry.epipolar import fundamental_from_projections
+from torch import nn
+
+from torchtrack.checks import InputError
+
+__all__ = ["EpipolarCost", "epipolar_cost", "fundamental_matrices", "pinhole_pixels", "projection_matrices"]
+
+#: The distance (px) of every point from the line of a candidate that has none (:class:`EpipolarCost`; ten times
+#: the outlier cap where that is more): beyond the cap, and its square within float32's range.
+FAR_PX = 1e6
+
+
+def pinhole_pixels(rig: nn.Module, uv: torch.Tensor) -> torch.Tensor:
+    """Distorted pixels ``(C, ..., N, 2)`` of each camera -> the same points in its undistorted pinhole image (the
+    camera's K on the undistorted normalized coordinates); NaN stays NaN."""
+    finite = torch.isfinite(uv).all(-1, keepdim=True)
+    _, d = rig.pixel_rays(torch.where(finite, uv, torch.zeros_like(uv)))  # (C, ..., N, 3) world directions
+    K, R = rig.K.to(d), rig.R_cam_world.to(d)
+    shape = d.shape
+    d_cam = torch.einsum("cij,cmj->cmi", R, d.reshape(shape[0], -1, 3))  # (C, *, 3)
+    pix = torch.einsum("cij,cmj->cmi", K, d_cam / d_cam[..., 2:3])[..., :2]
+    return torch.where(finite, pix.reshape(*shape[:-1], 2), torch.nan)
+
+
+def fundamental_matrices(rig: nn.Module) -> torch.Tensor:
+    """(C, C, 3, 3) ``F[i, j]`` with ``x_j^T F[i, j] x_i = 0`` for pinhole pixels ``x_i``, ``x_j`` of one point in
+    views i and j (kornia's convention; the diagonal is zero), in float64."""
+    P = projection_matrices(rig).double()  # (C, 3, 4)
+    C = P.shape[0]
+    F = fundamental_from_projections(P[:, None].expand(C, C, 3, 4), P[None].expand(C, C, 3, 4))
+    return F * (1 - torch.eye(C, dtype=F.dtype, device=F.device))[..., None, None]
+
+
+def projection_matrices(rig: nn.Module) -> torch.Tensor:
+    """(C, 3, 4) each camera's pinhole projection ``K [R | t]`` (world points to undistorted pixels)."""
+    K, R, t = rig.K, rig.R_cam_world, rig.t_cam_world
+    return K @ torch.cat([R, t[..., None]], -1)
+
+
+class EpipolarCost:
+    """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), of Q subjects at once,
+    with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two small
+    contractions per view and marker. Hand-written over kornia's
+    :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it) because
+    that one recomputes every candidate's line for every state.
+
+    The distance is invariant to each fundamental matrix's scale and to the lines' scale, so both are normalised
+    here (in float64): the lines then give pixel distances directly, and the states' side runs in their own dtype
+    (float32 for the particle filter's layers) without the ill-scaled products of a raw F.
+
+    Args:
+        detections: (Q, C, M, K, 2) each subject's markers' candidate detections per view in pinhole pixels, NaN
+            where none (subjects of fewer views or markers padded with NaN); (C, M, K, 2): one subject.
+        P: (Q, C, 3, 4) pinhole projections (padded views: any finite camera). F: (Q, C, C, 3, 3) fundamental
+            matrices (:func:`fundamental_matrices`; zero for a padded view's pairs). Without Q for one subject.
+        outlier_px: see :class:`~torchtrack.tracking.particles.APFConfig`.
+    """
+
+    def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor, outlier_px: float) -> None:
+        if detections.dim() == 4:  # one subject
+            detections, P, F = detections[None], P[None], F[None]
+        Q, C, M, K, _ = detections.shape
+        # each marker's candidates first in each view, and as many kept as the most any marker has here (one host
+        # synchronisation): a frame's cost then runs over the candidates it has, not the sequence's padding
+        has = torch.isfinite(detections).all(-1)  # (Q, C, M, K)
+        used = max(1, int(has.sum(-1).amax())) if has.numel() else K
+        if used < K:
+            order = torch.sort((~has).to(torch.uint8), dim=-1, stable=True).indices[..., :used]
+            detections = detections.gather(3, order[..., None].expand(*order.shape, 2))
+            K = used
+        dtype, dev = detections.dtype, detections.device
+        if not 0 < outlier_px < math.inf:
+            raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
+        self.cap = outlier_px ** 2
+        far_px = max(FAR_PX, 10.0 * outlier_px)  # beyond the cap, whatever it is
+        # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
+        # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
+        A = C - 1
+        src = torch.tensor([[i for i in range(C) if i != j] for j in range(C)], dtype=torch.long, device=dev)  # (C, A)
+        Fji = F.to(dev, torch.float64)[:, src, torch.arange(C, device=dev)[:, None]]  # (Q, C, A, 3, 3): x_j^T F x_i
+        Fji = Fji / Fji.flatten(3).norm(dim=3).clamp(min=1e-300)[..., None, None]
+        z = detections.double()
+        seen = torch.isfinite(z).all(-1)  # (Q, C, M, K)
+        z = torch.cat([torch.nan_to_num(z), torch.ones_like(z[..., :1])], -1)  # (Q, C, M, K, 3)
+        lines = torch.einsum("qjacd,qjamkd->qjmakc", Fji, z[:, src])  # (Q, C, M, A, K, 3): z_ik's epiline in view j
+        norm2 = lines[..., :2].square().sum(-1)  # (Q, C, M, A, K)
+        # a candidate at the epipole (or of a padded view) has no line
+        self.ok = seen[:, src].permute(0, 1, 3, 2, 4) & (norm2 > 1e-300)
+        unit = lines / norm2.clamp(min=1e-300).sqrt()[..., None]  # y . unit: y's distance from the line, px
+        self.pair = self.ok.any(-1)  # (Q, C, M, A): view i has a candidate of marker m
+        # the masks folded into the lines, so that a layer's cost needs no pass of its own over them: a candidate
+        # without a line is FAR from every point (beyond the cap, never the nearest of one that has), and a marker
+        # without a candidate in view i is at distance 0 from every line of its pair (it adds nothing)
+        far = torch.zeros_like(unit)
+        far[..., 2] = torch.where(self.pair[..., None], far_px, 0.0)
+        unit = torch.where(self.ok[..., None], unit, far)
+        # laid out for states last (N contiguous): each contraction is one batched product, each reduction over K
+        # runs along contiguous rows (several times faster than states first)
+        self.unit = unit.reshape(Q, C, M, A * K, 3).to(dtype)
+        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, C, M, A, K, 1)
+        self.F12_T = Fji[..., :2].transpose(-1, -2).reshape(Q, C, 1, A * 2, 3).contiguous().to(dtype)
+        self.P = P.to(dtype)[:, :, None]  # (Q, C, 1, 3, 4)
+        self.not_ok = ~self.ok[..., None]  # (Q, C, M, A, K, 1)
+
+    def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
+        ``(Q, C, M, A, K, N)`` (px; view j, marker, view i, candidate) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2``
+        (the same shape): the symmetric distance is their product with the first squared."""
+        Q, C, M, A, K, _ = self.norm2.shape
+        N = points.shape[-1]
+        h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
+        y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
+        y = y / y[:, :, :, 2:3]  # each view's projection, w = 1
+        dist = (self.unit.to(y) @ y).view(Q, C, M, A, K, N)  # y_j from z_ik's epiline, px
+        b = (self.F12_T.to(y) @ y).view(Q, C, M, A, 2, N)
+        back = b.square().sum(4).clamp(min=1e-30)  # (Q, C, M, A, N)
+        return dist, self.norm2.to(y) / back[:, :, :, :, None] + 1
+
+    def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """``points (Q, M, 3, N)``, N finite states of each subject (padded markers too: a marker without
+        candidates adds its zero lines times its projection) -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
+        place where no gradient is asked for (the particle filter's layers)."""
+        dist, factor = self._terms(points)
+        if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
+            d = (dist.square() * factor).amin(4).clamp(max=self.cap)
+        else:
+            d = dist.square_().mul_(factor).amin(4).clamp_(max=self.cap)  # (Q, C, M, A, N)
+        cost = d.sum(3).sum(1)  # (Q, M, N)
+        return cost if per_marker else cost.sum(1)
+
+    def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """One subject's ``points (B, M, 3)`` -> (B,) costs, or (B, M) with ``per_marker``."""
+        cost = self.cost(points.permute(1, 2, 0)[None], per_marker)[0]
+        return cost.T if per_marker else cost
+
+    def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``points (Q, M, 3, N)`` -> (Q, N, R) signed residuals (R = views x markers x other views) whose squares
+        sum to the cost's terms below the outlier cap (0 for the others), each pair's and marker's nearest
+        candidate to the first state, or the candidates ``pick (Q, C, M, A)`` (the nearest are returned with the
+        residuals, to keep them while a Jacobian is taken)."""
+        Q, N = points.shape[0], points.shape[-1]
+        dist, factor = self._terms(points)
+        r = dist * factor.sqrt()  # (Q, C, M, A, K, N)
+        r2 = r.square().masked_fill(self.not_ok, math.inf)
+        if pick is None:
+            pick = r2[..., 0].argmin(-1)  # (Q, C, M, A)
+        idx = pick[..., None, None].expand(*r.shape[:4], 1, N)
+        use = self.pair[..., None] & (r2.gather(4, idx)[..., 0, :] < self.cap)  # (Q, C, M, A, N)
+        out = torch.where(use, r.gather(4, idx)[..., 0, :], 0.0)
+        return out.reshape(Q, -1, N).mT, pick
+
+
+def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
+                  outlier_px: float, per_marker: bool = False) -> torch.Tensor:
+    """The cost of each state's markers against one frame's detections.
+
+    Args:
+        points: (B, M, 3) the model markers of B states (world, m).
+        detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
+        P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
+        outlier_px: see :class:`~torchtrack.tracking.particles.APFConfig`.
+
+    Returns:
+        (B,) the sum over markers m and ordered pairs of views i != j of ``min(outlier_px^2, min_k d(z_mik,
+        y_mj))``, ``d`` the symmetric epipolar distance (sum of the two squared point-to-epiline distances, px^2)
+        between the candidate ``z_mik`` in view i and the marker's projection ``y_mj`` in view j; views i without
+        a candidate of the marker add nothing. ``per_marker``: (B, M), each marker's sum.
+    """
+    return EpipolarCost(detections.to(points), P, F, outlier_px)(points, per_marker)
