@@ -1,6 +1,6 @@
 """Marker-based tracking of a folder with ``calibration.toml`` and ``markers2d.npz`` (``torchtrack track --mode
-markers``): the subject from the triangulated markers of the first frames and frames spread over the rest, then
-the annealed particle filter frame by frame (:class:`~torchtrack.tracking.particles.MarkerAPF`)."""
+markers``): the subject from the first frames' triangulated markers, then the annealed particle filter frame by
+frame (:class:`~torchtrack.tracking.particles.MarkerAPF`)."""
 
 from __future__ import annotations
 
@@ -31,8 +31,7 @@ __all__ = ["MarkerSequence", "MarkerTrack", "is_marker_folder", "load_marker_seq
 
 log = logging.getLogger(__name__)
 
-#: The subject (bone lengths, marker offsets) is fitted on the triangulated markers of this many first seconds
-#: and as many frames spread over the rest of the sequence.
+#: The subject (bone lengths, marker offsets) is fitted on the triangulated markers of this many first seconds.
 FIT_SECONDS = 2.0
 #: ... or, where those do not place every joint centre (markers hidden from all but one camera), up to this many.
 MAX_FIT_SECONDS = 10.0
@@ -95,8 +94,7 @@ class MarkerSequence:
 
 def load_marker_sequence(folder: str | Path, start: int = 0, stop: int | None = None) -> MarkerSequence:
     """Read ``folder`` (``calibration.toml``, ``markers2d.npz``) over frames ``[start, stop)`` and fit its subject
-    (bone lengths, marker offsets) on the triangulated markers of the first seconds and as many frames spread over
-    the rest.
+    (bone lengths, marker offsets) on the first seconds' triangulated markers.
 
     Raises:
         InputError: a missing or malformed file (named), cameras of the detections missing from the calibration,
@@ -124,28 +122,24 @@ def load_marker_sequence(folder: str | Path, start: int = 0, stop: int | None = 
     # the subject from the first seconds; where their markers do not give every joint centre, from more of them
     for seconds in (FIT_SECONDS, MAX_FIT_SECONDS):
         n_fit = min(T, max(2, round(seconds * det.fps)))
-        # the first seconds, and as many frames again spread over the rest: each marker given to the bone it moves
-        # with over the capture's motion, not over a start that may stand still (CMU 85_02's thigh marker went to the
-        # pelvis: docs/results.md, "Marker-based capture")
-        rest = torch.linspace(n_fit, T - 1, min(n_fit, T - n_fit)).round().long()
-        X = torch.cat([X_all[:n_fit], X_all[rest]])
+        X = X_all[:n_fit]
         enough = torch.isfinite(X).all(-1).sum(0) >= 2  # (M,)
         keep = enough.nonzero()[:, 0]
         names = [det.marker_names[i] for i in keep.tolist()]
-        which = f"the first {n_fit} frames and {len(rest)} more"
         try:
             if len(names) < 3:
-                raise InputError(f"{folder}: fewer than 3 markers are seen by two cameras in {which}")
+                raise InputError(f"{folder}: fewer than 3 markers are seen by two cameras in the first {n_fit} "
+                                 "frames")
             skel, mset, angles = subject_from_markers(X[:, keep], names, det.fps,
-                                                      source=f"{folder}, the markers of {which}")
+                                                      source=f"{folder}, the first {n_fit} frames' markers")
             break
         except InputError:
             if n_fit == T or seconds == MAX_FIT_SECONDS:
                 raise
     if not bool(enough.all()):
-        log.warning("%s: markers %s are seen by two cameras in fewer than 2 of %s: not tracked",
-                    folder, [n for n, ok in zip(det.marker_names, enough.tolist()) if not ok], which)
-    log.info("%s: subject fitted on %s: %d markers, %.2f m tall", folder, which, len(names), skel.height())
+        log.warning("%s: markers %s are seen by two cameras in fewer than 2 of the first %d frames: not tracked",
+                    folder, [n for n, ok in zip(det.marker_names, enough.tolist()) if not ok], n_fit)
+    log.info("%s: subject fitted on %d frames: %d markers, %.2f m tall", folder, n_fit, len(names), skel.height())
     return MarkerSequence(folder, det, start, rig, z, X_all, skel, mset, angles[0], keep, time.perf_counter() - t0)
 
 
