@@ -66,9 +66,12 @@ def test_annealing_beta_hits_the_survival_rate():
         w = torch.exp(-betas[r] * (rows[r] - rows[r].min()))
         assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
     assert float(betas[2]) == 0.0
-    # costs of any scale, a tie at the least among them
+    # costs of any scale, a tie at the least among them, an infinite one
     for scale in (1e-12, 1e12):
-        row = torch.cat([cost[:1], cost]) * scale
+        row = torch.cat([cost[cost.argmin()][None], cost]) * scale
+        beta = annealing_beta(torch.cat([row, torch.tensor([math.inf], dtype=row.dtype)]), 0.5)
+        w = torch.exp(-beta * (row - row.min()))
+        assert float(w.sum() ** 2 / ((w.numel() + 1) * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
         w = torch.exp(-annealing_beta(row, 0.5) * (row - row.min()))
         assert float(w.sum() ** 2 / (w.numel() * (w * w).sum())) == pytest.approx(0.5, abs=1e-3)
 

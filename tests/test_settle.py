@@ -108,16 +108,17 @@ def test_a_wrong_reacquisition_near_the_end_is_tracked_back_when_the_sequence_en
 
 @pytest.mark.parametrize("still", [False, True])
 def test_a_race_still_on_when_the_sequence_ends(skel, monkeypatch, still):
-    """The search's answer forced to face backwards and the sequence ended 8 frames later, before the 0.5 s start
-    race: :meth:`MarkerlessTracker.finish` decides the race on those frames where the body moved in them (a walker:
-    every frame within 50 mm of the truth, none turned round, as without it the frames stay turned round); where
-    it stood still (a still body looks the same turned round) the search's start stays and the race is dropped."""
+    """The search's answer forced to face backwards and the sequence ended 12 frames later, before the 0.5 s
+    start race (15 frames): :meth:`MarkerlessTracker.finish` decides the race on those frames where the body moved in
+    them (a walker: every frame within 50 mm of the truth, none turned round, as without it the frames stay turned
+    round); where it stood still (a still body looks the same turned round) the search's start stays and the race
+    is dropped."""
     search_turned_round(monkeypatch)
     subj = skel.scaled_to_height(1.8)
     blobs = BlobModel.from_config(subj)
-    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)[10:18]
+    walk = procedural_motion(subj, "walk", 1.0, 30, starfish_s=0.0)[10:22]
     if still:
-        walk = walk[:1].repeat(8, 1)
+        walk = walk[:1].repeat(12, 1)
     errors = []
     for finish in (False, True):
         tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.5, settle_back_s=1.0))

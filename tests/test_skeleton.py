@@ -103,13 +103,15 @@ def test_lean_bone_poses_match_the_plain_implementation_and_pytorch_kinematics(s
         bf = np.stack([ref[n] for n in skel.bone_names])
         np.testing.assert_allclose(R[b].numpy(), bf[:, :3, :3], atol=1e-7)  # pytorch-kinematics' float32 constants
         np.testing.assert_allclose(t[b].numpy(), bf[:, :3, 3], atol=1e-7)
-    x = _random_angles(skel, 300, seed=4).to(device)
-    for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-5)):
-        R, t = skel.bone_poses(x.to(dtype))
-        T = skel(x.to(dtype)).bone_frames
-        assert R.dtype == dtype and R.device.type == device.type
-        torch.testing.assert_close(R, T[..., :3, :3], atol=tol, rtol=0)
-        torch.testing.assert_close(t, T[..., :3, 3], atol=tol, rtol=0)
+    # both ways of composing the levels: a product and a sum below LEAN_MANY_STATES states, multiply-adds from it
+    for n in (300, 600):
+        x = _random_angles(skel, n, seed=4).to(device)
+        for dtype, tol in ((torch.float64, 1e-12), (torch.float32, 2e-5)):
+            R, t = skel.bone_poses(x.to(dtype))
+            T = skel(x.to(dtype)).bone_frames
+            assert R.dtype == dtype and R.device.type == device.type
+            torch.testing.assert_close(R, T[..., :3, :3], atol=tol, rtol=0)
+            torch.testing.assert_close(t, T[..., :3, 3], atol=tol, rtol=0)
     xg = x[:4].clone().requires_grad_(True)
     with torch.enable_grad():  # other test modules turn gradients off for the whole session
         R, t = skel.bone_poses(xg)

@@ -71,10 +71,11 @@ class EpipolarCost:
         if detections.dim() == 4:  # one subject
             detections, P, F = detections[None], P[None], F[None]
         Q, C, M, K, _ = detections.shape
-        # each marker's candidates first in each view, and as many kept as the most any marker has here (one host
-        # synchronisation): a frame's cost then runs over the candidates it has, not the sequence's padding
+        # on a CPU, each marker's candidates first in each view, and as many kept as the most any marker has here:
+        # a frame's cost then runs over the candidates it has, not the sequence's padding (a GPU keeps the padding
+        # rather than wait for the count)
         has = torch.isfinite(detections).all(-1)  # (Q, C, M, K)
-        used = max(1, int(has.sum(-1).amax())) if has.numel() else K
+        used = max(1, int(has.sum(-1).amax())) if has.numel() and detections.device.type == "cpu" else K
         if used < K:
             order = torch.sort((~has).to(torch.uint8), dim=-1, stable=True).indices[..., :used]
             detections = detections.gather(3, order[..., None].expand(*order.shape, 2))
@@ -149,7 +150,8 @@ class EpipolarCost:
         """``points (Q, M, 3, N)`` -> (Q, N, R) signed residuals (R = views x markers x other views) whose squares
         sum to the cost's terms below the outlier cap (0 for the others), each pair's and marker's nearest
         candidate to the first state, or the candidates ``pick (Q, C, M, A)`` (the nearest are returned with the
-        residuals, to keep them while a Jacobian is taken)."""
+        residuals, to keep them while a Jacobian is taken; indices into this cost's candidates, which on a CPU are
+        sorted and trimmed as the constructor says)."""
         Q, N = points.shape[0], points.shape[-1]
         dist, factor = self._terms(points)
         r = dist * factor.sqrt()  # (Q, C, M, A, K, N)

@@ -342,13 +342,14 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
     def finish(self) -> None:
         """The sequence has ended: a start in its last second gets what an earlier start gets later. A start race
-        still on is decided on its frames where the body has moved in them (else the search's start stays: a still
-        body looks the same turned round), and the frames since the last start or re-acquisition, where they did
-        not yet hold ``settle_back_s``, are tracked back from the last one. :meth:`take_revised` then gives the
-        frames these revise."""
+        still on is decided on its frames since the body moved where they are at least half the race (else the
+        search's start stays: a still body looks the same turned round, and a frame or two of motion is noise), and
+        the frames since the last start or re-acquisition, where they did not yet hold ``settle_back_s``, are
+        tracked back from the last one. :meth:`take_revised` then gives the frames these revise."""
         if self._race is not None:
-            if self._race.moved_at is None:
-                self._race = None
+            race = self._race
+            if race.moved_at is None or len(race.fits) - race.moved_at < max(1, self._race_frames() // 2):
+                self._race = None  # too few frames since the body moved to tell: the search's start stays
             else:
                 self._decide_race()
                 self._settle_revised()

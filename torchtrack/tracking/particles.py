@@ -104,10 +104,12 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 5, points:
     then only the costs tied with the least keep a weight): log beta to within 30 / (points - 1)^stages, 2e-3 by
     default. The weights are summed in float32 (half float64's cost; the rate's rounding is far below the
     bracket's width). Returns ``(...,)`` float64; 0 where a row's costs are all equal."""
+    if not 0 < survival < 1:
+        raise InputError(f"annealing_beta: survival must be in (0, 1), got {survival}")
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
     c32 = c.float()
     n = c.shape[-1]
-    top = c.amax(-1)
+    top = torch.where(torch.isfinite(c), c, 0.0).amax(-1)  # an infinite cost gets no weight at any beta
     # (at most 50: beta then stays within float32's range, and a row whose costs all lie within 1e-22 of each
     # other keeps every weight near 1 anyway)
     lo = torch.log(-math.log(survival) / (2 * top.clamp(min=1e-300))).clamp(max=50.0)

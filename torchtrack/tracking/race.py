@@ -36,7 +36,8 @@ START_RACE_COST_RATIO = 0.8
 #: still body's silhouette is the same turned round, and over such frames the race would only compare how the two
 #: fits happened to settle, which turned a 4-camera squat's start round (docs/results.md, "The start race").
 START_RACE_MOVED_M = 0.1
-#: A race waits this long for the body to move, then is decided on all its frames.
+#: A race waits this long for the body to move, then is decided on all its frames (at a sequence's end before
+#: that, :meth:`MarkerlessTracker.finish` drops it).
 START_RACE_WAIT_S = 2.0
 
 

@@ -191,7 +191,13 @@ class _Pass:
         """The pass's poses (re-stated in the final body) and its seconds; the reports on cameras and start."""
         tracker, rig = self.tracker, self.observer.rig
         if self.last is not None:  # a start in the last second: its race and track back at the end
-            tracker.finish()
+            try:
+                tracker.finish()
+            except Exception as exc:
+                if isinstance(exc, InputError):
+                    raise InputError(f"{self.folder.root}, the end of the sequence: {exc}") from None
+                exc.add_note(f"while ending the track of {self.folder.root}")
+                raise
             self._revise(self.last)
         restate(tracker, self.angles, self.joints3d, self.version)
         if self.step == 1:  # once per folder: from a track of every frame (after passes with a step, one follows)
@@ -234,7 +240,10 @@ def track_lockstep(passes: list[_Pass], progress: bool = True) -> list[tuple[Pos
                     del streams[i]
                     passes[i].close()
                     if out[i] is None:
-                        out[i] = passes[i].finish()
+                        try:
+                            out[i] = passes[i].finish()
+                        except Exception as exc:  # noqa: BLE001 - its end (the track back) fails alone too
+                            out[i] = exc
                     continue
                 frames[i] = frame
             if not frames:
