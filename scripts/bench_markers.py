@@ -8,11 +8,20 @@ frames per second summed over them. The lost-track test of `torchtrack track` is
 
     .venv/bin/python scripts/bench_markers.py [--frames 30] [--settings 1000x5 4000x5] [--device cpu] [--threads 1]
         [--lockstep 1 4 16 [--lockstep-setting 1000x5]]
+    .venv/bin/python scripts/bench_markers.py --settings 1000x5 4000x5 --polish 20 --before DIR [--pairs 3]
+
+``--before DIR`` times the package of another checkout (e.g. ``git worktree add /tmp/before <commit>``) against
+this one, each in a process of its own, alternated ``--pairs`` times in one run (this host's speed moves by a fifth
+within the hour), and prints each run, the medians and their ratio; both run this script and its data, the
+package from their checkout (``--code``).
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import statistics
+import subprocess
 import sys
 import time
 from dataclasses import replace
@@ -21,14 +30,19 @@ from pathlib import Path
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO))
+# --code DIR: the package of another checkout (a --before run's child); this script and its data stay this one's
+CODE = Path(sys.argv[sys.argv.index("--code") + 1]).resolve() if "--code" in sys.argv[:-1] else REPO
+sys.path.insert(0, str(CODE))
 
 from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.markers.capture import simulated_capture  # noqa: E402
 from torchtrack.markers.model import subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.triangulate import triangulate_candidates  # noqa: E402
-from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices  # noqa: E402
+try:
+    from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices  # noqa: E402
+except ImportError:  # a checkout before the cost had a module of its own (a --before run)
+    from torchtrack.tracking.particles import pinhole_pixels, projection_matrices  # noqa: E402
 from torchtrack.tracking.particles import APFConfig, MarkerAPF  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -49,7 +63,13 @@ def main() -> int:
                     help="numbers of sequences tracked in lockstep, each timed; only these are timed (default: none)")
     ap.add_argument("--lockstep-setting", default="1000x5", metavar="PxL",
                     help="particles x layers of the lockstep runs, with the polish (default: %(default)s)")
+    ap.add_argument("--before", type=Path, default=None, metavar="DIR",
+                    help="time the package of the checkout DIR against this one, alternated (see above)")
+    ap.add_argument("--pairs", type=int, default=3, help="--before: alternated pairs of runs (default: 3)")
+    ap.add_argument("--code", type=Path, default=None, metavar="DIR", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.before is not None:
+        return before_and_after(args)
     torch.set_num_threads(args.threads)
     dev = torch.device(args.device)
     rig = load_calibration(RIG, warn_units=False).double()
@@ -84,6 +104,33 @@ def main() -> int:
                     torch.cuda.synchronize()
                 print(f"forward kinematics of {P} states, {name}, {str(dtype).split('.')[-1]}: "
                       f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
+    return 0
+
+
+def before_and_after(args: argparse.Namespace) -> int:
+    """``--before``: this script with each checkout's package in turn, ``--pairs`` times; the frames/s of every
+    particles x layers and polish row, each run's and the medians, and this checkout's over the other's."""
+    if not (args.before / "torchtrack").is_dir():
+        raise SystemExit(f"--before {args.before}: no torchtrack package there (a checkout's root?)")
+    if args.pairs < 1:
+        raise SystemExit(f"--pairs must be >= 1, got {args.pairs}")
+    runs: dict[str, dict[str, list[float]]] = {"before": {}, "this checkout": {}}
+    for _ in range(args.pairs):
+        for name, code in (("before", args.before), ("this checkout", REPO)):
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--code", str(code.resolve()), "--frames",
+                   str(args.frames), "--device", args.device, "--threads", str(args.threads), "--settings",
+                   *args.settings, "--polish", *map(str, args.polish)]
+            done = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "PYTHONPATH": ""})
+            if done.returncode != 0:
+                raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-3000:]}")
+            for line in done.stdout.splitlines():
+                parts = line.split()
+                if len(parts) == 4 and parts[0] in args.settings:  # "1000x5  20  31.1  32.2"
+                    runs[name].setdefault(f"{parts[0]} polish {parts[1]}", []).append(float(parts[2]))
+            print(f"{name:<14} " + "  ".join(f"{k}: {v[-1]:.1f}" for k, v in runs[name].items()), flush=True)
+    for row, after in runs["this checkout"].items():
+        old, new = statistics.median(runs["before"][row]), statistics.median(after)
+        print(f"{row}: {old:.1f} -> {new:.1f} frames/s (medians of {args.pairs}; {new / old:.2f}x)")
     return 0
 
 

@@ -136,7 +136,7 @@ def test_a_race_still_on_when_the_sequence_ends(skel, monkeypatch, still):
                                       .norm(dim=-1).mean()) for t, r in enumerate(out)]))
     plain, ended = errors
     assert plain.min() > 0.1, plain  # turned round
-    if still:  # the search's start stays (tracked back over the 8 frames, still turned round)
+    if still:  # the search's start stays (tracked back over the 12 frames, still turned round)
         assert ended.min() > 0.1, ended
     else:
         assert ended.max() < 0.05, ended

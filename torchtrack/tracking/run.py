@@ -154,12 +154,13 @@ class _Pass:
         except Exception as exc:
             raise self.named(frame, exc) from None
 
-    def named(self, frame: _Frame, exc: Exception) -> Exception:
-        """``exc`` raised while tracking ``frame``, saying where: an input error's message names the sequence and
-        the frame; other (numerical, device) errors get a note."""
+    def named(self, frame: _Frame | str, exc: Exception) -> Exception:
+        """``exc`` raised while tracking ``frame`` (or at the place a string says), saying where: an input error's
+        message names the sequence and the frame; other (numerical, device) errors get a note."""
+        where = frame if isinstance(frame, str) else f"frame {frame.t}"
         if isinstance(exc, InputError):
-            return InputError(f"{self.folder.root}, frame {frame.t}: {exc}")
-        exc.add_note(f"while tracking {self.folder.root}, frame {frame.t}")
+            return InputError(f"{self.folder.root}, {where}: {exc}")
+        exc.add_note(f"while tracking {self.folder.root}, {where}")
         return exc
 
     def _put(self, k: int, res) -> None:  # noqa: ANN001
@@ -194,10 +195,7 @@ class _Pass:
             try:
                 tracker.finish()
             except Exception as exc:
-                if isinstance(exc, InputError):
-                    raise InputError(f"{self.folder.root}, the end of the sequence: {exc}") from None
-                exc.add_note(f"while ending the track of {self.folder.root}")
-                raise
+                raise self.named("the end of the sequence", exc) from None
             self._revise(self.last)
         restate(tracker, self.angles, self.joints3d, self.version)
         if self.step == 1:  # once per folder: from a track of every frame (after passes with a step, one follows)
