@@ -141,7 +141,7 @@ class BoneFitMixin:
         colour, self.colour = self.colour, None  # every blob may explain a ghost's ray, as at initialisation
         try:
             for obs, a in zip(observations, angles):
-                obs = obs.split(BONE_FIT_VOXEL_M)
+                obs = self._without_floor_band(obs).split(BONE_FIT_VOXEL_M)
                 p = self._bone_fit_problem(obs, a.to(self.subject.blobs.semi_axes), start_body, SHAPE_FIT_RIDGE)
                 frames.append(ShapeFrame(p.model, obs.points, obs.sizes, p.weights, obs.volume_m))
         finally:

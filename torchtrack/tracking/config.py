@@ -14,6 +14,10 @@ from torchtrack.skeleton.ik import CCDConfig
 BONE_FITS = ("blobs", "shape")
 #: How the first pose is found (TrackerConfig.start).
 STARTS = ("search", "starfish")
+#: ``floor_band_m: null``: the floor band's height (the lowest layer of the default 3 cm grid) on rigs of at least
+#: FLOOR_BAND_MIN_CAMERAS cameras, off on fewer, where it cost the clean synthetic table more than a floor shadow's
+#: ghost cost the stress table (docs/results.md, "Robustness", the floor band).
+FLOOR_BAND_M, FLOOR_BAND_MIN_CAMERAS = 0.03, 7
 
 
 @dataclass(frozen=True)
@@ -93,6 +97,13 @@ class TrackerConfig:
             contact").
         floor_z_m: the floor's height for the contact (m); None: the soles' height at initialisation (the
             lowest voxels of the starfish frame, or the initial pose's lower toe site).
+        floor_band_m: the voxels whose centres lie less than this above the observed volume's floor get no weight
+            in EM/IK and the bone fits once the start has chosen its pose (:meth:`~torchtrack.tracking.voxels.
+            VoxelObservation.without_floor_band`): a floor shadow that the background takes for foreground is a
+            thin ghost volume there, which pulls the feet into the floor whatever the clothes' colours; the feet
+            keep their voxels above it. The start's choice of pose and the start race keep every voxel (the toes
+            tell a body's front from its back). None (the default): FLOOR_BAND_M on rigs of at least
+            FLOOR_BAND_MIN_CAMERAS cameras, off on fewer; 0: off (docs/results.md, "Robustness", the floor band).
         ghost_weight: factor on the EM weight of ghost voxels, those the predicted body explains in every view
             (:mod:`torchtrack.tracking.ghosts`; 1: off). ``explained`` still counts their full weight.
             ghost_max_cameras: only for rigs of at most this many cameras: from more, the hull holds few ghosts and
@@ -167,6 +178,7 @@ class TrackerConfig:
     blobs: str = "blobs.yaml"
     floor_contact: bool = False
     floor_z_m: float | None = None
+    floor_band_m: float | None = None
     ghost_weight: float = 0.0
     ghost_max_cameras: int = 6
     ghost_inside_scale: float = 1.15
@@ -211,12 +223,21 @@ class TrackerConfig:
         for name in ("ghost_self_scale", "hold_lost_feet", "functional_hips", "velocity_fps"):  # 0: off
             if not (getattr(self, name) >= 0 and math.isfinite(getattr(self, name))):
                 raise InputError(f"TrackerConfig.{name} must be >= 0 and finite (0: off), got {getattr(self, name)}")
+        if self.floor_band_m is not None and not (self.floor_band_m >= 0 and math.isfinite(self.floor_band_m)):
+            raise InputError(f"TrackerConfig.floor_band_m must be >= 0 and finite (0: off) or null, got "
+                             f"{self.floor_band_m}")
         if not 0.0 <= self.hold_min_confidence <= 1.0:
             raise InputError(f"TrackerConfig.hold_min_confidence must be in [0, 1], got {self.hold_min_confidence}")
         if not self.hold_max_step_m > 0:
             raise InputError(f"TrackerConfig.hold_max_step_m must be > 0, got {self.hold_max_step_m}")
         if not 0.0 <= self.velocity <= 1.0:
             raise InputError(f"TrackerConfig.velocity must be in [0, 1], got {self.velocity}")
+
+    def floor_band(self, num_cameras: int) -> float:
+        """The floor band's height (m) on a rig of ``num_cameras`` cameras (``floor_band_m``; 0: off)."""
+        if self.floor_band_m is not None:
+            return float(self.floor_band_m)
+        return FLOOR_BAND_M if num_cameras >= FLOOR_BAND_MIN_CAMERAS else 0.0
 
     @classmethod
     def from_dict(cls, doc: dict[str, Any], source: str = "<config>") -> TrackerConfig:

@@ -312,6 +312,10 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         return FrameResult(self.angles.clone(), fk.output_points[0], torch.zeros(fk.output_points.shape[1]).to(
             self.angles), False, math.nan, 0.0, False, None, fk.bone_frames[0])
 
+    def _without_floor_band(self, obs: VoxelObservation) -> VoxelObservation:
+        """``obs`` with no weight in the floor band of its rig (``TrackerConfig.floor_band_m``)."""
+        return obs.without_floor_band(self.config.floor_band(int(obs.cameras_valid.shape[0])))
+
     def _has_person(self, obs: VoxelObservation) -> bool:
         return obs.num_observed >= self.config.min_voxels and obs.volume_m3() >= self.config.min_volume_m3
 
@@ -370,6 +374,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
             except InputError as exc:  # not a frame to start from: the next one may be
                 self.start_refusals.append(str(exc))
                 return self._invalid()
+        obs = self._without_floor_band(obs)  # the start keeps the floor's voxels (see config)
         if self.angles is not None and self.lost >= self.config.lost_frames:
             return self._reacquire(obs)
         return self.accept(obs, self._track(obs, learn_colour=True,
@@ -383,6 +388,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         if (self._race is not None or self.subject is None or self.angles is None
                 or self.lost >= self.config.lost_frames or not self._has_person(obs)):
             return None
+        obs = self._without_floor_band(obs)
         return obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs
 
     def accept(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:

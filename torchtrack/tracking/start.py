@@ -373,7 +373,10 @@ class StartMixin:
     def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
                       tried: tuple) -> FrameResult:
         """From a start's fit: the bone fit, the checks (the starfish's raised arms only for its start), the
-        colours learnt."""
+        colours learnt. The pose was chosen on every voxel (a floor shadow's ghost may lie in the floor band, but so
+        do the toes, which tell the body's front from its back); the fit and the body from here on without the
+        floor band's (``floor_band_m``)."""
+        obs = self._without_floor_band(obs)
         pts = obs.points
         # the bone fit's rounds explain ghosts away: so does the fit they must improve on
         for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):

@@ -87,6 +87,17 @@ class VoxelObservation:
         z, half = self.points[:, 2], 0.5 * self.sizes.to(self.points.dtype)
         return float(torch.quantile(z - half, 0.002)), float(torch.quantile(z + half, 0.998))
 
+    def without_floor_band(self, band_m: float) -> VoxelObservation:
+        """The voxels whose centres lie less than ``band_m`` above the observed volume's floor given no weight: a
+        floor shadow that the background takes for foreground in every view is a thin ghost volume there, which
+        pulls the feet into the floor (``TrackerConfig.floor_band_m``). The voxels stay (the body's height is still
+        measured from them). As it is where the volume is unknown, ``band_m`` is 0, or it would leave no weight."""
+        if not band_m > 0 or self.volume_m is None or self.num_voxels == 0:
+            return self
+        keep = self.points[:, 2] >= self.volume_m[0][2] + band_m
+        w = self.weights * keep.to(self.weights.dtype)
+        return self if not bool((w > 0).any()) else replace(self, weights=w)
+
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
 
