@@ -150,6 +150,9 @@ def capture(rig, frames: int, seed: int, dev: torch.device) -> tuple:
 
 def seconds_per_frame(step, z: torch.Tensor, frames: int, dev: torch.device) -> float:
     """Seconds a frame of ``step`` over ``z``'s frames 61 to 60 + ``frames`` (frame 60 a warm-up)."""
+    if z.shape[0] < 61 + frames:  # the capture is as long as its C3D file
+        raise SystemExit(f"--frames {frames}: the capture has {z.shape[0] - 61} frames after the subject's fit and "
+                         f"the warm-up; give --frames {z.shape[0] - 61} or fewer")
     step(z[60])
     if dev.type == "cuda":
         torch.cuda.synchronize()

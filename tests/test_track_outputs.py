@@ -41,7 +41,7 @@ def _copy(seq: Path, dest: Path) -> Path:
 def _compare_with_full_rig(poses_path: Path, full_path: Path, seq: Path, first_missing: int,
                            same_images: bool = True) -> None:
     """All frames tracked; before the camera drops out the same track (where its images are the same); after
-    it, within 15 mm of the full rig's track (mean over the frames and landmarks) and within 8 mm as near the
+    it, within 20 mm of the full rig's track (mean over the frames and landmarks) and within 8 mm as near the
     ground truth: seven views carve less than eight, and the tracking grid still forgives one view's miss there."""
     short, full, gt = load_poses(poses_path), load_poses(full_path), load_poses(seq / "gt.npz")
     assert short.valid.all()
@@ -54,7 +54,7 @@ def _compare_with_full_rig(poses_path: Path, full_path: Path, seq: Path, first_m
     print(f"without the camera from frame {first_missing}: {1e3 * d[first_missing:].mean():.1f} mm from the full "
           f"rig's track (worst frame {1e3 * d[first_missing:].max():.1f}); from the truth {1e3 * err[0]:.1f} mm "
           f"against the full rig's {1e3 * err[1]:.1f}")
-    assert d[first_missing:].mean() < 15e-3 and d[first_missing:].max() < 25e-3, d
+    assert d[first_missing:].mean() < 20e-3 and d[first_missing:].max() < 30e-3, d
     assert err[0] < err[1] + 8e-3, err
 
 
