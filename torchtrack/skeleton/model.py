@@ -390,6 +390,7 @@ class _LeanChain:
         # the local rotation R0 (I + sin q K + (1 - cos q) K^2) as R0 + sin q (R0 K) + (1 - cos q) (R0 K^2)
         self.R0K, self.R0K2, self.axis = self.R0 @ K, self.R0 @ K @ K, a
         parent = chain._direct_parent_idx
+        self.parent = parent.to(off.device)  # (F,) each link's parent, -1 for the root
         self.levels = [(_as_slice(lvl.to(off.device)), _as_slice(parent[lvl].to(off.device)), bool(parent[lvl[0]] < 0))
                        for lvl in chain._bfs_levels]
 
@@ -459,8 +460,36 @@ class LockstepBodies:
                  ) -> tuple[torch.Tensor, torch.Tensor]:
         """``angles (Q, N, D)``, N states of each body (of those ``bodies``, a slice or indices) -> the bones'
         rotations ``(nb, 3, 3, Q, N)`` and origins ``(nb, 3, Q, N)`` (world)."""
-        R, t = self.chain(angles, self.origins[:, :, bodies])
+        R, t = self.links(angles, bodies)
         return R[self.bone_index], t[self.bone_index]
+
+    def links(self, angles: torch.Tensor, bodies: slice | torch.Tensor = slice(None)
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`__call__`, every link's frame: ``(F, 3, 3, Q, N)`` and ``(F, 3, Q, N)``."""
+        return self.chain(angles, self.origins[:, :, bodies])
+
+    def dof_axes(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Each DOF's link ``(D,)`` (the link its joint moves), joint axis in that link's frame ``(D, 3)`` and
+        whether it turns ``(D,)`` (else it slides): a DOF turns its link's subtree about the world axis ``R_link
+        axis`` through the link's origin, or slides it along that axis (the link's frame is its joint's, after the
+        joint's own motion, which leaves the axis where it is)."""
+        c = self.chain
+        moving = (c.revolute | c.prismatic).nonzero()[:, 0]
+        link = torch.empty(int(c.joint.max()) + 1, dtype=torch.long, device=moving.device)
+        link[c.joint[moving]] = moving
+        return link, c.axis[link], c.revolute[link]
+
+    def descends(self, link: torch.Tensor) -> torch.Tensor:
+        """``(F, L)``: whether each link lies in the subtree of each of the links ``link (L,)`` (itself included)."""
+        parent = self.chain.parent.tolist()
+        out = torch.zeros(len(parent), len(link), dtype=torch.bool)
+        for j, top in enumerate(link.tolist()):
+            for f in range(len(parent)):
+                g = f
+                while g >= 0 and g != top:
+                    g = parent[g]
+                out[f, j] = g == top
+        return out.to(link.device)
 
 
 @dataclass(frozen=True)

@@ -95,15 +95,16 @@ def _part(name: str) -> int:
     return 0
 
 
-def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 5, points: int = 8) -> torch.Tensor:
+def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points: int = 8) -> torch.Tensor:
     """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
     sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
     evaluates it at ``points`` values of log beta in one tensor operation and keeps the bracket where it crosses
     ``survival``. The first bracket starts where the rate is surely above ``survival`` (every weight at least
     ``survival^(1/2)``: beta = -log(survival) / (2 max(cost - min))) and spans 30 in log beta (a factor of 1e13:
-    then only the costs tied with the least keep a weight): log beta to within 30 / (points - 1)^stages, 2e-3 by
-    default. The weights are summed in float32 (half float64's cost; the rate's rounding is far below the
-    bracket's width). Returns ``(...,)`` float64; 0 where a row's costs are all equal."""
+    then only the costs tied with the least keep a weight), the last (30 / (points - 1)^stages wide, 0.09 by
+    default) is closed by taking log rate as linear in log beta across it: the rate within 1e-3 of ``survival``.
+    The weights are summed in float32 (half float64's cost; the rate's rounding is far below that). Returns
+    ``(...,)`` float64; 0 where a row's costs are all equal."""
     if not 0 < survival < 1:
         raise InputError(f"annealing_beta: survival must be in (0, 1), got {survival}")
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
@@ -121,7 +122,11 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 5, points:
         rate = (w.sum(-1) ** 2 / (n * w.square().sum(-1))).double()  # (..., P), falling along P
         k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
         lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
-    return torch.where(top > 0, (0.5 * (lo + hi)).exp(), 0.0)
+        r_lo, r_hi = rate.gather(-1, k - 1)[..., 0], rate.gather(-1, k)[..., 0]
+    # within the last bracket, log rate taken as linear in log beta
+    drop = (r_lo.log() - r_hi.log()).clamp(min=1e-12)
+    frac = ((r_lo.log() - math.log(survival)) / drop).clamp(0.0, 1.0)
+    return torch.where(top > 0, (lo + frac * (hi - lo)).exp(), 0.0)
 
 
 Generators = torch.Generator | Sequence[torch.Generator]
@@ -210,6 +215,8 @@ class MarkerAPF:
         D, dev = first.num_dofs, first.lower.device  # everything on the skeletons' device
         self.bodies32 = LockstepBodies(self.skeletons, torch.float32, dev)  # the layers' forward kinematics
         self.bodies64 = LockstepBodies(self.skeletons, torch.float64, dev)  # the polish's and the estimates'
+        # the polish's Jacobian in closed form: each DOF's link, axis and kind, and the markers it moves
+        self.dof_link, self.dof_axis, self.dof_turns = self.bodies64.dof_axes()
         # the subjects' markers and cameras, padded to the most of any (a padded marker has no detections, a
         # padded view no epipolar geometry: neither adds to a cost)
         self.num_markers = [m.num_markers for m in self.marker_sets]
@@ -231,6 +238,8 @@ class MarkerAPF:
             self.P[q, :c] = Pq
             self.F[q, :c, :c] = fundamental_matrices(r).to(dev)
         self.subject = torch.arange(Q, device=dev)[:, None]
+        moves = self.bodies64.descends(self.dof_link)  # (F, D)
+        self.marker_moves = moves[self.bodies64.bone_index[self.bone]].to(torch.float64)  # (Q, M, D)
         std = torch.full((D,), config.joint_rad, dtype=torch.float64, device=dev)
         std[:3], std[3:6] = config.root_m, config.root_rad
         self.std = std
@@ -308,6 +317,12 @@ class MarkerAPF:
         subjects (a slice or indices)."""
         bodies = self.bodies32 if angles.dtype == torch.float32 else self.bodies64
         R, t = bodies(angles.to(bodies.origins.dtype), subjects)  # (nb, 3, 3, Q, N), (nb, 3, Q, N)
+        return self._place(R, t, subjects)
+
+    def _place(self, R: torch.Tensor, t: torch.Tensor, subjects: slice | torch.Tensor = slice(None)
+               ) -> torch.Tensor:
+        """The bones' rotations ``(nb, 3, 3, Q, N)`` and origins ``(nb, 3, Q, N)`` of the ``subjects`` -> their
+        markers ``(Q, M, 3, N)`` (:meth:`markers_all`)."""
         bone, offset = self.bone[subjects], self.offset[subjects]
         nb, Q, M, N = R.shape[0], *bone.shape, R.shape[-1]
         rows = (bone * Q + self.subject[:Q]).view(-1)  # each marker's row of (bone, subject) pairs
@@ -385,47 +400,70 @@ class MarkerAPF:
             out[:d.shape[0], q, :d.shape[1], :d.shape[2], :d.shape[3]] = d
         return out
 
+    def _links(self, angles: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every subject's states ``(Q, N, D)`` (float64) -> every link's rotation ``(F, 3, 3, Q, N)`` and origin
+        ``(F, 3, Q, N)``, and the markers ``(Q, M, 3, N)``."""
+        R, t = self.bodies64.links(angles)
+        index = self.bodies64.bone_index
+        return R, t, self._place(R[index], t[index])
+
+    def _marker_jacobian(self, R: torch.Tensor, t: torch.Tensor, markers: torch.Tensor) -> torch.Tensor:
+        """The markers' derivatives by the state ``(Q, M, 3, D)`` at one state of each subject, from its links'
+        rotations ``R (F, 3, 3, Q)``, origins ``t (F, 3, Q)`` and its ``markers (Q, M, 3)``: a turning DOF moves a
+        marker of its subtree by ``w x (x - o)`` (``w`` its world axis, ``o`` its link's origin), a sliding one by
+        ``w``."""
+        w = torch.einsum("dijq,dj->qdi", R[self.dof_link], self.dof_axis.to(R))  # (Q, D, 3)
+        lever = markers[:, :, None] - t[self.dof_link].permute(2, 0, 1)[:, None]  # (Q, M, D, 3)
+        J = torch.where(self.dof_turns[:, None], torch.linalg.cross(w[:, None].expand_as(lever), lever), w[:, None])
+        return (J * self.marker_moves[..., None]).transpose(-1, -2)
+
     def _polish(self, angles: torch.Tensor, score: EpipolarCost, going: torch.Tensor) -> torch.Tensor:
         """Levenberg-Marquardt on the cost's residuals from the filter's estimates ``(Q, D)`` (of the subjects
-        ``going (Q,)``), within the joint limits: the Jacobian by forward differences, each subject's estimate and
-        every column's state in one batch (a single state's autograd, as L-BFGS took it, cost several times as much
-        per step for the same result); each subject damps and stops on its own. Hand-written over scipy's
-        ``least_squares`` because a step is kept only where the true cost falls (each marker's nearest candidate
-        and the outlier cap change under it): scipy's LM and TRF stalled on such frames (docs/results.md,
-        "Marker-based capture")."""
+        ``going (Q,)``), within the joint limits; each subject damps and stops on its own. The Jacobian is the
+        residuals' derivatives by each marker's position (forward differences: a residual depends on its own
+        marker's position alone, so three moves of all markers give them) times the markers' derivatives by the
+        state in closed form (:meth:`_marker_jacobian`), from the links of the step's accepted trial: one forward
+        kinematics a step, of the trials. Hand-written over scipy's ``least_squares`` because a step is kept only
+        where the true cost falls (each marker's nearest candidate and the outlier cap change under it): scipy's LM
+        and TRF stalled on such frames (docs/results.md, "Marker-based capture")."""
         theta = angles.detach().double()
         Q, D = theta.shape
         dev = theta.device
-        moves = torch.cat([torch.zeros(1, D, dtype=theta.dtype, device=dev),
-                           torch.eye(D, dtype=theta.dtype, device=dev) * FD_STEP])  # (D + 1, D)
+        C, M = score.norm2.shape[1], score.norm2.shape[2]
+        moves = torch.cat([torch.zeros(3, 1, dtype=theta.dtype, device=dev),
+                           torch.eye(3, dtype=theta.dtype, device=dev) * FD_STEP], 1)  # (3, 4): none, x, y, z
         eye = torch.eye(D, dtype=theta.dtype, device=dev)
         tries = 10.0 ** torch.arange(DAMPING_TRIES, dtype=theta.dtype, device=dev)  # each step's dampings, in turn
         lam = torch.full((Q,), 1e-3, dtype=theta.dtype, device=dev)
         going = going.to(dev).clone()
-        cost = None
+        R, t, X = self._links(theta[:, None])  # (F, 3, 3, Q, 1), (F, 3, Q, 1), (Q, M, 3, 1)
+        R, t, X = R[..., 0], t[..., 0], X[..., 0]
+        cost = score.cost(X[..., None])[:, 0]  # (Q,)
+        rows = torch.arange(Q, device=dev)
         for _ in range(self.config.polish_steps):
             if not bool(going.any()):
                 break
-            pts = self.markers_all(theta[:, None] + moves)  # (Q, M, 3, D + 1)
-            if cost is None:
-                cost = score.cost(pts[..., :1])[:, 0]  # (Q,)
-            r, _ = score.residuals(pts)  # (Q, D + 1, R), the estimate's nearest candidates
-            J = (r[:, 1:] - r[:, :1]) / FD_STEP  # (Q, D, R)
+            r, _ = score.residuals(X[..., None] + moves)  # (Q, 4, R), the estimate's nearest candidates
+            dr = ((r[:, 1:] - r[:, :1]) / FD_STEP).view(Q, 3, C, M, -1)  # (Q, 3, C, M, A): by the marker's x, y, z
+            J = torch.einsum("qkcma,qmkd->qdcma", dr, self._marker_jacobian(R, t, X)).reshape(Q, D, -1)
             A, g = J @ J.mT, (J @ r[:, 0, :, None])[..., 0]
             # every damping tried at once; each subject takes the least one whose cost falls, as trying them in
             # turn would (a subject none of them lowers stops)
             lams = lam[:, None] * tries  # (Q, T)
             damping = lams[..., None, None] * (torch.diag_embed(A.diagonal(dim1=-2, dim2=-1)) + 1e-9 * eye)[:, None]
             trial = self.clamp(theta[:, None] + torch.linalg.solve(A[:, None] + damping, -g[:, None, :, None])[..., 0])
-            c = score.cost(self.markers_all(trial))  # (Q, T)
+            Rt, tt, Xt = self._links(trial)  # (F, 3, 3, Q, T), (F, 3, Q, T), (Q, M, 3, T)
+            c = score.cost(Xt)  # (Q, T)
             ok = going[:, None] & (c < cost[:, None])
             moved = ok.any(1)
             k = ok.to(torch.uint8).argmax(1)  # the first that fell
-            rows = torch.arange(Q, device=dev)
-            trial_theta = torch.where(moved[:, None], trial[rows, k], theta)
+            theta = torch.where(moved[:, None], trial[rows, k], theta)
+            R = torch.where(moved, Rt[..., rows, k], R)
+            t = torch.where(moved, tt[..., rows, k], t)
+            X = torch.where(moved[:, None, None], Xt[rows, ..., k], X)
             trial_cost = torch.where(moved, c[rows, k], cost)
             converged = cost - trial_cost < POLISH_TOL * cost
-            theta, cost = trial_theta, trial_cost
+            cost = trial_cost
             lam = torch.where(moved, (lams[rows, k] / 10.0).clamp(min=1e-7), lam)
             going = moved & ~converged
         return theta
