@@ -64,10 +64,12 @@ class EpipolarCost:
             where none (subjects of fewer views or markers padded with NaN); (C, M, K, 2): one subject.
         P: (Q, C, 3, 4) pinhole projections (padded views: any finite camera). F: (Q, C, C, 3, 3) fundamental
             matrices (:func:`fundamental_matrices`; zero for a padded view's pairs). Without Q for one subject.
-        outlier_px: see :class:`~torchtrack.tracking.particles.APFConfig`.
+        outlier_px: the cap on each marker's and view pair's distance (pixels; :class:`~torchtrack.tracking.
+            particles.APFConfig`'s ``outlier_rad`` in the rig's pixels): one for all subjects, or each one's ``(Q,)``.
     """
 
-    def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor, outlier_px: float) -> None:
+    def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
+                 outlier_px: float | torch.Tensor) -> None:
         if detections.dim() == 4:  # one subject
             detections, P, F = detections[None], P[None], F[None]
         Q, C, M, K, _ = detections.shape
@@ -81,10 +83,11 @@ class EpipolarCost:
             detections = detections.gather(3, order[..., None].expand(*order.shape, 2))
             K = used
         dtype, dev = detections.dtype, detections.device
-        if not 0 < outlier_px < math.inf:
+        cap = torch.as_tensor(outlier_px, dtype=torch.float64).to(dev).expand(Q)
+        if not bool(((cap > 0) & torch.isfinite(cap)).all()):
             raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
-        self.cap = outlier_px ** 2
-        far_px = max(FAR_PX, 10.0 * outlier_px)  # beyond the cap, whatever it is
+        self.cap = cap.square().to(dtype).view(Q, 1, 1, 1, 1)  # (Q, 1, 1, 1, 1): against (Q, C, M, A, N)
+        far_px = max(FAR_PX, 10.0 * float(cap.max()))  # beyond the cap, whatever it is
         # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
         # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
         A = C - 1

@@ -38,8 +38,10 @@ class APFConfig:
     Attributes:
         particles: particles per layer. layers: annealing layers per frame (the paper's best: 5).
         survival: the survival rate each layer's ``beta`` is set for (effective sample size / particles).
-        outlier_px: a marker's epipolar distance to a view's detections counts at most this much (pixels): a
-            detection farther off is another marker's or a false one.
+        outlier_rad: a marker's epipolar distance to a view's detections counts at most this much, as an angle
+            (radians; times each rig's median focal length in pixels): a detection farther off is another marker's
+            or a false one, or the body model cannot reach it. An angle, not pixels, so that one setting holds for
+            any camera's resolution (0.03: 16 px at 640 x 480, 50 px at 1920 x 1088).
         root_m, root_rad, joint_rad: the first layer's perturbation (standard deviation) of the root's translation,
             its rotation and every joint angle; ``shrink``: each later layer's, as a factor of the one before.
         partitioned: each limb's joints resampled by the limb's own markers (the trunk's by all of them), not whole
@@ -52,7 +54,7 @@ class APFConfig:
     particles: int = 500
     layers: int = 5
     survival: float = 0.5
-    outlier_px: float = 20.0
+    outlier_rad: float = 0.03
     root_m: float = 0.02
     root_rad: float = 0.03
     joint_rad: float = 0.05
@@ -63,8 +65,8 @@ class APFConfig:
 
     def __post_init__(self) -> None:
         if (self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1
-                or not 0 < self.outlier_px < math.inf):
-            raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), finite outlier_px > 0; "
+                or not 0 < self.outlier_rad < math.inf):
+            raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), finite outlier_rad > 0; "
                              f"got {self}")
         if min(self.root_m, self.root_rad, self.joint_rad) < 0 or not 0 < self.shrink <= 1:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
@@ -238,6 +240,8 @@ class MarkerAPF:
             self.P[q, :c] = Pq
             self.F[q, :c, :c] = fundamental_matrices(r).to(dev)
         self.subject = torch.arange(Q, device=dev)[:, None]
+        focal = torch.stack([r.K[:, :2].diagonal(dim1=-2, dim2=-1).double().median().to(dev) for r in self.rigs])
+        self.outlier_px = config.outlier_rad * focal  # (Q,) each subject's outlier cap in its rig's pixels
         moves = self.bodies64.descends(self.dof_link)  # (F, D)
         self.marker_moves = moves[self.bodies64.bone_index[self.bone]].to(torch.float64)  # (Q, M, D)
         std = torch.full((D,), config.joint_rad, dtype=torch.float64, device=dev)
@@ -357,7 +361,7 @@ class MarkerAPF:
         std, lower, upper = self.std, self.lower[subjects, None], self.upper[subjects, None]
         part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
         by_part = self.marker_part[subjects, :, None].expand(q, -1, N)
-        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], cfg.outlier_px)
+        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], self.outlier_px[subjects])
         x = x.float()  # the particles in float32 (a ten-millionth of a radian: far below any spread)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, lower, upper, generator)
@@ -503,7 +507,7 @@ class MarkerAPF:
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, cfg.outlier_px),
+            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, self.outlier_px),
                                     active)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
