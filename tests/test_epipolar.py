@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from conftest import demo_rig
+from torchtrack.checks import InputError
 from torchtrack.tracking.epipolar import (EpipolarCost, epipolar_cost, fundamental_matrices, pinhole_pixels,
                                           projection_matrices)
 
@@ -65,6 +66,28 @@ def test_epipolar_cost_matches_a_plain_loop(tau):
     # a point on the markers' rays costs nothing: the true points against exact detections
     exact = epipolar_cost(truth[None], uv[:, :, None], P, F, tau)
     assert float(exact[0]) < 1e-12
+
+
+def test_each_subjects_own_outlier_cap_is_its_cost_alone():
+    """Three subjects in one cost, each with its own cap (1, 5 and 40 px), against each one's cost alone: the same
+    costs and residuals."""
+    rig = demo_rig()
+    gen = torch.Generator().manual_seed(4)
+    C, M, K, N = rig.num_cameras, 6, 2, 5
+    P, F = projection_matrices(rig), fundamental_matrices(rig)
+    det = torch.rand(3, C, M, K, 2, generator=gen, dtype=torch.float64) * torch.tensor([1000.0, 800.0]) + 300.0
+    pts = torch.rand(3, M, 3, N, generator=gen, dtype=torch.float64) + torch.tensor([-1.0, -0.5, 0.5])[:, None]
+    caps = torch.tensor([1.0, 5.0, 40.0], dtype=torch.float64)
+    both = EpipolarCost(det, P.expand(3, -1, -1, -1), F.expand(3, -1, -1, -1, -1), caps)
+    cost, (res, _) = both.cost(pts), both.residuals(pts)
+    for q in range(3):
+        alone = EpipolarCost(det[q], P, F, float(caps[q]))
+        torch.testing.assert_close(cost[q], alone.cost(pts[q:q + 1])[0], rtol=1e-12, atol=0.0)
+        torch.testing.assert_close(res[q], alone.residuals(pts[q:q + 1])[0][0], rtol=1e-12, atol=0.0)
+    # the first subject's own 1 px cap, not the largest
+    assert not torch.allclose(cost[0], EpipolarCost(det[0], P, F, 40.0).cost(pts[:1])[0])
+    with pytest.raises(InputError):
+        EpipolarCost(det, P.expand(3, -1, -1, -1), F.expand(3, -1, -1, -1, -1), torch.tensor([1.0, 0.0, 2.0]))
 
 
 def test_epipolar_cost_is_kornias_symmetric_distance():

@@ -142,32 +142,39 @@ def test_the_polish_takes_each_subjects_least_damping_as_trying_them_in_turn_doe
 
 def test_the_polishs_jacobian_is_the_markers_derivative_and_holds_dofs_that_move_no_marker():
     """The markers' derivatives by the state in closed form (each DOF turns or slides its subtree) against central
-    differences of the forward kinematics, a plain loop over the DOFs; with no marker on the right foot its ankle
-    moves no marker, and the polish leaves it where it started."""
+    differences of each subject's forward kinematics, a plain loop over the DOFs, for two subjects in lockstep (bodies
+    of other bone lengths, 28 and 13 markers); with no marker on the right foot its ankle moves no marker, and the
+    polish leaves it where it started."""
     from torchtrack.tracking.epipolar import EpipolarCost
     from torchtrack.tracking.particles import MarkerAPF
 
     rig = demo_rig()
     skel = Skeleton.from_urdf().double()
+    small = skel.scaled_to_height(1.55).double()
     gen = torch.Generator().manual_seed(8)
     bones = torch.tensor([b for b in range(len(skel.bone_names)) if skel.bone_names[b] != "r_foot"] * 2)
     M = len(bones)
     mset = MarkerSet(tuple(f"m{i}" for i in range(M)), bones, 0.06 * torch.randn(M, 3, generator=gen,
                                                                                dtype=torch.float64))
-    apf = MarkerAPF(skel, mset, rig, APFConfig(polish_steps=8))
+    few = MarkerSet(mset.names[:13], bones[:13], mset.offset[:13] * 0.8)
+    pair = MarkerAPF([skel, small], [mset, few], [rig, rig], APFConfig(polish_steps=8))
     theta = skel.rest_angles().double()
     theta[:3] = torch.tensor([0.3, -0.2, 0.95])
-    theta = apf.clamp((theta + 0.3 * torch.randn(theta.shape, generator=gen, dtype=torch.float64))[None])
-    R, t, X = apf._links(theta[:, None])
-    got = apf._marker_jacobian(R[..., 0], t[..., 0], X[..., 0])[0]  # (M, 3, D)
+    theta = pair.clamp((theta + 0.3 * torch.randn(2, skel.num_dofs, generator=gen, dtype=torch.float64)))
+    R, t, X = pair._links(theta[:, None])
+    got = pair._marker_jacobian(R[..., 0], t[..., 0], X[..., 0])  # (2, M, 3, D)
     h = 1e-5
-    for d in range(skel.num_dofs):
-        step = torch.zeros_like(theta)
-        step[0, d] = h
-        ref = (apf.markers(theta + step) - apf.markers(theta - step))[0] / (2 * h)  # (M, 3)
-        torch.testing.assert_close(got[..., d], ref, rtol=0, atol=1e-8)
+    for q, m in enumerate((M, 13)):
+        for d in range(skel.num_dofs):
+            step = torch.zeros_like(theta[q])
+            step[d] = h
+            ref = (pair.markers((theta[q] + step)[None], q) - pair.markers((theta[q] - step)[None], q))[0] / (2 * h)
+            torch.testing.assert_close(got[q, :m, :, d], ref, rtol=0, atol=1e-8)
     ankle = skel.dof_names.index("r_ankle_flex")
     assert float(got[..., ankle].abs().max()) == 0.0
+
+    apf = MarkerAPF(skel, mset, rig, APFConfig(polish_steps=8))
+    theta = theta[:1]
 
     X = apf.markers(theta)[0]
     P = projection_matrices(rig)

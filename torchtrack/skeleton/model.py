@@ -475,8 +475,10 @@ class LockstepBodies:
         joint's own motion, which leaves the axis where it is)."""
         c = self.chain
         moving = (c.revolute | c.prismatic).nonzero()[:, 0]
-        link = torch.empty(int(c.joint.max()) + 1, dtype=torch.long, device=moving.device)
+        link = torch.full((int(c.joint.max()) + 1,), -1, dtype=torch.long, device=moving.device)
         link[c.joint[moving]] = moving
+        if bool((link < 0).any()) or len(moving) != len(link):
+            raise InputError("lockstep bodies: a DOF that no joint of the chain moves, or one that two move")
         return link, c.axis[link], c.revolute[link]
 
     def descends(self, link: torch.Tensor) -> torch.Tensor:

@@ -66,10 +66,12 @@ class EpipolarCost:
             matrices (:func:`fundamental_matrices`; zero for a padded view's pairs). Without Q for one subject.
         outlier_px: the cap on each marker's and view pair's distance (pixels; :class:`~torchtrack.tracking.
             particles.APFConfig`'s ``outlier_rad`` in the rig's pixels): one for all subjects, or each one's ``(Q,)``.
+        far_px: the distance of a missing candidate's line from every point (default: ``FAR_PX``, or ten times the
+            largest cap where that is more), given by a caller that checked its caps (no device sync here).
     """
 
     def __init__(self, detections: torch.Tensor, P: torch.Tensor, F: torch.Tensor,
-                 outlier_px: float | torch.Tensor) -> None:
+                 outlier_px: float | torch.Tensor, far_px: float | None = None) -> None:
         if detections.dim() == 4:  # one subject
             detections, P, F = detections[None], P[None], F[None]
         Q, C, M, K, _ = detections.shape
@@ -83,11 +85,13 @@ class EpipolarCost:
             detections = detections.gather(3, order[..., None].expand(*order.shape, 2))
             K = used
         dtype, dev = detections.dtype, detections.device
+        if far_px is None:  # checked here (a caller that gives far_px checked its caps once, without a device sync)
+            caps = torch.as_tensor(outlier_px, dtype=torch.float64).cpu()
+            if not bool(((caps > 0) & torch.isfinite(caps)).all()):
+                raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
+            far_px = max(FAR_PX, 10.0 * float(caps.max()))  # beyond the cap, whatever it is
         cap = torch.as_tensor(outlier_px, dtype=torch.float64).to(dev).expand(Q)
-        if not bool(((cap > 0) & torch.isfinite(cap)).all()):
-            raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
         self.cap = cap.square().to(dtype).view(Q, 1, 1, 1, 1)  # (Q, 1, 1, 1, 1): against (Q, C, M, A, N)
-        far_px = max(FAR_PX, 10.0 * float(cap.max()))  # beyond the cap, whatever it is
         # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
         # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
         A = C - 1
@@ -175,7 +179,8 @@ def epipolar_cost(points: torch.Tensor, detections: torch.Tensor, P: torch.Tenso
         points: (B, M, 3) the model markers of B states (world, m).
         detections: (C, M, K, 2) each marker's candidate detections per view in pinhole pixels, NaN where none.
         P: (C, 3, 4) pinhole projections. F: (C, C, 3, 3) fundamental matrices (:func:`fundamental_matrices`).
-        outlier_px: see :class:`~torchtrack.tracking.particles.APFConfig`.
+        outlier_px: the cap in pixels (:class:`~torchtrack.tracking.particles.APFConfig`'s ``outlier_rad`` times
+            the rig's focal length).
 
     Returns:
         (B,) the sum over markers m and ordered pairs of views i != j of ``min(outlier_px^2, min_k d(z_mik,

@@ -26,7 +26,7 @@ from torch import nn
 from torchtrack.checks import InputError, check_shape
 from torchtrack.markers.model import MarkerSet
 from torchtrack.skeleton.model import LockstepBodies, Skeleton
-from torchtrack.tracking.epipolar import EpipolarCost, fundamental_matrices, projection_matrices
+from torchtrack.tracking.epipolar import FAR_PX, EpipolarCost, fundamental_matrices, projection_matrices
 
 __all__ = ["APFConfig", "MarkerAPF", "annealing_beta", "resample", "truncated_normal"]
 
@@ -104,7 +104,8 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     ``survival``. The first bracket starts where the rate is surely above ``survival`` (every weight at least
     ``survival^(1/2)``: beta = -log(survival) / (2 max(cost - min))) and spans 30 in log beta (a factor of 1e13:
     then only the costs tied with the least keep a weight), the last (30 / (points - 1)^stages wide, 0.09 by
-    default) is closed by taking log rate as linear in log beta across it: the rate within 1e-3 of ``survival``.
+    default) is closed by taking log rate as linear in log beta across it: the rate within about 1e-3 of
+    ``survival``.
     The weights are summed in float32 (half float64's cost; the rate's rounding is far below that). Returns
     ``(...,)`` float64; 0 where a row's costs are all equal."""
     if not 0 < survival < 1:
@@ -242,6 +243,7 @@ class MarkerAPF:
         self.subject = torch.arange(Q, device=dev)[:, None]
         focal = torch.stack([r.K[:, :2].diagonal(dim1=-2, dim2=-1).double().median().to(dev) for r in self.rigs])
         self.outlier_px = config.outlier_rad * focal  # (Q,) each subject's outlier cap in its rig's pixels
+        self.far_px = max(FAR_PX, 10.0 * float(self.outlier_px.max()))  # EpipolarCost's, checked once here
         moves = self.bodies64.descends(self.dof_link)  # (F, D)
         self.marker_moves = moves[self.bodies64.bone_index[self.bone]].to(torch.float64)  # (Q, M, D)
         std = torch.full((D,), config.joint_rad, dtype=torch.float64, device=dev)
@@ -361,7 +363,7 @@ class MarkerAPF:
         std, lower, upper = self.std, self.lower[subjects, None], self.upper[subjects, None]
         part = self.dof_part if cfg.partitioned else torch.zeros_like(self.dof_part)  # the row each DOF takes
         by_part = self.marker_part[subjects, :, None].expand(q, -1, N)
-        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], self.outlier_px[subjects])
+        score = EpipolarCost(detections, self.P[subjects], self.F[subjects], self.outlier_px[subjects], self.far_px)
         x = x.float()  # the particles in float32 (a ten-millionth of a radian: far below any spread)
         for _ in range(cfg.layers):
             x = truncated_normal(x, std, lower, upper, generator)
@@ -507,7 +509,8 @@ class MarkerAPF:
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, self.outlier_px),
+            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, self.outlier_px,
+                                                            self.far_px),
                                     active)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
