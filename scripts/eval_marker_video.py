@@ -10,6 +10,7 @@ markers`) and scores:
 - the track: MMTA (50 mm) and MMTP against the balls' true centres, frames lost, seconds per frame.
 
     .venv/bin/python scripts/eval_marker_video.py [--cases NAME ...] [--work out/eval_marker_video]
+        [--apf FIELD=VALUE ...]
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from torchtrack.checks import InputError, with_overrides  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.markers2d import save_markers2d  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
@@ -33,6 +35,7 @@ from torchtrack.io.poses import load_poses, save_poses  # noqa: E402
 from torchtrack.io.sequence import SequenceFolder  # noqa: E402
 from torchtrack.markers.detect import detect_blobs, detect_sequence, read_marker_labels  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
+from torchtrack.tracking.particles import APFConfig  # noqa: E402
 from torchtrack.synth.markers import MarkerStyle  # noqa: E402
 from torchtrack.synth.scene import SceneConfig  # noqa: E402
 from torchtrack.synth.sequence import RigConfig, SynthConfig, is_current, write_sequence  # noqa: E402
@@ -80,7 +83,13 @@ def main() -> int:
     ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     ap.add_argument("--duration", type=float, default=2.0, help="seconds of motion after the starfish (default: 2)")
     ap.add_argument("--work", type=Path, default=Path("out/eval_marker_video"), help="rendered sequences, tracks")
+    ap.add_argument("--apf", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="the filter's settings (APFConfig fields), e.g. outlier_rad=0.012 (default: as `track`)")
     args = ap.parse_args()
+    try:
+        apf = with_overrides(APFConfig(), args.apf, "--apf")
+    except InputError as exc:
+        ap.error(str(exc))
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_marker_video.py", empty=False)
     print(f"{'case':<20} {'frames':>6} {'found%':>7} {'err px':>6} {'false':>6} {'first%':>7} {'MMTA@50':>8} "
@@ -99,7 +108,7 @@ def main() -> int:
         seen = gt["marker_pixels"][:, :, idx] >= 4
         first = np.linalg.norm(data.uv[..., 0, :] - gt["marker_uv"][:, :, idx], axis=-1) < 3
         t0 = time.perf_counter()
-        result = track_markers(folder, progress=False)
+        result = track_markers(folder, apf, progress=False)
         seconds = time.perf_counter() - t0
         save_poses(result.poses, folder / "poses.npz")
         rep = evaluate(result.poses, load_poses(folder / "gt.npz"))

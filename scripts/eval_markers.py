@@ -9,6 +9,7 @@ With ``--seeds N`` each row is run N times, the detections and the filter drawn 
 mean and the worst of the runs printed after them: the filter is chaotic, and one seed's MMTA moves by a few points.
 
     .venv/bin/python scripts/eval_markers.py [--captures NAME ...] [--fps 30] [--duration S] [--seeds N]
+        [--apf FIELD=VALUE ...]
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import torch
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from torchtrack.checks import InputError, with_overrides  # noqa: E402
 from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
@@ -31,6 +33,7 @@ from torchtrack.io.poses import save_poses  # noqa: E402
 from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
+from torchtrack.tracking.particles import APFConfig  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
 CAPTURES = {"cmu85_02": DATA / "mocap" / "cmu" / "85_02.c3d",
@@ -48,7 +51,13 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=None, help="seconds of each capture (default: all)")
     ap.add_argument("--work", type=Path, default=Path("out/eval_markers"), help="simulated captures and tracks")
     ap.add_argument("--seeds", type=int, default=1, help="runs of each row, seeds 0 to N - 1 (default: 1)")
+    ap.add_argument("--apf", nargs="*", default=[], metavar="FIELD=VALUE",
+                    help="the filter's settings (APFConfig fields), e.g. outlier_rad=0.012 (default: as `track`)")
     args = ap.parse_args()
+    try:
+        apf = with_overrides(APFConfig(), args.apf, "--apf")
+    except InputError as exc:
+        ap.error(str(exc))
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_markers.py", empty=False)
     rig = load_calibration(RIG, warn_units=False)
@@ -62,7 +71,7 @@ def main() -> int:
                                                seed=seed)
                 folder = write_marker_capture(work / f"{name}_{setting}" / f"seed{seed}", rig, det, truth)
                 t0 = time.perf_counter()
-                result = track_markers(folder, seed=seed, progress=False)
+                result = track_markers(folder, apf, seed=seed, progress=False)
                 seconds = time.perf_counter() - t0
                 save_poses(result.poses, folder / "poses.npz")
                 rep = evaluate(result.poses, truth)

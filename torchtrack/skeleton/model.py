@@ -390,7 +390,9 @@ class _LeanChain:
         # the local rotation R0 (I + sin q K + (1 - cos q) K^2) as R0 + sin q (R0 K) + (1 - cos q) (R0 K^2)
         self.R0K, self.R0K2, self.axis = self.R0 @ K, self.R0 @ K @ K, a
         parent = chain._direct_parent_idx
-        self.parent = parent.to(off.device)  # (F,) each link's parent, -1 for the root
+        # (F, depth) each link's chain from the root to itself (pytorch-kinematics' parents_indices), -1 padded
+        self.ancestors = torch.nn.utils.rnn.pad_sequence(list(chain.parents_indices), batch_first=True,
+                                                         padding_value=-1).to(off.device)
         self.levels = [(_as_slice(lvl.to(off.device)), _as_slice(parent[lvl].to(off.device)), bool(parent[lvl[0]] < 0))
                        for lvl in chain._bfs_levels]
 
@@ -483,15 +485,7 @@ class LockstepBodies:
 
     def descends(self, link: torch.Tensor) -> torch.Tensor:
         """``(F, L)``: whether each link lies in the subtree of each of the links ``link (L,)`` (itself included)."""
-        parent = self.chain.parent.tolist()
-        out = torch.zeros(len(parent), len(link), dtype=torch.bool)
-        for j, top in enumerate(link.tolist()):
-            for f in range(len(parent)):
-                g = f
-                while g >= 0 and g != top:
-                    g = parent[g]
-                out[f, j] = g == top
-        return out.to(link.device)
+        return (self.chain.ancestors[:, :, None] == link.to(self.chain.ancestors.device)).any(1)
 
 
 @dataclass(frozen=True)
