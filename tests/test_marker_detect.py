@@ -253,5 +253,10 @@ def test_marker_track_logs_what_it_saw_to_tensorboard(marker_video, tmp_path):
     uv = data.uv[event.step, 0].reshape(-1, 2)
     uv = uv[np.isfinite(uv).all(-1)]
     assert len(uv) > 5
-    px = image[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int)]
-    assert (px.min(-1) > 200).mean() > 0.9  # white dots at the detections
+    # white dots at the detections (each dot 5 px across; another marker's ring, 1 px wide, may cross its centre)
+    u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+    white = image.min(-1) > 200
+    H, W = white.shape
+    near = np.stack([white[np.clip(v + dv, 0, H - 1), np.clip(u + du, 0, W - 1)] for dv in (-1, 0, 1)
+                     for du in (-1, 0, 1)], -1)
+    assert near.any(-1).mean() > 0.9

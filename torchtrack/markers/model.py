@@ -2,18 +2,21 @@
 
 Fitted from 3D markers over some frames (a static trial or a capture's first frames) and the skeleton's poses in
 them: each marker is given to the bone it moves with most rigidly (the least spread of its position in the bone's
-frame over the frames), at its mean position there; then the poses are fitted to the markers (inverse kinematics
-on all frames at once) and the markers given again, a few rounds. No marker-set template is needed: any labelled
-set works.
+frame over the frames), at its mean position there; among bones it moves with equally rigidly (within
+``RIGID_TOL_M``: a still start moves a thigh marker with the pelvis too), to the one whose flesh it lies on (the
+body's blobs, ``configs/blobs.yaml``). Then the poses are fitted to the markers (inverse kinematics on all frames
+at once) and the markers given again, a few rounds. No marker-set template is needed: any labelled set works.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
 
+from torchtrack.blobs.model import BlobModel
 from torchtrack.checks import InputError, check_shape
 from torchtrack.skeleton.model import Skeleton, fit_states
 
@@ -22,6 +25,10 @@ __all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_marker
 #: A marker takes part in the joint centres where it is seen in at least this share of the fitting frames (markers
 #: triangulated from detections are missing wherever fewer than two views found them; gaps are interpolated).
 MIN_PRESENT = 0.2
+#: Bones whose RMS spread of a marker lies within this of the least are equally rigid for it (about the
+#: triangulated markers' noise); the marker then goes to the one whose flesh holds it (docs/results.md, "Marker-based
+#: capture").
+RIGID_TOL_M = 0.005
 
 
 @dataclass(frozen=True)
@@ -54,9 +61,13 @@ class MarkerSet:
         return (T[..., :3, :3] @ self.offset.to(T)[..., None])[..., 0] + T[..., :3, 3]
 
 
-def assign_markers(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tensor, names: Sequence[str]
-                   ) -> tuple[MarkerSet, torch.Tensor]:
-    """Each marker to the bone in whose frame it moves least over the frames, at its mean position there.
+def assign_markers(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tensor, names: Sequence[str],
+                   blobs: BlobModel | None = None) -> tuple[MarkerSet, torch.Tensor]:
+    """Each marker to the bone in whose frame it moves least over the frames, at its mean position there; among
+    the bones within ``RIGID_TOL_M`` of that least RMS spread, to the one whose blobs (``blobs``, default: the
+    skeleton's built-in :class:`~torchtrack.blobs.model.BlobModel`) it lies deepest in (the least normalised radius,
+    1 on a blob's surface): over frames where the body holds still, a marker on the thigh moves with the pelvis as
+    rigidly as with the thigh.
 
     Args:
         angles: (T, D) the skeleton's poses. markers: (T, M, 3) world positions, NaN where missing.
@@ -83,7 +94,17 @@ def assign_markers(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tens
     n = seen.sum(0).to(frames)  # (M,)
     mean = (local * w).sum(0) / n[None, :, None]  # (nb, M, 3)
     spread = (((local - mean) ** 2) * w).sum((0, 3)) / n  # (nb, M) mean squared distance from the mean
-    best = spread.argmin(0)  # (M,)
+    # the bones it moves with as rigidly as with the best, and its place among each one's blobs
+    rms = spread.sqrt()
+    rigid = rms <= rms.amin(0, keepdim=True) + RIGID_TOL_M  # (nb, M)
+    blobs = BlobModel.from_config(skeleton) if blobs is None else blobs
+    k = blobs.bone_of_blob.to(frames.device)
+    q = torch.einsum("kji,kmj->kmi", blobs.R_bone_blob.to(frames), mean[k] - blobs.offset_local.to(frames)[:, None])
+    radius = (q / blobs.semi_axes.to(frames)[:, None]).norm(dim=-1)  # (K, M): 1 on the blob's surface
+    deepest = torch.full_like(rms, math.inf).scatter_reduce(0, k[:, None].expand(-1, M), radius, "amin")  # (nb, M)
+    deepest = torch.where(rigid, deepest, math.inf)
+    # a marker none of whose rigid bones has a blob: the least spread
+    best = torch.where(torch.isfinite(deepest).any(0), deepest.argmin(0), spread.argmin(0))  # (M,)
     idx = torch.arange(M)
     return (MarkerSet(tuple(names), best.cpu(), mean[best, idx].float().cpu()),
             spread[best, idx].sqrt().float().cpu())
