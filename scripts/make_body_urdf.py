@@ -1,5 +1,8 @@
 #!/usr/bin/env python
-"""Write configs/body.urdf: the human body chain for a 1.75 m subject (regenerate after editing the tables).
+"""Write configs/body.urdf: the human body chain for a 1.75 m subject (regenerate after editing the tables); with
+``--girdle``, configs/body_girdle.urdf, the same with a shoulder girdle (the marker tracker's skeleton).
+
+    .venv/bin/python scripts/make_body_urdf.py [OUT] [--girdle]
 
 Rest pose (all angles zero): standing upright, facing +X, left towards +Y, arms hanging down; the root
 translation is the pelvis (mid-hip) position, so a standing subject has root_tz = 0.93 (see meta in the file).
@@ -40,9 +43,20 @@ BONES = [
         ("neck_twist", (0, 0, 1), (-1.2, 1.2)),
     ]),
 ]
+#: The shoulder girdle of the marker skeleton (``--girdle``): the shoulder joint carried by a clavicle turning at
+#: the sternoclavicular joint, a fifth of the way out to the shoulder (elevation about the forward axis,
+#: protraction about the vertical).
+GIRDLE_MEDIAL = 0.2
+GIRDLE = "--girdle" in sys.argv
 for side, s in (("l", 1), ("r", -1)):
+    if GIRDLE:
+        BONES += [(f"{side}_clavicle", "torso", (0.0, s * 0.19 * GIRDLE_MEDIAL, 0.38), [
+            (f"{side}_shoulder_elev", (s, 0, 0), (-0.2, 0.5)),
+            (f"{side}_shoulder_prot", (0, 0, -s), (-0.4, 0.4)),
+        ])]
     BONES += [
-        (f"{side}_upperarm", "torso", (0.0, s * 0.19, 0.38), [
+        (f"{side}_upperarm", f"{side}_clavicle" if GIRDLE else "torso",
+         (0.0, s * 0.19 * (1 - GIRDLE_MEDIAL), 0.0) if GIRDLE else (0.0, s * 0.19, 0.38), [
             (f"{side}_shoulder_flex", (0, -1, 0), (-1.0, 3.1)),
             (f"{side}_shoulder_abd", (s, 0, 0), (-0.3, 3.1)),
             (f"{side}_shoulder_twist", (0, 0, s), (-1.5, 1.5)),
@@ -123,6 +137,8 @@ def build() -> str:
 
 
 if __name__ == "__main__":
-    out = Path(sys.argv[1]) if len(sys.argv) > 1 else Path(__file__).resolve().parents[1] / "configs" / "body.urdf"
+    args = [a for a in sys.argv[1:] if a != "--girdle"]
+    name = "body_girdle.urdf" if GIRDLE else "body.urdf"
+    out = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "configs" / name
     out.write_text(build())
     print(f"wrote {out}")

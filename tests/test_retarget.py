@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -28,6 +30,47 @@ def test_recovers_known_poses_of_a_differently_sized_subject():
                                  "r_foot", "r_toe", "head", "head_top", "l_upperarm", "l_forearm", "l_hand",
                                  "l_hand_tip", "r_upperarm", "r_forearm", "r_hand", "r_hand_tip")}
     res = retarget_positions(skel, joints, list(subject.joint_names), mapping=mapping, iterations=600)
+    assert res.skeleton.height() == pytest.approx(subject.height(), abs=0.02)
+    assert float(res.residual_m.mean()) < 0.01
+    assert float(res.residual_m.max()) < 0.05
+
+
+def test_the_marker_skeletons_shoulder_girdle():
+    """The marker skeleton (``configs/body_girdle.urdf``) is the body with a clavicle per side: raising it by e
+    lifts the shoulder by L sin e about the pivot, bringing it forward by p moves it forward by L sin p (L the
+    clavicle, pivot to shoulder: closed forms); and a subject of that chain at another size, its girdle at rest and
+    the other joints in known poses, is reproduced by the retarget, which places the pivot and the shoulder from
+    the source's medians."""
+    from torchtrack.markers.model import MARKER_URDF
+    from torchtrack.resources import config_path
+
+    girdle = Skeleton.from_urdf(config_path(MARKER_URDF))
+    assert girdle.num_dofs == Skeleton.from_urdf().num_dofs + 4
+    L = girdle.joint_origin("l_shoulder_flex")[1]
+    shoulder = list(girdle.joint_names).index("l_upperarm")
+    rest = girdle.rest_angles().double()
+    at_rest = girdle(rest[None]).joints[0, shoulder]
+    for dof, axis in (("l_shoulder_elev", 2), ("l_shoulder_prot", 0)):
+        moved = rest.clone()
+        moved[girdle.dof_names.index(dof)] = 0.3
+        delta = girdle(moved[None]).joints[0, shoulder] - at_rest
+        assert float(delta[axis]) == pytest.approx(L * math.sin(0.3), abs=1e-6)
+        assert float(delta[1]) == pytest.approx(-L * (1 - math.cos(0.3)), abs=1e-6)  # towards the pivot
+    subject = girdle.scaled_to_height(1.62)
+    g = torch.Generator().manual_seed(5)
+    T = 12
+    angles = subject.rest_angles().expand(T, -1).clone()
+    angles[:, 0:2] = torch.rand(T, 2, generator=g) - 0.5
+    angles[:, 3] = 2 * torch.rand(T, generator=g) - 1
+    inner = torch.rand(T, subject.num_dofs - 6, generator=g)
+    span = (subject.upper - subject.lower)[6:]
+    angles[:, 6:] = subject.lower[6:] + span * (0.4 + 0.2 * inner)
+    angles[:, [subject.dof_names.index(f"{s}_shoulder_{k}") for s in "lr" for k in ("elev", "prot")]] = 0.0
+    joints = subject(angles.double()).joints
+    mapping = {n: (n,) for n in ("pelvis", "l_thigh", "l_shank", "l_foot", "l_toe", "r_thigh", "r_shank",
+                                 "r_foot", "r_toe", "head", "head_top", "l_upperarm", "l_forearm", "l_hand",
+                                 "l_hand_tip", "r_upperarm", "r_forearm", "r_hand", "r_hand_tip")}
+    res = retarget_positions(girdle, joints, list(subject.joint_names), mapping=mapping, iterations=600)
     assert res.skeleton.height() == pytest.approx(subject.height(), abs=0.02)
     assert float(res.residual_m.mean()) < 0.01
     assert float(res.residual_m.max()) < 0.05

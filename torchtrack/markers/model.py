@@ -18,10 +18,15 @@ import torch
 
 from torchtrack.blobs.model import BlobModel
 from torchtrack.checks import InputError, check_shape
+from torchtrack.resources import config_path
 from torchtrack.skeleton.model import Skeleton, fit_states
 
 __all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_markers", "subject_from_markers"]
 
+#: The marker skeleton: ``configs/body.urdf`` with a shoulder girdle (each shoulder joint carried by a clavicle
+#: that elevates and protracts; ``scripts/make_body_urdf.py --girdle``): markers at the shoulders follow it, which
+#: the 32 joints cannot (docs/results.md, "Marker-based capture").
+MARKER_URDF = "body_girdle.urdf"
 #: A marker takes part in the joint centres where it is seen in at least this share of the fitting frames (markers
 #: triangulated from detections are missing wherever fewer than two views found them; gaps are interpolated).
 MIN_PRESENT = 0.2
@@ -142,10 +147,10 @@ def fit_marker_set(skeleton: Skeleton, angles: torch.Tensor, markers: torch.Tens
 def subject_from_markers(markers: torch.Tensor, names: Sequence[str], fps: float, rounds: int = 3,
                          source: str = "the markers") -> tuple[Skeleton, MarkerSet, torch.Tensor]:
     """A subject from its labelled 3D markers over some frames ``(T, M, 3)`` (world, m; NaN where missing): the
-    skeleton scaled to the joint centres that the common marker sets give (CMU, Plug-in-Gait, Motion Analysis:
-    :func:`~torchtrack.synth.c3d_motion.joint_centres`), its poses retargeted onto them, then the marker set
-    (:func:`fit_marker_set`). Returns the skeleton, the marker set and the frames' poses ``(T, D)``; errors name
-    ``source``."""
+    skeleton (:data:`MARKER_URDF`) scaled to the joint centres that the common marker sets give (CMU, Plug-in-Gait,
+    Motion Analysis: :func:`~torchtrack.synth.c3d_motion.joint_centres`), its poses retargeted onto them, then the
+    marker set (:func:`fit_marker_set`). Returns the skeleton, the marker set and the frames' poses ``(T, D)``;
+    errors name ``source``."""
     import numpy as np
 
     from torchtrack.io.c3d import C3D
@@ -158,6 +163,6 @@ def subject_from_markers(markers: torch.Tensor, names: Sequence[str], fps: float
     cnames = sorted(centres)
     pos = torch.from_numpy(np.stack([centres[k] for k in cnames], 1))
     mapping = {ours: src for ours, src in C3D_JOINT_MAP.items() if all(s in cnames for s in src)}
-    ret = retarget_positions(Skeleton.from_urdf(), pos, cnames, mapping)
+    ret = retarget_positions(Skeleton.from_urdf(config_path(MARKER_URDF)), pos, cnames, mapping)
     marker_set, angles = fit_marker_set(ret.skeleton, ret.angles.double(), markers.double(), names, rounds)
     return ret.skeleton, marker_set, angles

@@ -279,7 +279,8 @@ def _marker_track(s: MarkerSequence, A: torch.Tensor, spread: torch.Tensor, rest
                   confidence=np.ones((T, len(s.skeleton.output_names)), dtype=np.float32),
                   marker_names=list(s.det.marker_names), markers3d=markers3d.float().numpy(),
                   extra={"particle_spread_m": spread.numpy().astype(np.float32),
-                         "reinitialised": restarted.numpy().astype(bool)})
+                         "reinitialised": restarted.numpy().astype(bool),
+                         "body_urdf": np.asarray(s.skeleton.urdf_text)})
     return MarkerTrack(poses, seconds)
 
 

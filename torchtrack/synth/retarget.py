@@ -114,7 +114,13 @@ def _scaled_skeleton(skel: Skeleton, ours: list[str], target: torch.Tensor) -> S
             origins[f"{s}_hip_flex"] = tuple(float(v) for v in rel[f"{s}_thigh"])
             if f"{s}_upperarm" in rel:
                 x, y, z = (float(v) for v in rel[f"{s}_upperarm"])
-                origins[f"{s}_shoulder_flex"] = (x, y, torso + z)
+                if f"{s}_shoulder_elev" in skel.dof_names:  # a shoulder girdle: its pivot medial, the shoulder out
+                    medial = skel.joint_origin(f"{s}_shoulder_elev")[1]
+                    share = medial / (medial + skel.joint_origin(f"{s}_shoulder_flex")[1])
+                    origins[f"{s}_shoulder_elev"] = (x, share * y, torso + z)
+                    origins[f"{s}_shoulder_flex"] = (0.0, (1 - share) * y, 0.0)
+                else:
+                    origins[f"{s}_shoulder_flex"] = (x, y, torso + z)
         skel = skel.with_joint_origins(origins)
     lengths = {}
     for bone, (a, b) in _LIMBS.items():
