@@ -42,9 +42,9 @@ def test_the_marker_skeletons_shoulder_girdle():
     the other joints in known poses, is reproduced by the retarget, which places the pivot and the shoulder from
     the source's medians."""
     from torchtrack.markers.model import MARKER_URDF
-    from torchtrack.resources import config_path
+    from torchtrack.resources import builtin_config
 
-    girdle = Skeleton.from_urdf(config_path(MARKER_URDF))
+    girdle = Skeleton.from_urdf(builtin_config(MARKER_URDF))
     assert girdle.num_dofs == Skeleton.from_urdf().num_dofs + 4
     L = girdle.joint_origin("l_shoulder_flex")[1]
     shoulder = list(girdle.joint_names).index("l_upperarm")

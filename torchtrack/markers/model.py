@@ -18,7 +18,7 @@ import torch
 
 from torchtrack.blobs.model import BlobModel
 from torchtrack.checks import InputError, check_shape
-from torchtrack.resources import config_path
+from torchtrack.resources import builtin_config
 from torchtrack.skeleton.model import Skeleton, fit_states
 
 __all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_markers", "subject_from_markers"]
@@ -163,6 +163,6 @@ def subject_from_markers(markers: torch.Tensor, names: Sequence[str], fps: float
     cnames = sorted(centres)
     pos = torch.from_numpy(np.stack([centres[k] for k in cnames], 1))
     mapping = {ours: src for ours, src in C3D_JOINT_MAP.items() if all(s in cnames for s in src)}
-    ret = retarget_positions(Skeleton.from_urdf(config_path(MARKER_URDF)), pos, cnames, mapping)
+    ret = retarget_positions(Skeleton.from_urdf(builtin_config(MARKER_URDF)), pos, cnames, mapping)
     marker_set, angles = fit_marker_set(ret.skeleton, ret.angles.double(), markers.double(), names, rounds)
     return ret.skeleton, marker_set, angles
