@@ -13,26 +13,39 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.retarget import retarget_positions
 
 
-def test_recovers_known_poses_of_a_differently_sized_subject():
-    """Source = our own chain with other proportions in known poses: the fit must reproduce the points."""
-    skel = Skeleton.from_urdf()
-    subject = skel.scaled_to_height(1.62).with_bone_lengths({"l_thigh": 0.40, "r_thigh": 0.40})
-    g = torch.Generator().manual_seed(3)
-    T = 12
+#: Our joints the known-pose tests map onto the source's joints of the same name.
+OWN_JOINTS = ("pelvis", "l_thigh", "l_shank", "l_foot", "l_toe", "r_thigh", "r_shank", "r_foot", "r_toe", "head",
+              "head_top", "l_upperarm", "l_forearm", "l_hand", "l_hand_tip", "r_upperarm", "r_forearm", "r_hand",
+              "r_hand_tip")
+
+
+def _known_poses(subject: Skeleton, seed: int, T: int = 12) -> torch.Tensor:
+    """(T, D) poses of ``subject``: placed and turned at random, every joint in the middle fifth of its range."""
+    g = torch.Generator().manual_seed(seed)
     angles = subject.rest_angles().expand(T, -1).clone()
     angles[:, 0:2] = torch.rand(T, 2, generator=g) - 0.5
     angles[:, 3] = 2 * torch.rand(T, generator=g) - 1  # yaw
     inner = torch.rand(T, subject.num_dofs - 6, generator=g)
     span = (subject.upper - subject.lower)[6:]
     angles[:, 6:] = subject.lower[6:] + span * (0.4 + 0.2 * inner)  # mid-range poses
+    return angles
+
+
+def _reproduces(skel: Skeleton, subject: Skeleton, angles: torch.Tensor) -> None:
+    """``skel`` retargeted onto ``subject``'s joints in ``angles`` reproduces its height and the points."""
     joints = subject(angles.double()).joints  # (T, 22, 3)
-    mapping = {n: (n,) for n in ("pelvis", "l_thigh", "l_shank", "l_foot", "l_toe", "r_thigh", "r_shank",
-                                 "r_foot", "r_toe", "head", "head_top", "l_upperarm", "l_forearm", "l_hand",
-                                 "l_hand_tip", "r_upperarm", "r_forearm", "r_hand", "r_hand_tip")}
-    res = retarget_positions(skel, joints, list(subject.joint_names), mapping=mapping, iterations=600)
+    res = retarget_positions(skel, joints, list(subject.joint_names), mapping={n: (n,) for n in OWN_JOINTS},
+                             iterations=600)
     assert res.skeleton.height() == pytest.approx(subject.height(), abs=0.02)
     assert float(res.residual_m.mean()) < 0.01
     assert float(res.residual_m.max()) < 0.05
+
+
+def test_recovers_known_poses_of_a_differently_sized_subject():
+    """Source = our own chain with other proportions in known poses: the fit must reproduce the points."""
+    skel = Skeleton.from_urdf()
+    subject = skel.scaled_to_height(1.62).with_bone_lengths({"l_thigh": 0.40, "r_thigh": 0.40})
+    _reproduces(skel, subject, _known_poses(subject, 3))
 
 
 def test_the_marker_skeletons_shoulder_girdle():
@@ -57,23 +70,9 @@ def test_the_marker_skeletons_shoulder_girdle():
         assert float(delta[axis]) == pytest.approx(L * math.sin(0.3), abs=1e-6)
         assert float(delta[1]) == pytest.approx(-L * (1 - math.cos(0.3)), abs=1e-6)  # towards the pivot
     subject = girdle.scaled_to_height(1.62)
-    g = torch.Generator().manual_seed(5)
-    T = 12
-    angles = subject.rest_angles().expand(T, -1).clone()
-    angles[:, 0:2] = torch.rand(T, 2, generator=g) - 0.5
-    angles[:, 3] = 2 * torch.rand(T, generator=g) - 1
-    inner = torch.rand(T, subject.num_dofs - 6, generator=g)
-    span = (subject.upper - subject.lower)[6:]
-    angles[:, 6:] = subject.lower[6:] + span * (0.4 + 0.2 * inner)
+    angles = _known_poses(subject, 5)
     angles[:, [subject.dof_names.index(f"{s}_shoulder_{k}") for s in "lr" for k in ("elev", "prot")]] = 0.0
-    joints = subject(angles.double()).joints
-    mapping = {n: (n,) for n in ("pelvis", "l_thigh", "l_shank", "l_foot", "l_toe", "r_thigh", "r_shank",
-                                 "r_foot", "r_toe", "head", "head_top", "l_upperarm", "l_forearm", "l_hand",
-                                 "l_hand_tip", "r_upperarm", "r_forearm", "r_hand", "r_hand_tip")}
-    res = retarget_positions(girdle, joints, list(subject.joint_names), mapping=mapping, iterations=600)
-    assert res.skeleton.height() == pytest.approx(subject.height(), abs=0.02)
-    assert float(res.residual_m.mean()) < 0.01
-    assert float(res.residual_m.max()) < 0.05
+    _reproduces(girdle, subject, angles)
 
 
 @pytest.mark.parametrize("name", ["131_01", "131_02"])
