@@ -47,16 +47,13 @@ BONES = [
 #: the sternoclavicular joint, a fifth of the way out to the shoulder (elevation about the forward axis,
 #: protraction about the vertical).
 GIRDLE_MEDIAL = 0.2
-GIRDLE = "--girdle" in sys.argv
+GIRDLE = [(f"{side}_clavicle", "torso", (0.0, s * 0.19 * GIRDLE_MEDIAL, 0.38), [
+    (f"{side}_shoulder_elev", (s, 0, 0), (-0.2, 0.5)),
+    (f"{side}_shoulder_prot", (0, 0, -s), (-0.4, 0.4)),
+]) for side, s in (("l", 1), ("r", -1))]
 for side, s in (("l", 1), ("r", -1)):
-    if GIRDLE:
-        BONES += [(f"{side}_clavicle", "torso", (0.0, s * 0.19 * GIRDLE_MEDIAL, 0.38), [
-            (f"{side}_shoulder_elev", (s, 0, 0), (-0.2, 0.5)),
-            (f"{side}_shoulder_prot", (0, 0, -s), (-0.4, 0.4)),
-        ])]
     BONES += [
-        (f"{side}_upperarm", f"{side}_clavicle" if GIRDLE else "torso",
-         (0.0, s * 0.19 * (1 - GIRDLE_MEDIAL), 0.0) if GIRDLE else (0.0, s * 0.19, 0.38), [
+        (f"{side}_upperarm", "torso", (0.0, s * 0.19, 0.38), [
             (f"{side}_shoulder_flex", (0, -1, 0), (-1.0, 3.1)),
             (f"{side}_shoulder_abd", (s, 0, 0), (-0.3, 3.1)),
             (f"{side}_shoulder_twist", (0, 0, s), (-1.5, 1.5)),
@@ -109,7 +106,21 @@ def _joint(name, kind, parent, child, xyz=(0, 0, 0), axis=None, limits=None) -> 
     return "\n".join(out)
 
 
-def build() -> str:
+def _bones(girdle: bool) -> list:
+    """BONES, or with ``girdle`` each upper arm hung from the outer end of a clavicle listed just before it."""
+    if not girdle:
+        return BONES
+    out = []
+    for b, p, xyz, d in BONES:
+        if b.endswith("_upperarm"):
+            out += [c for c in GIRDLE if c[0] == f"{b[0]}_clavicle"]
+            xyz, p = (0.0, xyz[1] * (1 - GIRDLE_MEDIAL), 0.0), f"{b[0]}_clavicle"
+        out.append((b, p, xyz, d))
+    return out
+
+
+def build(girdle: bool = False) -> str:
+    """The URDF text of the body (``girdle``: with the shoulder girdle)."""
     links = ["world"]
     joints = []
     parent = "world"
@@ -118,7 +129,7 @@ def build() -> str:
         links.append(child)
         joints.append(_joint(name, kind, parent, child, axis=axis, limits=lim))
         parent = child
-    for bone, parent_bone, xyz, dofs in BONES:
+    for bone, parent_bone, xyz, dofs in _bones(girdle):
         parent = parent_bone
         for i, (name, axis, lim) in enumerate(dofs):
             child = bone if i == len(dofs) - 1 else f"{name}_link"
@@ -137,8 +148,9 @@ def build() -> str:
 
 
 if __name__ == "__main__":
+    girdle = "--girdle" in sys.argv[1:]
     args = [a for a in sys.argv[1:] if a != "--girdle"]
-    name = "body_girdle.urdf" if GIRDLE else "body.urdf"
+    name = "body_girdle.urdf" if girdle else "body.urdf"
     out = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "configs" / name
-    out.write_text(build())
+    out.write_text(build(girdle))
     print(f"wrote {out}")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -239,3 +240,18 @@ def test_bad_input(skel):
         skel.landmarks(bad)
     with pytest.raises(InputError, match="not found"):
         Skeleton.from_urdf("/nonexistent/body.urdf")
+
+
+@pytest.mark.parametrize("girdle, name", [(False, "body.urdf"), (True, "body_girdle.urdf")])
+def test_shipped_body_urdfs_are_what_their_generator_writes(girdle, name):
+    """configs/body.urdf and configs/body_girdle.urdf are regenerated from scripts/make_body_urdf.py's tables, not
+    edited by hand: each equals the generator's text."""
+    import importlib.util
+
+    from torchtrack.resources import builtin_config
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "make_body_urdf.py"
+    spec = importlib.util.spec_from_file_location("make_body_urdf", path)
+    gen = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gen)
+    assert builtin_config(name).read_text() == gen.build(girdle)
