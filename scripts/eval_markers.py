@@ -8,8 +8,12 @@ demo through the simulated detector (`torchtrack synth markers`) with the marker
 With ``--seeds N`` each row is run N times, the detections and the filter drawn with seeds 0 to N - 1, and the
 mean and the worst of the runs printed after them: the filter is chaotic, and one seed's MMTA moves by a few points.
 
+With ``--ceiling`` each run also prints what the rigid body model can reach, whatever the filter does: the
+tracker's subject posed by inverse kinematics on the true 3D markers (every marker; only those the frame's
+detections show in two views or more), and a subject fitted on every frame's true markers, posed the same way.
+
     .venv/bin/python scripts/eval_markers.py [--captures NAME ...] [--fps 30] [--duration S] [--seeds N]
-        [--apf FIELD=VALUE ...]
+        [--apf FIELD=VALUE ...] [--ceiling]
 """
 
 from __future__ import annotations
@@ -18,8 +22,10 @@ import argparse
 import math
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import torch
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,9 +36,11 @@ from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.io.poses import save_poses  # noqa: E402
+from torchtrack.io.poses import Poses  # noqa: E402
 from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
+from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
-from torchtrack.markers.track import track_markers  # noqa: E402
+from torchtrack.markers.track import load_marker_sequence, track_markers  # noqa: E402
 from torchtrack.tracking.particles import APFConfig  # noqa: E402
 
 DATA = REPO.parent / "shared" / "data"
@@ -41,6 +49,30 @@ CAPTURES = {"cmu85_02": DATA / "mocap" / "cmu" / "85_02.c3d",
 RIG = DATA / "pose2sim_demo" / "calibration" / "Calib_qualisys_pose2sim.toml"
 SETTINGS = {"corrupted": DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0),
             "clean": DetectorModel(p_miss=0.0, false_rate=0.0, sigma_px=0.0)}
+
+
+def ceilings(folder: Path, tracked: Poses, truth: Poses) -> list[tuple[str, float, float]]:
+    """(what, MMTA %, MMTP mm) of the rigid body model's best fits to the true 3D markers (``--ceiling``), each
+    pose started from the track's and scored as the track is (:func:`evaluate`)."""
+    s = load_marker_sequence(folder)
+    names = [s.det.marker_names[i] for i in s.keep.tolist()]
+    X = torch.from_numpy(truth.markers3d[:, [list(truth.marker_names).index(n) for n in names]]).double()
+    start = torch.from_numpy(tracked.angles).double()
+    views = torch.isfinite(s.z[:, :, s.keep]).all(-1).any(-1).sum(1)  # (T, M) views with a candidate
+    fits = [("the tracker's subject on every true marker", s.skeleton, s.marker_set, X),
+            ("on the true markers two views show", s.skeleton, s.marker_set,
+             torch.where((views >= 2)[..., None], X, math.nan))]
+    skel, mset, _ = subject_from_markers(X, names, tracked.fps, source=f"{folder}: the true markers")
+    fits.append(("a subject fitted on every frame's true markers", skel, mset, X))
+    out = []
+    for what, skel, mset, target in fits:
+        with torch.no_grad():
+            A = fit_poses_to_markers(skel, mset, start, target, iterations=400).detach()
+            markers = np.full(tracked.markers3d.shape, np.nan, dtype=np.float32)
+            markers[:, s.keep.numpy()] = mset.positions(skel.forward(A).bone_frames).float().numpy()
+        m = evaluate(replace(tracked, markers3d=markers), truth).markers
+        out.append((what, 100 * m.mmta, m.mmtp_mm))
+    return out
 
 
 def main() -> int:
@@ -53,6 +85,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=1, help="runs of each row, seeds 0 to N - 1 (default: 1)")
     ap.add_argument("--apf", nargs="*", default=[], metavar="FIELD=VALUE",
                     help="the filter's settings (APFConfig fields), e.g. outlier_rad=0.012 (default: as `track`)")
+    ap.add_argument("--ceiling", action="store_true",
+                    help="also print the rigid body model's best fits to the true 3D markers (see above)")
     args = ap.parse_args()
     try:
         apf = with_overrides(APFConfig(), args.apf, "--apf")
@@ -83,6 +117,10 @@ def main() -> int:
                       f"{rep.mpjpe_mm:>12.1f} {rep.frames_lost:>5} {seconds / T:>8.2f}", flush=True)
                 if not math.isfinite(m.mmta):
                     return 1
+                if args.ceiling:
+                    for what, mmta, mmtp in ceilings(folder, result.poses, truth):
+                        print(f"{'':<12} {'':<12} {'':>6} {'':>7} {mmta:>7.2f}% {mmtp:>8.1f}   ceiling: {what}",
+                              flush=True)
             if args.seeds > 1:
                 mean = [sum(r[i] for r in runs) / len(runs) for i in range(3)]
                 print(f"{name:<12} {setting + ' mean':<12} {'':>6} {'':>7} {mean[0]:>7.2f}% {mean[1]:>8.1f} "
