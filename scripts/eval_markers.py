@@ -62,8 +62,11 @@ def ceilings(folder: Path, tracked: Poses, truth: Poses) -> list[tuple[str, floa
     fits = [("the tracker's subject on every true marker", s.skeleton, s.marker_set, X),
             ("on the true markers two views show", s.skeleton, s.marker_set,
              torch.where((views >= 2)[..., None], X, math.nan))]
-    skel, mset, _ = subject_from_markers(X, names, tracked.fps, source=f"{folder}: the true markers")
-    fits.append(("a subject fitted on every frame's true markers", skel, mset, X))
+    try:
+        skel, mset, _ = subject_from_markers(X, names, tracked.fps, source=f"{folder}: the true markers")
+        fits.append(("a subject fitted on every frame's true markers", skel, mset, X))
+    except InputError as exc:  # markers that do not give every joint centre: the other two still tell
+        print(f"  (no subject from the true markers: {exc})")
     out = []
     for what, skel, mset, target in fits:
         with torch.no_grad():
