@@ -9,7 +9,7 @@ import logging
 import math
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +20,7 @@ from torchtrack.checks import InputError
 from torchtrack.io.markers2d import Markers2D, load_markers2d
 from torchtrack.io.poses import Poses
 from torchtrack.logging import RunLogger
-from torchtrack.markers.model import MarkerSet, fit_poses_to_markers, subject_from_markers
+from torchtrack.markers.model import MarkerSet, fit_marker_set, fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.skeleton.model import Skeleton
 from torchtrack.tracking.epipolar import pinhole_pixels, projection_matrices
@@ -45,6 +45,8 @@ LOST_M, LOST_SHARE, LOST_MIN_MARKERS, LOST_MEDIAN_M = 0.1, 0.3, 6, 0.04
 LOST_LIMB_MARKERS = 3
 #: A frame with fewer markers detected in any view is not tracked (marked invalid; the filter holds its state).
 MIN_DETECTED = 3
+#: The marker set's refit (``APFConfig.refit_m``) moves a marker only where this many frames place it.
+REFIT_MIN_FRAMES = 10
 
 
 def is_marker_folder(folder: str | Path) -> bool:
@@ -168,22 +170,75 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
     """Track Q loaded sequences in lockstep: one annealed particle filter over all of them
     (:class:`~torchtrack.tracking.particles.MarkerAPF`), each frame one batched step; a sequence that has ended or
     whose frame has too few detections is held (that frame invalid), one that lost its body is started again from
-    its triangulated markers alone. One sequence alone is tracked by the same code. Returns each sequence's track,
-    or the exception its own part (its restart, its TensorBoard pictures) failed with while the others went on.
+    its triangulated markers alone. With ``config.refit_m``, each subject's marker set is then fitted again along
+    its first track (:func:`refit_marker_set`) and the sequences tracked again. One sequence alone is tracked by the
+    same code. Returns each sequence's track, or the exception its own part (its restart, its TensorBoard pictures)
+    failed with while the others went on.
 
     Args:
         sequences: from :func:`load_marker_sequence` (subjects of one body chain; any rigs and marker sets).
         config: the filter's settings. seed: each sequence's random draws (a generator of its own: its track is the
             same whichever others it is tracked with).
-        loggers: each sequence's TensorBoard logger, or None (see :func:`track_markers`).
+        loggers: each sequence's TensorBoard logger, or None (see :func:`track_markers`); the last track's.
     """
-    from tqdm import tqdm
-
     t0 = time.perf_counter()
     Q = len(sequences)
     loggers = list(loggers) if loggers is not None else [None] * Q
     if not Q or len(loggers) != Q:
         raise InputError(f"track_marker_sequences: {Q} sequences and {len(loggers)} loggers")
+    if not config.refit_m > 0:
+        return _track_pass(sequences, config, seed, progress, loggers, log_every, "")
+    first = _track_pass(sequences, config, seed, progress, [None] * Q, log_every, " (1 of 2)")
+    refitted = []
+    for s, r in zip(sequences, first):
+        if isinstance(r, Exception):
+            refitted.append(s)
+            continue
+        try:
+            refitted.append(refit_marker_set(s, r.poses, config.refit_m))
+        except InputError as exc:  # the first track stands
+            log.warning("%s: the marker set was not fitted again (%s); the first track stands", s.folder, exc)
+            refitted.append(s)
+    second = _track_pass(refitted, config, seed, progress, loggers, log_every, " (2 of 2)")
+    shared = time.perf_counter() - t0
+    out: list[MarkerTrack | Exception] = []
+    for s, a, b in zip(sequences, first, second):
+        pick = b if not isinstance(b, Exception) else a  # the second track, or the first where it failed
+        out.append(pick if isinstance(pick, Exception) else replace(pick, seconds=s.seconds + shared))
+    return out
+
+
+def refit_marker_set(s: MarkerSequence, poses: Poses, within_m: float) -> MarkerSequence:
+    """The sequence with its markers' bones and offsets fitted again (:func:`~torchtrack.markers.model.
+    fit_marker_set`) on every valid frame's triangulated markers that lie within ``within_m`` of the track
+    ``poses``' (a marker placed by fewer than ``REFIT_MIN_FRAMES`` such frames keeps its first fit), and its first
+    pose fitted to them. Over the first seconds a subject often holds still, which leaves a marker's bone and place
+    in it poorly fixed; along a track every joint moves. The gate keeps out detections linked to the wrong marker."""
+    A = torch.from_numpy(poses.angles).double()
+    with torch.no_grad():
+        model = s.marker_set.positions(s.skeleton.forward(A).bone_frames)  # (T, M', 3)
+    X = s.X[:, s.keep].to(model)
+    near = ((X - model).norm(dim=-1) < within_m) & torch.from_numpy(poses.valid)[:, None]
+    enough = near.sum(0) >= REFIT_MIN_FRAMES  # (M',)
+    if int(enough.sum()) < 3:
+        raise InputError(f"{s.folder}: fewer than 3 markers lie within {within_m} m of the track on "
+                         f"{REFIT_MIN_FRAMES} frames")
+    names = [s.marker_set.names[i] for i in enough.nonzero()[:, 0].tolist()]
+    target = torch.where(near[..., None], X, math.nan)[:, enough]
+    fitted, angles = fit_marker_set(s.skeleton, A, target, names)
+    bone, offset = s.marker_set.bone.clone(), s.marker_set.offset.clone()
+    bone[enough], offset[enough] = fitted.bone, fitted.offset.to(offset)
+    return replace(s, marker_set=MarkerSet(s.marker_set.names, bone, offset),
+                   first=angles[0].to(s.first) if bool(near[0].any()) else s.first)
+
+
+def _track_pass(sequences: Sequence[MarkerSequence], config: APFConfig, seed: int, progress: bool,
+                loggers: list[RunLogger | None], log_every: int, label: str) -> list[MarkerTrack | Exception]:
+    """One track of every sequence in lockstep (:func:`track_marker_sequences`); ``label`` for the progress bar."""
+    from tqdm import tqdm
+
+    t0 = time.perf_counter()
+    Q = len(sequences)
     apf = MarkerAPF([s.skeleton for s in sequences], [s.marker_set for s in sequences], [s.rig for s in sequences],
                     config, [torch.Generator().manual_seed(int(seed)) for _ in sequences])
     apf.reset(torch.stack([s.first.double() for s in sequences]))
@@ -199,7 +254,7 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
     valid = torch.zeros(Tmax, Q, dtype=torch.bool)
     failed: dict[int, Exception] = {}  # a sequence whose restart or logging failed: held from then on, reported
     name = sequences[0].folder.name if Q == 1 else f"{Q} sequences"
-    bar = tqdm(range(Tmax), desc=f"track markers {name}", unit="frame", disable=not progress)
+    bar = tqdm(range(Tmax), desc=f"track markers {name}{label}", unit="frame", disable=not progress)
     with contextlib.ExitStack() as closing:
         videos: dict[int, object] = {}  # each sequence's video for the logged pictures, opened at the first
         for t in bar:

@@ -48,6 +48,10 @@ class APFConfig:
             particles by the total cost alone.
         velocity: the share of the last frame's motion the prediction carries on (0: none).
         polish_steps: Levenberg-Marquardt iterations on the same cost from the filter's estimate (0: none).
+        refit_m: after a first track, each marker's bone and offset are fitted again on every frame's triangulated
+            markers within this distance of the track's (the first seconds alone, often still, place them poorly),
+            and the capture is tracked again with them (0: one track; :mod:`torchtrack.markers.track`). 0.1 m is
+            what the lost-track test calls far (``LOST_M``): nearer, a detection is taken for the marker's.
         The figures behind these values: docs/results.md, "Marker-based capture".
     """
 
@@ -62,13 +66,14 @@ class APFConfig:
     partitioned: bool = True
     velocity: float = 0.8
     polish_steps: int = 20
+    refit_m: float = 0.1
 
     def __post_init__(self) -> None:
         if (self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1
                 or not 0 < self.outlier_rad < math.inf):
             raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), finite outlier_rad > 0; "
                              f"got {self}")
-        if min(self.root_m, self.root_rad, self.joint_rad) < 0 or not 0 < self.shrink <= 1:
+        if min(self.root_m, self.root_rad, self.joint_rad, self.refit_m) < 0 or not 0 < self.shrink <= 1:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
 
 
