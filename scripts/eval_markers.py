@@ -9,8 +9,8 @@ With ``--seeds N`` each row is run N times, the detections and the filter drawn 
 mean and the worst of the runs printed after them: the filter is chaotic, and one seed's MMTA moves by a few points.
 
 With ``--ceiling`` each run also prints what the rigid body model can reach, whatever the filter does: the
-tracker's subject (its marker set refitted along the track, as the tracker's second track has it) posed by inverse
-kinematics on the true 3D markers (every marker; only those the frame's
+tracker's subject (its marker set refitted along the final track, near the set the tracker's second track used)
+posed by inverse kinematics on the true 3D markers (every marker; only those the frame's
 detections show in two views or more), and a subject fitted on every frame's true markers, posed the same way.
 
     .venv/bin/python scripts/eval_markers.py [--captures NAME ...] [--fps 30] [--duration S] [--seeds N]
@@ -36,8 +36,7 @@ from torchtrack.checks import InputError, with_overrides  # noqa: E402
 from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
-from torchtrack.io.poses import save_poses  # noqa: E402
-from torchtrack.io.poses import Poses  # noqa: E402
+from torchtrack.io.poses import Poses, save_poses  # noqa: E402
 from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
 from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
@@ -55,10 +54,13 @@ SETTINGS = {"corrupted": DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0)
 def ceilings(folder: Path, tracked: Poses, truth: Poses, apf: APFConfig) -> list[tuple[str, float, float]]:
     """(what, MMTA %, MMTP mm) of the rigid body model's best fits to the true 3D markers (``--ceiling``), each
     pose started from the track's and scored as the track is (:func:`evaluate`). The tracker's subject: its first
-    fit, and the refit along the track where ``apf.refit_m`` asks for it (close to the one the track used)."""
+    fit, and the refit along the track where ``apf.refit_m`` asks for it (near the one the track used)."""
     s = load_marker_sequence(folder)
     if apf.refit_m > 0:
-        s = refit_marker_set(s, tracked, apf.refit_m)
+        try:
+            s = refit_marker_set(s, tracked, apf.refit_m)
+        except InputError as exc:  # as the tracker, the first fit stays
+            print(f"  (the marker set not refitted: {exc})")
     names = [s.det.marker_names[i] for i in s.keep.tolist()]
     X = torch.from_numpy(truth.markers3d[:, [list(truth.marker_names).index(n) for n in names]]).double()
     start = torch.from_numpy(tracked.angles).double()

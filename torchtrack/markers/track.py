@@ -45,8 +45,9 @@ LOST_M, LOST_SHARE, LOST_MIN_MARKERS, LOST_MEDIAN_M = 0.1, 0.3, 6, 0.04
 LOST_LIMB_MARKERS = 3
 #: A frame with fewer markers detected in any view is not tracked (marked invalid; the filter holds its state).
 MIN_DETECTED = 3
-#: The marker set's refit (``APFConfig.refit_m``) moves a marker only where this many frames place it.
-REFIT_MIN_FRAMES = 10
+#: The marker set's refit (``APFConfig.refit_m``) moves a marker only where this many frames place it, and fits at
+#: most this many frames, evenly spread (its inverse kinematics of every frame is a long capture's cost otherwise).
+REFIT_MIN_FRAMES, REFIT_MAX_FRAMES = 10, 600
 
 
 def is_marker_folder(folder: str | Path) -> bool:
@@ -171,9 +172,10 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
     (:class:`~torchtrack.tracking.particles.MarkerAPF`), each frame one batched step; a sequence that has ended or
     whose frame has too few detections is held (that frame invalid), one that lost its body is started again from
     its triangulated markers alone. With ``config.refit_m``, each subject's marker set is then fitted again along
-    its first track (:func:`refit_marker_set`) and the sequences tracked again. One sequence alone is tracked by the
-    same code. Returns each sequence's track, or the exception its own part (its restart, its TensorBoard pictures)
-    failed with while the others went on.
+    its first track (:func:`refit_marker_set`; where that fails, with a warning, the set stays) and the sequences
+    tracked again; a sequence whose first track failed is not tracked again. One sequence alone is tracked by the
+    same code. Returns each sequence's last track, or the exception its own part (its restart, its refit, its
+    TensorBoard pictures) failed with while the others went on.
 
     Args:
         sequences: from :func:`load_marker_sequence` (subjects of one body chain; any rigs and marker sets).
@@ -188,48 +190,57 @@ def track_marker_sequences(sequences: Sequence[MarkerSequence], config: APFConfi
         raise InputError(f"track_marker_sequences: {Q} sequences and {len(loggers)} loggers")
     if not config.refit_m > 0:
         return _track_pass(sequences, config, seed, progress, loggers, log_every, "")
-    first = _track_pass(sequences, config, seed, progress, [None] * Q, log_every, " (1 of 2)")
-    refitted = []
-    for s, r in zip(sequences, first):
-        if isinstance(r, Exception):
-            refitted.append(s)
+    out = _track_pass(sequences, config, seed, progress, [None] * Q, log_every, " (1 of 2)")
+    again, refitted = [], []  # the sequences tracked a second time, each with its refitted marker set
+    for q, (s, r) in enumerate(zip(sequences, out)):
+        if isinstance(r, Exception):  # its failure stands: a second track would repeat it
             continue
         try:
-            refitted.append(refit_marker_set(s, r.poses, config.refit_m))
-        except InputError as exc:  # the first track stands
-            log.warning("%s: the marker set was not fitted again (%s); the first track stands", s.folder, exc)
-            refitted.append(s)
-    second = _track_pass(refitted, config, seed, progress, loggers, log_every, " (2 of 2)")
+            s = refit_marker_set(s, r.poses, config.refit_m)
+        except Exception as exc:  # this sequence's markers stay as first fitted; the others go on
+            log.warning("%s: the marker set was not fitted again along the track (%s): tracked with the first fit",
+                        s.folder, exc)
+        again.append(q)
+        refitted.append(s)
+    if again:
+        second = _track_pass(refitted, config, seed, progress, [loggers[q] for q in again], log_every, " (2 of 2)")
+        for q, r in zip(again, second):
+            out[q] = r
     shared = time.perf_counter() - t0
-    out: list[MarkerTrack | Exception] = []
-    for s, a, b in zip(sequences, first, second):
-        pick = b if not isinstance(b, Exception) else a  # the second track, or the first where it failed
-        out.append(pick if isinstance(pick, Exception) else replace(pick, seconds=s.seconds + shared))
-    return out
+    return [r if isinstance(r, Exception) else replace(r, seconds=s.seconds + shared) for s, r in zip(sequences, out)]
 
 
 def refit_marker_set(s: MarkerSequence, poses: Poses, within_m: float) -> MarkerSequence:
     """The sequence with its markers' bones and offsets fitted again (:func:`~torchtrack.markers.model.
     fit_marker_set`) on every valid frame's triangulated markers that lie within ``within_m`` of the track
-    ``poses``' (a marker placed by fewer than ``REFIT_MIN_FRAMES`` such frames keeps its first fit), and its first
-    pose fitted to them. Over the first seconds a subject often holds still, which leaves a marker's bone and place
-    in it poorly fixed; along a track every joint moves. The gate keeps out detections linked to the wrong marker."""
+    ``poses``' (a marker placed by fewer than ``REFIT_MIN_FRAMES`` such frames keeps its first fit; at most
+    ``REFIT_MAX_FRAMES`` frames), and its first pose: fitted to them where frame 0 has 3 such markers, else the
+    track's. Over the first seconds a subject often holds still, which leaves a marker's bone and place in it poorly
+    fixed; along a track every joint moves. The gate keeps out detections linked to the wrong marker.
+
+    Raises:
+        InputError: fewer than 3 markers placed by ``REFIT_MIN_FRAMES`` frames."""
     A = torch.from_numpy(poses.angles).double()
     with torch.no_grad():
         model = s.marker_set.positions(s.skeleton.forward(A).bone_frames)  # (T, M', 3)
     X = s.X[:, s.keep].to(model)
     near = ((X - model).norm(dim=-1) < within_m) & torch.from_numpy(poses.valid)[:, None]
+    frames = near.any(1).nonzero()[:, 0]
+    if len(frames) > REFIT_MAX_FRAMES:
+        frames = frames[torch.linspace(0, len(frames) - 1, REFIT_MAX_FRAMES).round().long()]
+    near = near[frames]
     enough = near.sum(0) >= REFIT_MIN_FRAMES  # (M',)
     if int(enough.sum()) < 3:
         raise InputError(f"{s.folder}: fewer than 3 markers lie within {within_m} m of the track on "
                          f"{REFIT_MIN_FRAMES} frames")
     names = [s.marker_set.names[i] for i in enough.nonzero()[:, 0].tolist()]
-    target = torch.where(near[..., None], X, math.nan)[:, enough]
-    fitted, angles = fit_marker_set(s.skeleton, A, target, names)
+    target = torch.where(near[..., None], X[frames], math.nan)[:, enough]
+    fitted, angles = fit_marker_set(s.skeleton, A[frames], target, names)
     bone, offset = s.marker_set.bone.clone(), s.marker_set.offset.clone()
     bone[enough], offset[enough] = fitted.bone, fitted.offset.to(offset)
-    return replace(s, marker_set=MarkerSet(s.marker_set.names, bone, offset),
-                   first=angles[0].to(s.first) if bool(near[0].any()) else s.first)
+    placed = int(frames[0]) == 0 and int(near[0, enough].sum()) >= 3
+    first = angles[0] if placed else A[0]
+    return replace(s, marker_set=MarkerSet(s.marker_set.names, bone, offset), first=first.to(s.first))
 
 
 def _track_pass(sequences: Sequence[MarkerSequence], config: APFConfig, seed: int, progress: bool,
