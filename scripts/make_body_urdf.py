@@ -1,8 +1,9 @@
 #!/usr/bin/env python
 """Write configs/body.urdf: the human body chain for a 1.75 m subject (regenerate after editing the tables); with
-``--girdle``, configs/body_girdle.urdf, the same with a shoulder girdle (the marker tracker's skeleton).
+``--markers``, configs/body_markers.urdf, the marker tracker's skeleton: the same with a shoulder girdle and an
+ankle that inverts.
 
-    .venv/bin/python scripts/make_body_urdf.py [OUT] [--girdle]
+    .venv/bin/python scripts/make_body_urdf.py [OUT] [--markers]
 
 Rest pose (all angles zero): standing upright, facing +X, left towards +Y, arms hanging down; the root
 translation is the pelvis (mid-hip) position, so a standing subject has root_tz = 0.93 (see meta in the file).
@@ -43,7 +44,7 @@ BONES = [
         ("neck_twist", (0, 0, 1), (-1.2, 1.2)),
     ]),
 ]
-#: The shoulder girdle of the marker skeleton (``--girdle``): the shoulder joint carried by a clavicle turning at
+#: The shoulder girdle of the marker skeleton (``--markers``): the shoulder joint carried by a clavicle turning at
 #: the sternoclavicular joint, a fifth of the way out to the shoulder (elevation about the forward axis,
 #: protraction about the vertical).
 GIRDLE_MEDIAL = 0.2
@@ -51,6 +52,10 @@ GIRDLE = [(f"{side}_clavicle", "torso", (0.0, s * 0.19 * GIRDLE_MEDIAL, 0.38), [
     (f"{side}_shoulder_elev", (s, 0, 0), (-0.2, 0.5)),
     (f"{side}_shoulder_prot", (0, 0, -s), (-0.4, 0.4)),
 ]) for side, s in (("l", 1), ("r", -1))]
+#: The marker skeleton's ankle: after the flexion, inversion (about the forward axis; positive turns the sole towards
+#: the midline), which a foot's heel, toe and metatarsal markers show; within a quarter radian, about a foot's range
+#: in gait (wider, the foot of a fast kick flopped: docs/results.md, "Marker-based capture").
+FOOT = {side: [(f"{side}_ankle_inv", (-s, 0, 0), (-0.25, 0.25))] for side, s in (("l", 1), ("r", -1))}
 for side, s in (("l", 1), ("r", -1)):
     BONES += [
         (f"{side}_upperarm", "torso", (0.0, s * 0.19, 0.38), [
@@ -106,12 +111,15 @@ def _joint(name, kind, parent, child, xyz=(0, 0, 0), axis=None, limits=None) -> 
     return "\n".join(out)
 
 
-def _bones(girdle: bool) -> list:
-    """BONES, or with ``girdle`` each upper arm hung from the outer end of a clavicle listed just before it."""
-    if not girdle:
+def _bones(markers: bool) -> list:
+    """BONES, or with ``markers`` each upper arm hung from the outer end of a clavicle listed just before it and each
+    foot with the ankle's inversion."""
+    if not markers:
         return BONES
     out = []
     for b, p, xyz, d in BONES:
+        if b.endswith("_foot"):
+            d = d + FOOT[b[0]]
         if b.endswith("_upperarm"):
             out += [c for c in GIRDLE if c[0] == f"{b[0]}_clavicle"]
             xyz, p = (0.0, xyz[1] * (1 - GIRDLE_MEDIAL), 0.0), f"{b[0]}_clavicle"
@@ -119,8 +127,9 @@ def _bones(girdle: bool) -> list:
     return out
 
 
-def build(girdle: bool = False) -> str:
-    """The URDF text of the body (``girdle``: with the shoulder girdle)."""
+def build(markers: bool = False) -> str:
+    """The URDF text of the body (``markers``: the marker skeleton, with the shoulder girdle and the ankle's
+    inversion)."""
     links = ["world"]
     joints = []
     parent = "world"
@@ -129,7 +138,7 @@ def build(girdle: bool = False) -> str:
         links.append(child)
         joints.append(_joint(name, kind, parent, child, axis=axis, limits=lim))
         parent = child
-    for bone, parent_bone, xyz, dofs in _bones(girdle):
+    for bone, parent_bone, xyz, dofs in _bones(markers):
         parent = parent_bone
         for i, (name, axis, lim) in enumerate(dofs):
             child = bone if i == len(dofs) - 1 else f"{name}_link"
@@ -148,9 +157,9 @@ def build(girdle: bool = False) -> str:
 
 
 if __name__ == "__main__":
-    girdle = "--girdle" in sys.argv[1:]
-    args = [a for a in sys.argv[1:] if a != "--girdle"]
-    name = "body_girdle.urdf" if girdle else "body.urdf"
+    markers = "--markers" in sys.argv[1:]
+    args = [a for a in sys.argv[1:] if a != "--markers"]
+    name = "body_markers.urdf" if markers else "body.urdf"
     out = Path(args[0]) if args else Path(__file__).resolve().parents[1] / "configs" / name
-    out.write_text(build(girdle))
+    out.write_text(build(markers))
     print(f"wrote {out}")

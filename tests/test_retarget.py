@@ -49,16 +49,17 @@ def test_recovers_known_poses_of_a_differently_sized_subject():
 
 
 def test_the_marker_skeletons_shoulder_girdle():
-    """The marker skeleton (``configs/body_girdle.urdf``) is the body with a clavicle per side: raising it by e
+    """The marker skeleton (``configs/body_markers.urdf``) is the body with a clavicle per side: raising it by e
     lifts the shoulder by L sin e about the pivot, bringing it forward by p moves it forward by L sin p (L the
-    clavicle, pivot to shoulder: closed forms); and a subject of that chain at another size, its girdle at rest and
-    the other joints in known poses, is reproduced by the retarget, which places the pivot and the shoulder from
-    the source's medians."""
+    clavicle, pivot to shoulder: closed forms); its ankle inverts: the toe (x forward, z down from the ankle)
+    turns about the forward axis towards the midline (a closed form); and a subject of that chain at another size,
+    its girdle and ankles at rest and the other joints in known poses, is
+    reproduced by the retarget, which places the pivot and the shoulder from the source's medians."""
     from torchtrack.markers.model import MARKER_URDF
     from torchtrack.resources import builtin_config
 
     girdle = Skeleton.from_urdf(builtin_config(MARKER_URDF))
-    assert girdle.num_dofs == Skeleton.from_urdf().num_dofs + 4
+    assert girdle.num_dofs == Skeleton.from_urdf().num_dofs + 6
     L = girdle.joint_origin("l_shoulder_flex")[1]
     shoulder = list(girdle.joint_names).index("l_upperarm")
     rest = girdle.rest_angles().double()
@@ -69,9 +70,21 @@ def test_the_marker_skeletons_shoulder_girdle():
         delta = girdle(moved[None]).joints[0, shoulder] - at_rest
         assert float(delta[axis]) == pytest.approx(L * math.sin(0.3), abs=1e-6)
         assert float(delta[1]) == pytest.approx(-L * (1 - math.cos(0.3)), abs=1e-6)  # towards the pivot
+    toe, ankle = (list(girdle.output_names).index(n) for n in ("l_toe", "l_ankle"))
+    rest_fk = girdle(rest[None])
+    x, _, z = (rest_fk.output_points[0, toe] - rest_fk.output_points[0, ankle]).tolist()
+    for side, sign in (("l", 1.0), ("r", -1.0)):
+        toe, ankle = (list(girdle.output_names).index(n) for n in (f"{side}_toe", f"{side}_ankle"))
+        moved = rest.clone()
+        moved[girdle.dof_names.index(f"{side}_ankle_inv")] = 0.2
+        fk = girdle(moved[None])
+        got = fk.output_points[0, toe] - fk.output_points[0, ankle]
+        want = torch.tensor((x, sign * z * math.sin(0.2), z * math.cos(0.2)), dtype=got.dtype)
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
     subject = girdle.scaled_to_height(1.62)
     angles = _known_poses(subject, 5)
     angles[:, [subject.dof_names.index(f"{s}_shoulder_{k}") for s in "lr" for k in ("elev", "prot")]] = 0.0
+    angles[:, [subject.dof_names.index(f"{s}_ankle_inv") for s in "lr"]] = 0.0
     _reproduces(girdle, subject, angles)
 
 

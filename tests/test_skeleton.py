@@ -242,9 +242,9 @@ def test_bad_input(skel):
         Skeleton.from_urdf("/nonexistent/body.urdf")
 
 
-@pytest.mark.parametrize("girdle, name", [(False, "body.urdf"), (True, "body_girdle.urdf")])
-def test_shipped_body_urdfs_are_what_their_generator_writes(girdle, name):
-    """configs/body.urdf and configs/body_girdle.urdf are regenerated from scripts/make_body_urdf.py's tables, not
+@pytest.mark.parametrize("markers, name", [(False, "body.urdf"), (True, "body_markers.urdf")])
+def test_shipped_body_urdfs_are_what_their_generator_writes(markers, name):
+    """configs/body.urdf and configs/body_markers.urdf are regenerated from scripts/make_body_urdf.py's tables, not
     edited by hand: each equals the generator's text."""
     import importlib.util
 
@@ -254,4 +254,4 @@ def test_shipped_body_urdfs_are_what_their_generator_writes(girdle, name):
     spec = importlib.util.spec_from_file_location("make_body_urdf", path)
     gen = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(gen)
-    assert builtin_config(name).read_text() == gen.build(girdle)
+    assert builtin_config(name).read_text() == gen.build(markers)

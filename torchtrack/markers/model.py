@@ -24,9 +24,9 @@ from torchtrack.skeleton.model import Skeleton, fit_states
 __all__ = ["MarkerSet", "assign_markers", "fit_marker_set", "fit_poses_to_markers", "subject_from_markers"]
 
 #: The marker skeleton: ``configs/body.urdf`` with a shoulder girdle (each shoulder joint carried by a clavicle
-#: that elevates and protracts; ``scripts/make_body_urdf.py --girdle``): markers at the shoulders follow it, which
-#: the 32 joints cannot (docs/results.md, "Marker-based capture").
-MARKER_URDF = "body_girdle.urdf"
+#: that elevates and protracts) and an ankle that inverts (``scripts/make_body_urdf.py --markers``): markers at the
+#: shoulders and on the feet follow them, which the body's 32 DOFs cannot (docs/results.md, "Marker-based capture").
+MARKER_URDF = "body_markers.urdf"
 #: A marker takes part in the joint centres where it is seen in at least this share of the fitting frames (markers
 #: triangulated from detections are missing wherever fewer than two views found them; gaps are interpolated).
 MIN_PRESENT = 0.2

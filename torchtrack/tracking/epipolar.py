@@ -1,7 +1,8 @@
 """The symmetric epipolar distance of model markers to 2D marker detections, the marker filter's likelihood
 (:mod:`torchtrack.tracking.particles`; Canton-Ferrer et al. 2010): each model marker projected into one view against
 its candidate detections in another, summed over markers and ordered pairs of views, in each camera's undistorted
-(pinhole) pixels, where the epipolar geometry holds.
+(pinhole) pixels, where the epipolar geometry holds. And the reprojection error of the same markers
+(:class:`ReprojectionCost`), which the filter's final polish minimises.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ from torch import nn
 
 from torchtrack.checks import InputError
 
-__all__ = ["EpipolarCost", "epipolar_cost", "fundamental_matrices", "pinhole_pixels", "projection_matrices"]
+__all__ = ["EpipolarCost", "ReprojectionCost", "epipolar_cost", "fundamental_matrices", "pinhole_pixels",
+           "projection_matrices"]
 
 #: The distance (px) of every point from the line of a candidate that has none (:class:`EpipolarCost`; ten times
 #: the outlier cap where that is more): beyond the cap, and its square within float32's range.
@@ -168,6 +170,62 @@ class EpipolarCost:
         idx = pick[..., None, None].expand(*r.shape[:4], 1, N)
         use = self.pair[..., None] & (r2.gather(4, idx)[..., 0, :] < self.cap)  # (Q, C, M, A, N)
         out = torch.where(use, r.gather(4, idx)[..., 0, :], 0.0)
+        return out.reshape(Q, -1, N).mT, pick
+
+
+class ReprojectionCost:
+    """The reprojection error of states' markers against one frame's detections, with :class:`EpipolarCost`'s
+    interface (``cost``, ``residuals``): each model marker projected into each view against its nearest candidate
+    there, squared pixel distance capped at the outlier cap; a view without a candidate of the marker adds nothing.
+    Under the detector's Gaussian pixel noise its least is the maximum-likelihood pose given the detections the
+    filter linked to each marker: the epipolar distance, a pair of views' agreement, weighs an error along an
+    epipolar line not at all in that pair, so its least lies off the markers' rays where the rigid body cannot meet
+    them all.
+
+    Args:
+        detections: (Q, C, M, K, 2) candidates in pinhole pixels, NaN where none. P: (Q, C, 3, 4) pinhole
+        projections. outlier_px: the cap (pixels), one for all subjects or each one's ``(Q,)``.
+    """
+
+    def __init__(self, detections: torch.Tensor, P: torch.Tensor, outlier_px: float | torch.Tensor) -> None:
+        Q, C, M, K, _ = detections.shape
+        self.seen = torch.isfinite(detections).all(-1)  # (Q, C, M, K)
+        self.z = torch.nan_to_num(detections)[..., None]  # (Q, C, M, K, 2, 1): states last
+        self.P = P.to(detections)[:, :, None]  # (Q, C, 1, 3, 4)
+        cap = torch.as_tensor(outlier_px, dtype=detections.dtype).to(detections.device).expand(Q)
+        self.cap = cap.square().view(Q, 1, 1, 1)  # against (Q, C, M, N)
+        self.norm2 = self.seen[..., 0, None]  # (Q, C, M, 1): EpipolarCost's shape for the polish's C and M
+
+    def _offsets(self, points: torch.Tensor) -> torch.Tensor:
+        """Points ``(Q, M, 3, N)`` -> each candidate's offset from the projection ``(Q, C, M, K, 2, N)`` (px)."""
+        h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
+        y = self.P @ h[:, None]  # (Q, C, M, 3, N)
+        y = y[:, :, :, :2] / y[:, :, :, 2:3]
+        return y[:, :, :, None] - self.z
+
+    def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
+        """``points (Q, M, 3, N)`` -> (Q, N) costs, or (Q, M, N) with ``per_marker``."""
+        d2 = self._offsets(points).square().sum(4).masked_fill(~self.seen[..., None], math.inf)  # (Q, C, M, K, N)
+        d = d2.amin(3).clamp(max=self.cap)  # (Q, C, M, N)
+        d = torch.where(self.seen.any(3)[..., None], d, 0.0)
+        cost = d.sum(1)  # (Q, M, N)
+        return cost if per_marker else cost.sum(1)
+
+    def residuals(self, points: torch.Tensor, pick: torch.Tensor | None = None
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
+        """``points (Q, M, 3, N)`` -> (Q, N, R) signed residuals (R = views x markers x 2) whose squares sum to the
+        cost's terms below the cap (0 for the others), each view's and marker's nearest candidate to the first
+        state, or the candidates ``pick (Q, C, M)``; and the candidates used."""
+        Q, N = points.shape[0], points.shape[-1]
+        off = self._offsets(points)  # (Q, C, M, K, 2, N)
+        d2 = off.square().sum(4).masked_fill(~self.seen[..., None], math.inf)  # (Q, C, M, K, N)
+        if pick is None:
+            pick = d2[..., 0].argmin(-1)  # (Q, C, M)
+        idx = pick[..., None, None]
+        near = d2.gather(3, idx.expand(*pick.shape, 1, N))[:, :, :, 0]  # (Q, C, M, N)
+        r = off.gather(3, idx[..., None].expand(*pick.shape, 1, 2, N))[:, :, :, 0]  # (Q, C, M, 2, N)
+        use = near < self.cap  # a missing candidate is inf: never used
+        out = torch.where(use[:, :, :, None], r, 0.0)
         return out.reshape(Q, -1, N).mT, pick
 
 

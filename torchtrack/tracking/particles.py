@@ -6,9 +6,10 @@ perturbs them by a truncated Gaussian inside the joint limits (its spread shrink
 symmetric epipolar distance between each model marker's projection in one view and the marker's detections in
 another (the best of the candidates, capped at an outlier threshold; kornia's fundamental matrices), summed over
 markers and ordered pairs of views. The estimate is the weighted mean of the last layer, polished by
-Levenberg-Marquardt on the same cost. Several subjects (sequences) are tracked in lockstep by one filter: their
-particles a batch beside each other, their marker sets and rigs padded. No I/O here; one frame is a few large tensor
-operations over the subjects and their particles.
+Levenberg-Marquardt on the reprojection error of the detections nearest its markers (the pose of least error
+under the detector's pixel noise; ``APFConfig.polish``). Several subjects (sequences) are tracked in lockstep by
+one filter: their particles a batch beside each other, their marker sets and rigs padded. No I/O here; one frame is
+a few large tensor operations over the subjects and their particles.
 
 Detections are compared in each camera's undistorted (pinhole) pixels, where the epipolar geometry holds; the cost
 is :mod:`torchtrack.tracking.epipolar`'s.
@@ -26,7 +27,8 @@ from torch import nn
 from torchtrack.checks import InputError, check_shape
 from torchtrack.markers.model import MarkerSet
 from torchtrack.skeleton.model import LockstepBodies, Skeleton
-from torchtrack.tracking.epipolar import FAR_PX, EpipolarCost, fundamental_matrices, projection_matrices
+from torchtrack.tracking.epipolar import (FAR_PX, EpipolarCost, ReprojectionCost, fundamental_matrices,
+                                         projection_matrices)
 
 __all__ = ["APFConfig", "MarkerAPF", "annealing_beta", "resample", "truncated_normal"]
 
@@ -47,7 +49,10 @@ class APFConfig:
         partitioned: each limb's joints resampled by the limb's own markers (the trunk's by all of them), not whole
             particles by the total cost alone.
         velocity: the share of the last frame's motion the prediction carries on (0: none).
-        polish_steps: Levenberg-Marquardt iterations on the same cost from the filter's estimate (0: none).
+        polish_steps: Levenberg-Marquardt iterations from the filter's estimate (0: none), on ``polish``: the
+            reprojection error of each marker's nearest candidate in each view (``"reprojection"``), or the
+            layers' epipolar cost (``"epipolar"``), whose least weighs an error along a pair's epipolar line not
+            at all there (:class:`~torchtrack.tracking.epipolar.ReprojectionCost`).
         refit_m: after a first track, each marker's bone and offset are fitted again on every frame's triangulated
             markers within this distance of the track's (the first seconds alone, often still, place them poorly),
             and the capture is tracked again with them (0: one track; :mod:`torchtrack.markers.track`). 0.1 m is
@@ -66,6 +71,7 @@ class APFConfig:
     partitioned: bool = True
     velocity: float = 0.8
     polish_steps: int = 20
+    polish: str = "reprojection"
     refit_m: float = 0.1
 
     def __post_init__(self) -> None:
@@ -73,6 +79,8 @@ class APFConfig:
                 or not 0 < self.outlier_rad < math.inf):
             raise InputError(f"APFConfig: particles >= 2, layers >= 1, survival in (0, 1), finite outlier_rad > 0; "
                              f"got {self}")
+        if self.polish not in ("reprojection", "epipolar"):
+            raise InputError(f"APFConfig: polish is 'reprojection' or 'epipolar', got {self.polish!r}")
         if min(self.root_m, self.root_rad, self.joint_rad, self.refit_m) < 0 or not 0 < self.shrink <= 1:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
 
@@ -428,7 +436,8 @@ class MarkerAPF:
         J = torch.where(self.dof_turns[:, None], torch.linalg.cross(w[:, None].expand_as(lever), lever), w[:, None])
         return (J * self.marker_moves[..., None]).transpose(-1, -2)
 
-    def _polish(self, angles: torch.Tensor, score: EpipolarCost, going: torch.Tensor) -> torch.Tensor:
+    def _polish(self, angles: torch.Tensor, score: EpipolarCost | ReprojectionCost, going: torch.Tensor
+                ) -> torch.Tensor:
         """Levenberg-Marquardt on the cost's residuals from the filter's estimates ``(Q, D)`` (of the subjects
         ``going (Q,)``), within the joint limits; each subject damps and stops on its own. The Jacobian is the
         residuals' derivatives by each marker's position (forward differences: a residual depends on its own
@@ -514,9 +523,10 @@ class MarkerAPF:
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
         if cfg.polish_steps > 0:
-            estimate = self._polish(estimate, EpipolarCost(detections.double(), self.P, self.F, self.outlier_px,
-                                                            self.far_px),
-                                    active)
+            z = detections.double()
+            cost = (ReprojectionCost(z, self.P, self.outlier_px) if cfg.polish == "reprojection" else
+                    EpipolarCost(z, self.P, self.F, self.outlier_px, self.far_px))
+            estimate = self._polish(estimate, cost, active)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
         with torch.no_grad():
