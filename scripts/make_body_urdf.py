@@ -54,7 +54,7 @@ GIRDLE = [(f"{side}_clavicle", "torso", (0.0, s * 0.19 * GIRDLE_MEDIAL, 0.38), [
 ]) for side, s in (("l", 1), ("r", -1))]
 #: The marker skeleton's ankle: after the flexion, inversion (about the forward axis; positive turns the sole towards
 #: the midline), which a foot's heel, toe and metatarsal markers show; within a quarter radian, about a foot's range
-#: in gait (wider, the foot of a fast kick flopped: docs/results.md, "Marker-based capture").
+#: in gait (docs/results.md, "Marker-based capture").
 FOOT = {side: [(f"{side}_ankle_inv", (-s, 0, 0), (-0.25, 0.25))] for side, s in (("l", 1), ("r", -1))}
 for side, s in (("l", 1), ("r", -1)):
     BONES += [

@@ -163,13 +163,14 @@ def test_epipolar_cost_of_padded_subjects_is_each_ones_own():
 
 def test_reprojection_cost_matches_a_plain_loop():
     """The polish's reprojection cost against a plain loop: each marker projected by P into each view, its nearest
-    candidate's squared pixel distance capped at the cap, views without a candidate adding nothing; and its
-    residuals (at the state's own nearest candidates), whose squares sum to the terms below the cap."""
+    candidate's squared pixel distance capped at the cap, views without a candidate adding nothing; its residuals (at
+    the state's own nearest candidates): each view's and marker's projection minus that candidate, 0 beyond the cap;
+    and a second subject with a cap of its own in the same cost, each the same as alone."""
     from torchtrack.tracking.epipolar import ReprojectionCost
 
     rig = demo_rig()
     gen = torch.Generator().manual_seed(2)
-    C, M, K, N, tau = rig.num_cameras, 5, 3, 3, 15.0
+    C, M, K, N = rig.num_cameras, 5, 3, 3
     truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
         [-1.6, -0.5, 0.2])
     P = projection_matrices(rig)
@@ -180,31 +181,38 @@ def test_reprojection_cost_matches_a_plain_loop():
     det[0, 0] = math.nan  # marker 0 unseen in view 0
     det[1, 2, 0] = math.nan
     det[2, 4, :2] = math.nan  # marker 4's only candidate in view 2 beyond the cap
-    pts = (truth[None] + 0.005 * torch.randn(N, M, 3, generator=gen, dtype=torch.float64)).permute(1, 2, 0)[None]
-    cost = ReprojectionCost(det[None], P[None], tau)
-    got = cost.cost(pts)[0]
+    pts = (truth[None] + 0.005 * torch.randn(N, M, 3, generator=gen, dtype=torch.float64)).permute(1, 2, 0)
+    caps = (15.0, 6.0)
+    both = ReprojectionCost(torch.stack([det, det.flip(2)]), P[None].expand(2, -1, -1, -1),
+                            torch.tensor(caps, dtype=torch.float64))
+    got = both.cost(pts[None].expand(2, -1, -1, -1))
     Pn, zn = P.numpy(), det.numpy()
-    for n in range(N):
-        total = below = 0.0
-        for m in range(M):
-            X = np.append(pts[0, m, :, n].numpy(), 1.0)
-            for c in range(C):
-                y = Pn[c] @ X
-                y = y[:2] / y[2]
-                d = [float(np.sum((y - z) ** 2)) for z in zn[c, m] if np.isfinite(z).all()]
-                if d:
-                    total += min(min(d), tau ** 2)
-                    below += min(d) if min(d) < tau ** 2 else 0.0
-        assert float(got[n]) == pytest.approx(total, rel=1e-9)
-        res, _ = cost.residuals(pts[..., n:n + 1])  # each state's own nearest candidates
-        assert float(res[0, 0].square().sum()) == pytest.approx(below, rel=1e-9)
+    for q, tau in enumerate(caps):
+        alone = ReprojectionCost(det[None], P[None], tau)
+        torch.testing.assert_close(got[q], alone.cost(pts[None])[0], rtol=1e-12, atol=0.0)
+        for n in range(N):
+            total, signed = 0.0, np.zeros((C, M, 2))
+            for m in range(M):
+                X = np.append(pts[m, :, n].numpy(), 1.0)
+                for c in range(C):
+                    y = Pn[c] @ X
+                    y = y[:2] / y[2]
+                    cands = [z for z in zn[c, m] if np.isfinite(z).all()]
+                    if cands:
+                        near = min(cands, key=lambda z: float(np.sum((y - z) ** 2)))
+                        d = float(np.sum((y - near) ** 2))
+                        total += min(d, tau ** 2)
+                        signed[c, m] = y - near if d < tau ** 2 else 0.0
+            assert float(got[q, n]) == pytest.approx(total, rel=1e-9)
+            res, _ = alone.residuals(pts[None, ..., n:n + 1])  # each state's own nearest candidates
+            np.testing.assert_allclose(res[0, 0].view(C, M, 2).numpy(), signed, rtol=0, atol=1e-9)
 
 
 def test_the_reprojection_polish_reaches_scipys_least_squares():
     """The filter's polish on the reprojection cost, from a pose a few degrees off, against scipy's least_squares
     on the same residuals written out as a plain projection of the markers (the state within the joint limits):
     the same least, on a body whose markers partly lie off it (three moved 3 cm, so no pose meets every ray) and
-    with markers seen in one view only. The epipolar cost's own least, which the polish took before, is not it."""
+    with markers seen in one view only. The epipolar cost's own least is another pose."""
     from scipy.optimize import least_squares
 
     from torchtrack.markers.model import MarkerSet
@@ -254,6 +262,6 @@ def test_the_reprojection_polish_reaches_scipys_least_squares():
     assert mine == pytest.approx(best, rel=5e-3)  # the polish stops where a step gains under 1e-4 of the cost
     ideal = apf.markers(torch.from_numpy(ref.x)[None])[0]
     assert float((apf.markers(got[None])[0] - ideal).norm(dim=-1).max()) < 3e-3
-    # the epipolar cost's least is another pose: its reprojection error 8 % over the least, a marker 7 mm off
+    # the epipolar cost's least is another pose (docs/results.md, "Marker-based capture")
     epi = apf._polish(start, EpipolarCost(det[None], apf.P, apf.F, cap), torch.ones(1, dtype=torch.bool))[0]
     assert float(np.sum(residuals(epi.numpy()) ** 2)) > 1.03 * best

@@ -191,6 +191,8 @@ def test_bad_filter_settings_are_refused():
         APFConfig(survival=1.5)
     with pytest.raises(InputError):
         APFConfig(particles=1)
+    with pytest.raises(InputError, match="polish"):
+        APFConfig(polish="reproject")
 
 
 def test_marker_set_recovers_known_markers():

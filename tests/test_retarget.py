@@ -49,12 +49,11 @@ def test_recovers_known_poses_of_a_differently_sized_subject():
 
 
 def test_the_marker_skeletons_shoulder_girdle():
-    """The marker skeleton (``configs/body_markers.urdf``) is the body with a clavicle per side: raising it by e
-    lifts the shoulder by L sin e about the pivot, bringing it forward by p moves it forward by L sin p (L the
-    clavicle, pivot to shoulder: closed forms); its ankle inverts: the toe (x forward, z down from the ankle)
-    turns about the forward axis towards the midline (a closed form); and a subject of that chain at another size,
-    its girdle and ankles at rest and the other joints in known poses, is
-    reproduced by the retarget, which places the pivot and the shoulder from the source's medians."""
+    """The marker skeleton (``configs/body_markers.urdf``) is the body with a clavicle per side (and the ankle's
+    inversion, the test below): raising the clavicle by e lifts the shoulder by L sin e about the pivot, bringing it
+    forward by p moves it forward by L sin p (L the clavicle, pivot to shoulder: closed forms); and a subject of that
+    chain at another size, its girdle and ankles at rest and the other joints in known poses, is reproduced by the
+    retarget, which places the pivot and the shoulder from the source's medians."""
     from torchtrack.markers.model import MARKER_URDF
     from torchtrack.resources import builtin_config
 
@@ -70,6 +69,22 @@ def test_the_marker_skeletons_shoulder_girdle():
         delta = girdle(moved[None]).joints[0, shoulder] - at_rest
         assert float(delta[axis]) == pytest.approx(L * math.sin(0.3), abs=1e-6)
         assert float(delta[1]) == pytest.approx(-L * (1 - math.cos(0.3)), abs=1e-6)  # towards the pivot
+    subject = girdle.scaled_to_height(1.62)
+    angles = _known_poses(subject, 5)
+    angles[:, [subject.dof_names.index(f"{s}_shoulder_{k}") for s in "lr" for k in ("elev", "prot")]] = 0.0
+    angles[:, [subject.dof_names.index(f"{s}_ankle_inv") for s in "lr"]] = 0.0
+    _reproduces(girdle, subject, angles)
+
+
+def test_the_marker_skeletons_ankle_inverts():
+    """The marker skeleton's ankle inverts: turning ``ankle_inv`` by a turns the toe (x forward, z down from the
+    ankle) about the forward axis towards the midline, to (x, z sin a, z cos a) on the left and (x, -z sin a,
+    z cos a) on the right (a closed form)."""
+    from torchtrack.markers.model import MARKER_URDF
+    from torchtrack.resources import builtin_config
+
+    girdle = Skeleton.from_urdf(builtin_config(MARKER_URDF))
+    rest = girdle.rest_angles().double()
     toe, ankle = (list(girdle.output_names).index(n) for n in ("l_toe", "l_ankle"))
     rest_fk = girdle(rest[None])
     x, _, z = (rest_fk.output_points[0, toe] - rest_fk.output_points[0, ankle]).tolist()
@@ -81,11 +96,6 @@ def test_the_marker_skeletons_shoulder_girdle():
         got = fk.output_points[0, toe] - fk.output_points[0, ankle]
         want = torch.tensor((x, sign * z * math.sin(0.2), z * math.cos(0.2)), dtype=got.dtype)
         torch.testing.assert_close(got, want, rtol=0, atol=1e-6)
-    subject = girdle.scaled_to_height(1.62)
-    angles = _known_poses(subject, 5)
-    angles[:, [subject.dof_names.index(f"{s}_shoulder_{k}") for s in "lr" for k in ("elev", "prot")]] = 0.0
-    angles[:, [subject.dof_names.index(f"{s}_ankle_inv") for s in "lr"]] = 0.0
-    _reproduces(girdle, subject, angles)
 
 
 @pytest.mark.parametrize("name", ["131_01", "131_02"])

@@ -214,9 +214,10 @@ def refit_marker_set(s: MarkerSequence, poses: Poses, within_m: float) -> Marker
     """The sequence with its markers' bones and offsets fitted again (:func:`~torchtrack.markers.model.
     fit_marker_set`) on every valid frame's triangulated markers that lie within ``within_m`` of the track
     ``poses``' (a marker placed by fewer than ``REFIT_MIN_FRAMES`` such frames keeps its first fit; at most
-    ``REFIT_MAX_FRAMES`` frames), and its first pose: fitted to them where frame 0 has 3 such markers, else the
-    track's. Over the first seconds a subject often holds still, which leaves a marker's bone and place in it poorly
-    fixed; along a track every joint moves. The gate keeps out detections linked to the wrong marker.
+    ``REFIT_MAX_FRAMES`` frames); its first pose is the track's (a pose fitted to frame 0's markers alone lets the
+    joints that few markers hold drift). Over the first seconds a subject often holds still, which leaves a marker's
+    bone and place in it poorly fixed; along a track every joint moves. The gate keeps out detections linked to the
+    wrong marker.
 
     Raises:
         InputError: fewer than 3 markers placed by ``REFIT_MIN_FRAMES`` frames."""
@@ -235,12 +236,10 @@ def refit_marker_set(s: MarkerSequence, poses: Poses, within_m: float) -> Marker
                          f"{REFIT_MIN_FRAMES} frames")
     names = [s.marker_set.names[i] for i in enough.nonzero()[:, 0].tolist()]
     target = torch.where(near[..., None], X[frames], math.nan)[:, enough]
-    fitted, angles = fit_marker_set(s.skeleton, A[frames], target, names)
+    fitted, _ = fit_marker_set(s.skeleton, A[frames], target, names)
     bone, offset = s.marker_set.bone.clone(), s.marker_set.offset.clone()
     bone[enough], offset[enough] = fitted.bone, fitted.offset.to(offset)
-    placed = int(frames[0]) == 0 and int(near[0, enough].sum()) >= 3
-    first = angles[0] if placed else A[0]
-    return replace(s, marker_set=MarkerSet(s.marker_set.names, bone, offset), first=first.to(s.first))
+    return replace(s, marker_set=MarkerSet(s.marker_set.names, bone, offset), first=A[0].to(s.first))
 
 
 def _track_pass(sequences: Sequence[MarkerSequence], config: APFConfig, seed: int, progress: bool,

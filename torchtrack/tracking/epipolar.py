@@ -189,19 +189,23 @@ class ReprojectionCost:
 
     def __init__(self, detections: torch.Tensor, P: torch.Tensor, outlier_px: float | torch.Tensor) -> None:
         Q, C, M, K, _ = detections.shape
+        # a number checked here; a tensor is the filter's caps, checked once when it was built (no device sync)
+        if not isinstance(outlier_px, torch.Tensor) and not 0 < outlier_px < math.inf:
+            raise InputError(f"ReprojectionCost: outlier_px must be finite and > 0; got {outlier_px}")
         self.seen = torch.isfinite(detections).all(-1)  # (Q, C, M, K)
         self.z = torch.nan_to_num(detections)[..., None]  # (Q, C, M, K, 2, 1): states last
         self.P = P.to(detections)[:, :, None]  # (Q, C, 1, 3, 4)
         cap = torch.as_tensor(outlier_px, dtype=detections.dtype).to(detections.device).expand(Q)
         self.cap = cap.square().view(Q, 1, 1, 1)  # against (Q, C, M, N)
-        self.norm2 = self.seen[..., 0, None]  # (Q, C, M, 1): EpipolarCost's shape for the polish's C and M
 
     def _offsets(self, points: torch.Tensor) -> torch.Tensor:
-        """Points ``(Q, M, 3, N)`` -> each candidate's offset from the projection ``(Q, C, M, K, 2, N)`` (px)."""
+        """Points ``(Q, M, 3, N)`` -> each candidate's offset from the projection ``(Q, C, M, K, 2, N)`` (px); a
+        point behind a camera (or on its plane) infinitely far from every candidate there."""
         h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
-        y = self.P @ h[:, None]  # (Q, C, M, 3, N)
-        y = y[:, :, :, :2] / y[:, :, :, 2:3]
-        return y[:, :, :, None] - self.z
+        y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
+        ahead = y[:, :, :, 2:3] > 0
+        y = torch.where(ahead, y[:, :, :, :2] / torch.where(ahead, y[:, :, :, 2:3], 1.0), math.inf)
+        return y[:, :, :, None] - self.z.to(y)
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
         """``points (Q, M, 3, N)`` -> (Q, N) costs, or (Q, M, N) with ``per_marker``."""
@@ -224,7 +228,7 @@ class ReprojectionCost:
         idx = pick[..., None, None]
         near = d2.gather(3, idx.expand(*pick.shape, 1, N))[:, :, :, 0]  # (Q, C, M, N)
         r = off.gather(3, idx[..., None].expand(*pick.shape, 1, 2, N))[:, :, :, 0]  # (Q, C, M, 2, N)
-        use = near < self.cap  # a missing candidate is inf: never used
+        use = near[..., :1] < self.cap  # at the first state, as the picks (a missing candidate is inf: never used)
         out = torch.where(use[:, :, :, None], r, 0.0)
         return out.reshape(Q, -1, N).mT, pick
 

@@ -42,8 +42,9 @@ class APFConfig:
         survival: the survival rate each layer's ``beta`` is set for (effective sample size / particles).
         outlier_rad: a marker's epipolar distance to a view's detections counts at most this much, as an angle
             (radians; times each rig's median focal length in pixels): a detection farther off is another marker's
-            or a false one, or the body model cannot reach it. An angle, not pixels, so that one setting holds for
-            any camera's resolution (0.03: 16 px at 640 x 480, 50 px at 1920 x 1088).
+            or a false one, or the body model cannot reach it (the polish's reprojection error is capped the same).
+            An angle, not pixels, so that one setting holds for any camera's resolution (0.03: 16 px at 640 x 480,
+            50 px at 1920 x 1088).
         root_m, root_rad, joint_rad: the first layer's perturbation (standard deviation) of the root's translation,
             its rotation and every joint angle; ``shrink``: each later layer's, as a factor of the one before.
         partitioned: each limb's joints resampled by the limb's own markers (the trunk's by all of them), not whole
@@ -449,7 +450,7 @@ class MarkerAPF:
         theta = angles.detach().double()
         Q, D = theta.shape
         dev = theta.device
-        C, M = score.norm2.shape[1], score.norm2.shape[2]
+        C, M = self.P.shape[1], self.bone.shape[1]
         moves = torch.cat([torch.zeros(3, 1, dtype=theta.dtype, device=dev),
                            torch.eye(3, dtype=theta.dtype, device=dev) * FD_STEP], 1)  # (3, 4): none, x, y, z
         eye = torch.eye(D, dtype=theta.dtype, device=dev)
@@ -464,7 +465,8 @@ class MarkerAPF:
             if not bool(going.any()):
                 break
             r, _ = score.residuals(X[..., None] + moves)  # (Q, 4, R), the estimate's nearest candidates
-            dr = ((r[:, 1:] - r[:, :1]) / FD_STEP).view(Q, 3, C, M, -1)  # (Q, 3, C, M, A): by the marker's x, y, z
+            # by the marker's x, y, z: (Q, 3, C, M, each view's and marker's residuals)
+            dr = ((r[:, 1:] - r[:, :1]) / FD_STEP).view(Q, 3, C, M, -1)
             J = torch.einsum("qkcma,qmkd->qdcma", dr, self._marker_jacobian(R, t, X)).reshape(Q, D, -1)
             A, g = J @ J.mT, (J @ r[:, 0, :, None])[..., 0]
             # every damping tried at once; each subject takes the least one whose cost falls, as trying them in
