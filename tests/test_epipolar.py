@@ -17,17 +17,22 @@ from torchtrack.tracking.epipolar import (EpipolarCost, epipolar_cost, fundament
                                           projection_matrices)
 
 
+def _points_in_view(rig, M: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """M random points in the demo rig's volume ``(M, 3)``, its pinhole projections ``(C, 3, 4)`` and the points'
+    pinhole pixels ``(C, M, 2)``."""
+    truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
+        [-1.6, -0.5, 0.2])
+    P = projection_matrices(rig)
+    uv = torch.einsum("cij,mj->cmi", P, torch.cat([truth, torch.ones(M, 1, dtype=torch.float64)], -1))
+    return truth, P, uv[..., :2] / uv[..., 2:]
+
+
 @pytest.mark.parametrize("tau", [20.0, 1e8])  # a cap beyond the far line of a missing candidate too
 def test_epipolar_cost_matches_a_plain_loop(tau):
     rig = demo_rig()
     gen = torch.Generator().manual_seed(0)
     C, M, K, B = rig.num_cameras, 6, 3, 4
-    truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
-        [-1.6, -0.5, 0.2])
-    P = projection_matrices(rig)
-    h = torch.cat([truth, torch.ones(M, 1, dtype=torch.float64)], -1)
-    uv = torch.einsum("cij,mj->cmi", P, h)
-    uv = uv[..., :2] / uv[..., 2:]  # (C, M, 2) pinhole pixels
+    truth, P, uv = _points_in_view(rig, M, gen)
     det = uv[:, :, None].repeat(1, 1, K, 1) + 3 * torch.randn(C, M, K, 2, generator=gen, dtype=torch.float64)
     det[:, :, 1:] += 200 * torch.randn(C, M, K - 1, 2, generator=gen, dtype=torch.float64)  # false candidates
     det[0, 0] = math.nan  # marker 0 unseen in view 0
@@ -171,11 +176,7 @@ def test_reprojection_cost_matches_a_plain_loop():
     rig = demo_rig()
     gen = torch.Generator().manual_seed(2)
     C, M, K, N = rig.num_cameras, 5, 3, 3
-    truth = torch.rand(M, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.5, 1.0, 1.6]) + torch.tensor(
-        [-1.6, -0.5, 0.2])
-    P = projection_matrices(rig)
-    uv = torch.einsum("cij,mj->cmi", P, torch.cat([truth, torch.ones(M, 1, dtype=torch.float64)], -1))
-    uv = uv[..., :2] / uv[..., 2:]
+    truth, P, uv = _points_in_view(rig, M, gen)
     det = uv[:, :, None].repeat(1, 1, K, 1) + 4 * torch.randn(C, M, K, 2, generator=gen, dtype=torch.float64)
     det[:, :, 2] += 60.0  # a candidate beyond the cap
     det[0, 0] = math.nan  # marker 0 unseen in view 0
