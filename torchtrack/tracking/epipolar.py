@@ -198,18 +198,20 @@ class ReprojectionCost:
         cap = torch.as_tensor(outlier_px, dtype=detections.dtype).to(detections.device).expand(Q)
         self.cap = cap.square().view(Q, 1, 1, 1)  # against (Q, C, M, N)
 
-    def _offsets(self, points: torch.Tensor) -> torch.Tensor:
-        """Points ``(Q, M, 3, N)`` -> each candidate's offset from the projection ``(Q, C, M, K, 2, N)`` (px); a
-        point behind a camera (or on its plane) infinitely far from every candidate there."""
+    def _offsets(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``(Q, M, 3, N)`` -> each candidate's offset from the projection ``(Q, C, M, K, 2, N)`` (px) and
+        its squared length ``(Q, C, M, K, N)``, inf for a missing candidate; a point behind a camera (or on its
+        plane) is infinitely far from every candidate there."""
         h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
         y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
         ahead = y[:, :, :, 2:3] > 0
         y = torch.where(ahead, y[:, :, :, :2] / torch.where(ahead, y[:, :, :, 2:3], 1.0), math.inf)
-        return y[:, :, :, None] - self.z.to(y)
+        off = y[:, :, :, None] - self.z.to(y)
+        return off, off.square().sum(4).masked_fill(~self.seen[..., None], math.inf)
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
         """``points (Q, M, 3, N)`` -> (Q, N) costs, or (Q, M, N) with ``per_marker``."""
-        d2 = self._offsets(points).square().sum(4).masked_fill(~self.seen[..., None], math.inf)  # (Q, C, M, K, N)
+        _, d2 = self._offsets(points)
         d = d2.amin(3).clamp(max=self.cap)  # (Q, C, M, N)
         d = torch.where(self.seen.any(3)[..., None], d, 0.0)
         cost = d.sum(1)  # (Q, M, N)
@@ -221,8 +223,7 @@ class ReprojectionCost:
         cost's terms below the cap (0 for the others), each view's and marker's nearest candidate to the first
         state, or the candidates ``pick (Q, C, M)``; and the candidates used."""
         Q, N = points.shape[0], points.shape[-1]
-        off = self._offsets(points)  # (Q, C, M, K, 2, N)
-        d2 = off.square().sum(4).masked_fill(~self.seen[..., None], math.inf)  # (Q, C, M, K, N)
+        off, d2 = self._offsets(points)  # (Q, C, M, K, 2, N), (Q, C, M, K, N)
         if pick is None:
             pick = d2[..., 0].argmin(-1)  # (Q, C, M)
         idx = pick[..., None, None]
