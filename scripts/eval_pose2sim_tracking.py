@@ -408,7 +408,7 @@ def main() -> None:
                     help="keep the subject's static parts in the estimated background (no fill_static_subject)")
     ap.add_argument("--silhouettes", action="store_true",
                     help="the start search scores bodies in each camera's foreground (observation.silhouettes: "
-                         "true; the tracking config turns it on from 7 cameras only)")
+                         "true; the tracking config's null does so with the Bayesian grid)")
     ap.add_argument("--continue-from", type=Path, default=None, metavar="POSES",
                     help="start from a saved track of the demo (--save-poses): its first pose and body, and the "
                          "background re-estimated from it (with --refine-passes 0: one more pass of that run)")

@@ -135,9 +135,10 @@ def test_the_observation_section_sets_the_grid_sensor_model(seq):
             observer_from_config(folder.rig, bg, doc, "bayes", 0.05)
 
 
-def test_the_tracking_config_keeps_each_cameras_foreground_from_seven_cameras(seq):
-    """``observation.silhouettes: null`` (the tracking config's): each observation carries each camera's foreground
-    on a rig of 8 cameras, not of 4; true and false say so on any rig; another value is refused, naming the key.
+def test_the_tracking_config_keeps_each_cameras_foreground_with_the_bayesian_grid(seq):
+    """``observation.silhouettes: null`` (the tracking config's): each observation of the Bayesian grid carries each
+    camera's foreground, on rigs of 4 and 8 cameras, the hull's none; true and false say so on any rig; another
+    value is refused, naming the key.
     The foreground kept is the pixels' evidence pooled per cell: a frame of the background's own mean has none."""
     from torchtrack.background import BackgroundConfig, BackgroundModel
     from torchtrack.checks import InputError
@@ -149,8 +150,9 @@ def test_the_tracking_config_keeps_each_cameras_foreground_from_seven_cameras(se
     assert tracking["silhouettes"] is None
     folder = SequenceFolder(seq)
     bg = BackgroundModel.from_folder(folder, BackgroundConfig())
-    assert not observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).silhouettes  # 4 cameras
-    assert observer_from_config(folder.rig, bg, {**tracking, "silhouettes": True}, "bayes", 0.05).silhouettes
+    assert observer_from_config(folder.rig, bg, tracking, "bayes", 0.05).silhouettes  # 4 cameras
+    assert not observer_from_config(folder.rig, bg, {**tracking, "silhouettes": False}, "bayes", 0.05).silhouettes
+    assert not observer_from_config(folder.rig, bg, tracking, "hull", 0.05).silhouettes
     rig8 = make_ring_rig(RigConfig(num_cameras=8, width=32, height=24))
     frames = 0.5 + 0.01 * torch.randn(5, 8, 3, 24, 32, generator=torch.Generator().manual_seed(0))  # a grey room
     bg8 = BackgroundModel.from_frames(frames)

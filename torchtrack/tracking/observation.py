@@ -23,16 +23,12 @@ __all__ = ["MODELS", "Observer", "ViewSilhouettes", "VoxelObservation", "default
 MODELS = ("bayes", "hull")
 
 
-#: The tracking config's ``observation.silhouettes: null`` keeps them (and the start search scores in the images)
-#: from rigs of this many cameras: with 8 the searched starts are right more often; with 4 no more often, and one
-#: 4-camera squat of the stress table started wrong (docs/results.md, "The start search"). Where it keeps them the
-#: search also keeps both headings (:func:`~torchtrack.tracking.search._top_both_ways`).
-SILHOUETTES_MIN_CAMERAS = 7
-
-
-def default_silhouettes(num_cameras: int, model: str = "bayes") -> bool:
-    """Whether the tracking keeps each camera's foreground by default (``observation.silhouettes: null``)."""
-    return model == "bayes" and num_cameras >= SILHOUETTES_MIN_CAMERAS
+def default_silhouettes(model: str = "bayes") -> bool:
+    """Whether the tracking keeps each camera's foreground by default (``observation.silhouettes: null``): for the
+    Bayesian grid on every rig, where the start search then scores bodies in the images and keeps both headings
+    (:mod:`~torchtrack.tracking.search`; docs/results.md, "The start search"). The hull keeps no per-pixel
+    evidence."""
+    return model == "bayes"
 
 
 class Observer(nn.Module):

@@ -178,7 +178,7 @@ def observer_from_config(rig: Any, background: Any, ocfg: dict[str, Any], model:
         raise InputError(f"observation config, bayes: {exc}") from None
     silhouettes = ocfg.get("silhouettes", False)
     if silhouettes is None:
-        silhouettes = default_silhouettes(rig.num_cameras, model)
+        silhouettes = default_silhouettes(model)
     elif not isinstance(silhouettes, bool):
         raise InputError(f"observation config: silhouettes must be true, false or null, got {silhouettes!r}")
     elif silhouettes and model != "bayes":
