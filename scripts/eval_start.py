@@ -20,6 +20,7 @@ search's own error before EM/CCD; and the share within 50 mm before the race (``
     .venv/bin/python scripts/eval_start.py --cameras 8 --frames 3 --search-only --search sweep=false  # no limb sweep
     .venv/bin/python scripts/eval_start.py --from-truth          # the ceiling: the tracker's fit from the true pose
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --tracker init_passes=6   # a tracker setting
+    .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --voxels   # the search on the voxels alone
 
 ``--from-truth`` starts no search: the tracker is given the true pose and the subject's own body (the rendered
 ``body.urdf``) and fits the start frame from them as it tracks any frame (EM/CCD from the predicted pose); the share
@@ -118,9 +119,13 @@ def main() -> None:
     ap.add_argument("--truth-score", action="store_true",
                     help="with --search-only, print each start's two-way score and the true pose's (on the "
                          "template's body at the subject's height): a search that scores below the truth missed it")
-    ap.add_argument("--silhouettes", action="store_true",
-                    help="the search scores bodies against each camera's foreground (observation.silhouettes: true) "
-                         "instead of the voxels")
+    scored = ap.add_mutually_exclusive_group()
+    scored.add_argument("--silhouettes", action="store_true",
+                        help="the search scores bodies against each camera's foreground (observation.silhouettes: "
+                             "true; the config's null does so with the Bayesian grid, since 2026-12-02)")
+    scored.add_argument("--voxels", action="store_true",
+                        help="the search scores bodies against the voxels (observation.silhouettes: false), as on "
+                             "rigs of fewer than 7 cameras before 2026-12-02")
     ap.add_argument("--search", nargs="*", default=[], metavar="KEY=VALUE",
                     help="with --search-only, SearchConfig fields for the script's own search (e.g. particles=192 "
                          "layers=20 sweep=false); the tracker's start keeps the defaults")
@@ -161,8 +166,8 @@ def main() -> None:
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_start.py", empty=False)  # each sequence re-rendered when stale
     config = load_config("markerless.yaml")
-    if args.silhouettes:
-        config["observation"] = {**config["observation"], "silhouettes": True}
+    if args.silhouettes or args.voxels:
+        config["observation"] = {**config["observation"], "silhouettes": bool(args.silhouettes)}
     for item in args.tracker:
         key, sep, value = item.partition("=")
         if not sep:
