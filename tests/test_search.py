@@ -204,26 +204,6 @@ def test_each_limb_the_sweep_changes_is_sized_so_the_body_meets_the_voxels_top(l
     assert abs(got - top(subj, truth)) < 0.03, (got, top(subj, truth))
 
 
-def _ring_rig(C: int):
-    """C cameras 160 x 120 on a ring of 4 m radius, 1.5 m up, each looking at (0, 0, 1)."""
-    from torchtrack.cameras import CameraRig
-
-    Rs, ts = [], []
-    for c in range(C):
-        yaw = 2 * math.pi * c / C
-        centre = torch.tensor([4 * math.cos(yaw), 4 * math.sin(yaw), 1.5], dtype=torch.float64)
-        z = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) - centre
-        z = z / z.norm()
-        x = torch.linalg.cross(z, torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64))
-        x = x / x.norm()
-        R = torch.stack([x, torch.linalg.cross(z, x), z])  # world -> camera rows, y down
-        Rs.append(R)
-        ts.append(-R @ centre)
-    K = torch.tensor([[120.0, 0, 79.5], [0, 120.0, 59.5], [0, 0, 1]], dtype=torch.float64)
-    return CameraRig([f"c{c}" for c in range(C)], K.expand(C, 3, 3).clone(), torch.stack(Rs), torch.stack(ts),
-                     torch.tensor([[160, 120]] * C), torch.zeros(C, 5, dtype=torch.float64)).float()
-
-
 @pytest.mark.parametrize("cameras, in_images", [(4, False), (6, False), (7, True), (8, True)])
 def test_finished_bodies_are_compared_in_the_images_from_7_cameras_and_on_the_voxels_below(cameras, in_images):
     """score_states, which compares the start's finished hypotheses, races and held re-acquisitions: with every
@@ -234,6 +214,7 @@ def test_finished_bodies_are_compared_in_the_images_from_7_cameras_and_on_the_vo
     from conftest import voxelised_observation
     from torchtrack.blobs import BlobModel
     from torchtrack.skeleton import Skeleton
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
     from torchtrack.tracking.observation import ViewSilhouettes
     from torchtrack.tracking.search import score_states
 
@@ -242,7 +223,7 @@ def test_finished_bodies_are_compared_in_the_images_from_7_cameras_and_on_the_vo
     angles = skel.rest_angles().double()
     angles[skel.dof_names.index("root_tz")] -= float(skel.forward(angles[None]).output_points[0, :, 2].min())
     plain = voxelised_observation(skel, blobs, angles, cameras=cameras)
-    rig = _ring_rig(cameras)
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=160, height=120, radius_m=4.0)).float()
     kept = dataclasses.replace(plain, silhouettes=ViewSilhouettes.from_evidence(torch.ones(cameras, 120, 160), rig,
                                                                                 cell_px=4))
     on_voxels = score_states(plain, skel, blobs, angles[None])
