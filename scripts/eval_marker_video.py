@@ -7,7 +7,8 @@ markers`) and scores:
   image found within 1.5 px of their visible pixels' centre, the mean distance of those, false detections per view
   (farther than 6 px from every ball);
 - the labelling: the share of balls showing at least 4 pixels whose first candidate is within 3 px of them;
-- the track: MMTA (50 mm) and MMTP against the balls' true centres, frames lost, seconds per frame.
+- the track: MMTA (50 mm) and MMTP against the balls' true centres, frames lost, seconds per frame; and the MMTA
+  and MMTP of the rigid body's markers alone (`markers3d_body`).
 
     .venv/bin/python scripts/eval_marker_video.py [--cases NAME ...] [--work out/eval_marker_video]
         [--apf FIELD=VALUE ...]
@@ -93,7 +94,7 @@ def main() -> int:
     torch.set_num_threads(1)
     work = script_work_folder(args.work, "eval_marker_video.py", empty=False)
     print(f"{'case':<20} {'frames':>6} {'found%':>7} {'err px':>6} {'false':>6} {'first%':>7} {'MMTA@50':>8} "
-          f"{'MMTP mm':>8} {'lost':>5} {'s/frame':>8}")
+          f"{'MMTP mm':>8} {'lost':>5} {'s/frame':>8} {'body MMTA':>9} {'body MMTP':>9}")
     for name in args.cases:
         cfg = dataclasses.replace(CASES[name], duration_s=args.duration)
         folder = work / name
@@ -111,10 +112,14 @@ def main() -> int:
         result = track_markers(folder, apf, progress=False)
         seconds = time.perf_counter() - t0
         save_poses(result.poses, folder / "poses.npz")
-        rep = evaluate(result.poses, load_poses(folder / "gt.npz"))
+        truth = load_poses(folder / "gt.npz")
+        rep = evaluate(result.poses, truth)
         m, T = rep.markers, result.poses.num_frames
+        body_markers = result.poses.extra["markers3d_body"]
+        body = evaluate(dataclasses.replace(result.poses, markers3d=body_markers), truth).markers
         print(f"{name:<20} {T:>6} {100 * found:>6.1f}% {err:>6.2f} {false:>6.2f} {100 * first[seen].mean():>6.1f}% "
-              f"{100 * m.mmta:>7.2f}% {m.mmtp_mm:>8.1f} {rep.frames_lost:>5} {seconds / T:>8.2f}", flush=True)
+              f"{100 * m.mmta:>7.2f}% {m.mmtp_mm:>8.1f} {rep.frames_lost:>5} {seconds / T:>8.2f} "
+              f"{100 * body.mmta:>8.2f}% {body.mmtp_mm:>9.1f}", flush=True)
     return 0
 
 

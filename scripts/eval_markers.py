@@ -3,7 +3,9 @@
 Each capture (real 3D markers from ../shared/data/mocap) is projected into the real 4-camera rig of the Pose2Sim
 demo through the simulated detector (`torchtrack synth markers`) with the marker-based issue's corruption (p_miss
 0.2, 0.1 false detections per view and frame, sigma 2 px) and without any, then tracked as `torchtrack track` does
-(the subject from the detections alone) and scored as `torchtrack eval` does.
+(the subject from the detections alone) and scored as `torchtrack eval` does. Beside each row: the share of the
+scored markers placed by their own triangulation (`measured`), and the MMTA and MMTP of the rigid body's markers
+alone (`markers3d_body`).
 
 With ``--seeds N`` each row is run N times, the detections and the filter drawn with seeds 0 to N - 1, and the
 mean and the worst of the runs printed after them: the filter is chaotic, and one seed's MMTA moves by a few points.
@@ -38,6 +40,7 @@ from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.io.poses import Poses, save_poses  # noqa: E402
 from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
+from torchtrack.markers.gaps import MEASURED, NONE  # noqa: E402
 from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.track import load_marker_sequence, refit_marker_set, track_markers  # noqa: E402
@@ -105,7 +108,7 @@ def main() -> int:
     work = script_work_folder(args.work, "eval_markers.py", empty=False)
     rig = load_calibration(RIG, warn_units=False)
     print(f"{'capture':<12} {'setting':<12} {'frames':>6} {'markers':>7} {'MMTA@50':>8} {'MMTP mm':>8} "
-          f"{'landmarks mm':>12} {'lost':>5} {'s/frame':>8}")
+          f"{'landmarks mm':>12} {'lost':>5} {'s/frame':>8} {'measured':>8} {'body MMTA':>9} {'body MMTP':>9}")
     for name in args.captures:
         for setting in args.settings:
             runs = []
@@ -120,10 +123,14 @@ def main() -> int:
                 rep = evaluate(result.poses, truth)
                 m = rep.markers
                 T = result.poses.num_frames
-                runs.append((100 * m.mmta, m.mmtp_mm, rep.mpjpe_mm, rep.frames_lost))
+                body = evaluate(replace(result.poses, markers3d=result.poses.extra["markers3d_body"]), truth).markers
+                source = result.poses.extra["markers3d_source"][result.poses.valid]
+                measured = 100 * float((source == MEASURED).sum()) / max(int((source != NONE).sum()), 1)
+                runs.append((100 * m.mmta, m.mmtp_mm, rep.mpjpe_mm, rep.frames_lost, 100 * body.mmta, body.mmtp_mm))
                 label = setting if args.seeds == 1 else f"{setting} {seed}"
                 print(f"{name:<12} {label:<12} {T:>6} {m.markers:>7} {100 * m.mmta:>7.2f}% {m.mmtp_mm:>8.1f} "
-                      f"{rep.mpjpe_mm:>12.1f} {rep.frames_lost:>5} {seconds / T:>8.2f}", flush=True)
+                      f"{rep.mpjpe_mm:>12.1f} {rep.frames_lost:>5} {seconds / T:>8.2f} {measured:>7.1f}% "
+                      f"{100 * body.mmta:>8.2f}% {body.mmtp_mm:>9.1f}", flush=True)
                 if not math.isfinite(m.mmta):
                     return 1
                 if args.ceiling:
@@ -131,10 +138,11 @@ def main() -> int:
                         print(f"{'':<12} {'':<12} {'':>6} {'':>7} {mmta:>7.2f}% {mmtp:>8.1f}   ceiling: {what}",
                               flush=True)
             if args.seeds > 1:
-                mean = [sum(r[i] for r in runs) / len(runs) for i in range(3)]
+                mean = [sum(r[i] for r in runs) / len(runs) for i in range(6)]
                 print(f"{name:<12} {setting + ' mean':<12} {'':>6} {'':>7} {mean[0]:>7.2f}% {mean[1]:>8.1f} "
-                      f"{mean[2]:>12.1f} {sum(r[3] for r in runs):>5}   (lost: summed over the seeds; worst MMTA "
-                      f"{min(r[0] for r in runs):.2f}%, worst MMTP {max(r[1] for r in runs):.1f} mm)", flush=True)
+                      f"{mean[2]:>12.1f} {sum(r[3] for r in runs):>5} {'':>8} {'':>8} {mean[4]:>8.2f}% "
+                      f"{mean[5]:>9.1f}   (lost: summed over the seeds; worst MMTA {min(r[0] for r in runs):.2f}%, "
+                      f"worst MMTP {max(r[1] for r in runs):.1f} mm)", flush=True)
     return 0
 
 

@@ -20,6 +20,7 @@ from torchtrack.checks import InputError
 from torchtrack.io.markers2d import Markers2D, load_markers2d
 from torchtrack.io.poses import Poses
 from torchtrack.logging import RunLogger
+from torchtrack.markers.gaps import BODY, NONE, measured_markers
 from torchtrack.markers.model import MarkerSet, fit_marker_set, fit_poses_to_markers, subject_from_markers
 from torchtrack.markers.triangulate import triangulate_candidates
 from torchtrack.skeleton.model import Skeleton
@@ -75,7 +76,8 @@ class MarkerSequence:
         detections' order. z: (T, C, M, K, 2) the frames' candidates in pinhole pixels. X: (T, M, 3) their
         triangulated markers (NaN where fewer than two views agree). skeleton, marker_set, first: the subject
         and its pose on the first frame. keep: (M',) the markers tracked (those the fit placed). seconds: the
-        time the loading and the fit took.
+        time the loading and the fit took. views: (T, M) how many views agree on each of ``X`` (None: two
+        wherever ``X`` is finite).
     """
 
     folder: Path
@@ -89,6 +91,7 @@ class MarkerSequence:
     first: torch.Tensor
     keep: torch.Tensor
     seconds: float
+    views: torch.Tensor | None = None
 
     @property
     def num_frames(self) -> int:
@@ -121,7 +124,8 @@ def load_marker_sequence(folder: str | Path, start: int = 0, stop: int | None = 
     uv = torch.from_numpy(det.uv[start:stop].astype(np.float64))  # (T, C, M, K, 2)
     z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
     T = z.shape[0]
-    X_all, _ = triangulate_candidates(z, projection_matrices(rig))  # (T, M, 3): the fit and the lost-track test
+    # (T, M, 3): the fit, the lost-track test and the output markers
+    X_all, views = triangulate_candidates(z, projection_matrices(rig))
     # the subject from the first seconds; where their markers do not give every joint centre, from more of them
     for seconds in (FIT_SECONDS, MAX_FIT_SECONDS):
         n_fit = min(T, max(2, round(seconds * det.fps)))
@@ -143,7 +147,8 @@ def load_marker_sequence(folder: str | Path, start: int = 0, stop: int | None = 
         log.warning("%s: markers %s are seen by two cameras in fewer than 2 of the first %d frames: not tracked",
                     folder, [n for n, ok in zip(det.marker_names, enough.tolist()) if not ok], n_fit)
     log.info("%s: subject fitted on %d frames: %d markers, %.2f m tall", folder, n_fit, len(names), skel.height())
-    return MarkerSequence(folder, det, start, rig, z, X_all, skel, mset, angles[0], keep, time.perf_counter() - t0)
+    return MarkerSequence(folder, det, start, rig, z, X_all, skel, mset, angles[0], keep, time.perf_counter() - t0,
+                          views)
 
 
 def track_markers(folder: str | Path, config: APFConfig = APFConfig(), start: int = 0, stop: int | None = None,
@@ -301,7 +306,7 @@ def _track_pass(sequences: Sequence[MarkerSequence], config: APFConfig, seed: in
     shared = time.perf_counter() - t0
     return [failed[q] if q in failed else
             _marker_track(s, states[:s.num_frames, q], spread[:s.num_frames, q], restarted[:s.num_frames, q],
-                          valid[:s.num_frames, q], s.seconds + shared) for q, s in enumerate(sequences)]
+                          valid[:s.num_frames, q], s.seconds + shared, config) for q, s in enumerate(sequences)]
 
 
 def _log_step(logger: RunLogger, apf: MarkerAPF, s: MarkerSequence, q: int, t: int, est: torch.Tensor,
@@ -330,20 +335,30 @@ def _log_step(logger: RunLogger, apf: MarkerAPF, s: MarkerSequence, q: int, t: i
 
 
 def _marker_track(s: MarkerSequence, A: torch.Tensor, spread: torch.Tensor, restarted: torch.Tensor,
-                  valid: torch.Tensor, seconds: float) -> MarkerTrack:
-    """One sequence's track ``A (T, D)`` as :class:`MarkerTrack` (poses with every marker's tracked position)."""
+                  valid: torch.Tensor, seconds: float, config: APFConfig) -> MarkerTrack:
+    """One sequence's track ``A (T, D)`` as :class:`MarkerTrack`: poses with every marker's position, measured
+    where the views show it and filled from the body elsewhere (:func:`~torchtrack.markers.gaps.measured_markers`;
+    the body's alone in ``markers3d_body``)."""
     T, M = s.num_frames, len(s.det.marker_names)
     with torch.no_grad():
         fk = s.skeleton.forward(A)
         tracked = s.marker_set.positions(fk.bone_frames)
-    markers3d = torch.full((T, M, 3), math.nan, dtype=torch.float64)
-    markers3d[:, s.keep] = tracked
+    body = torch.full((T, M, 3), math.nan, dtype=torch.float64)
+    body[:, s.keep] = tracked
+    if config.measured_m > 0:
+        views = s.views if s.views is not None else torch.isfinite(s.X).all(-1).long() * 2
+        markers3d, source = measured_markers(body, s.X.to(body), views, config.measured_views, config.measured_m,
+                                             round(config.fill_s * s.det.fps), config.smooth_s * s.det.fps)
+    else:
+        markers3d = body
+        source = torch.where(torch.isfinite(body).all(-1), BODY, NONE).to(torch.uint8)
     poses = Poses(fps=s.det.fps, frame_index=np.asarray(s.det.frame_index[s.start:s.start + T]),
                   joint_names=list(s.skeleton.output_names), joints3d=fk.output_points.float().numpy(),
                   dof_names=list(s.skeleton.dof_names), angles=A.float().numpy(), valid=valid.numpy().astype(bool),
                   confidence=np.ones((T, len(s.skeleton.output_names)), dtype=np.float32),
                   marker_names=list(s.det.marker_names), markers3d=markers3d.float().numpy(),
                   extra={"particle_spread_m": spread.numpy().astype(np.float32),
+                         "markers3d_body": body.float().numpy(), "markers3d_source": source.numpy(),
                          "reinitialised": restarted.numpy().astype(bool),
                          "body_urdf": np.asarray(s.skeleton.urdf_text)})
     return MarkerTrack(poses, seconds)

@@ -58,6 +58,12 @@ class APFConfig:
             markers within this distance of the track's (the first seconds alone, often still, place them poorly),
             and the capture is tracked again with them (0: one track; :mod:`torchtrack.markers.track`). 0.1 m is
             what the lost-track test calls far (``LOST_M``): nearer, a detection is taken for the marker's.
+        measured_m, measured_views, smooth_s, fill_s: each output marker is placed where its detections
+            triangulate it (``measured_views`` views agreeing) within ``measured_m`` of the body's marker, its
+            offset from the body's smoothed in time (a Gaussian of ``smooth_s`` seconds), and filled from the body's
+            marker and the offsets measured within ``fill_s`` seconds where not (0 m: the body's markers alone;
+            :func:`~torchtrack.markers.gaps.measured_markers`). The rigid body cannot follow skin that slides on
+            the bones; its joint angles are the track either way.
         The figures behind these values: docs/results.md, "Marker-based capture".
     """
 
@@ -74,6 +80,10 @@ class APFConfig:
     polish_steps: int = 20
     polish: str = "reprojection"
     refit_m: float = 0.1
+    measured_m: float = 0.05
+    measured_views: int = 2
+    smooth_s: float = 1 / 30
+    fill_s: float = 0.5
 
     def __post_init__(self) -> None:
         if (self.particles < 2 or self.layers < 1 or not 0 < self.survival < 1
@@ -84,6 +94,8 @@ class APFConfig:
             raise InputError(f"APFConfig: polish is 'reprojection' or 'epipolar', got {self.polish!r}")
         if min(self.root_m, self.root_rad, self.joint_rad, self.refit_m) < 0 or not 0 < self.shrink <= 1:
             raise InputError(f"APFConfig: perturbations >= 0 and shrink in (0, 1]; got {self}")
+        if self.measured_m < 0 or self.measured_views < 2 or min(self.smooth_s, self.fill_s) < 0:
+            raise InputError(f"APFConfig: measured_m >= 0, measured_views >= 2, smooth_s and fill_s >= 0; got {self}")
 
 
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
