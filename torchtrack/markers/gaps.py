@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 
 import torch
+from kornia.filters import get_gaussian_kernel1d
 
 from torchtrack.checks import check_shape
 
@@ -67,7 +68,7 @@ def measured_markers(body: torch.Tensor, X: torch.Tensor, views: torch.Tensor, m
     offset = torch.where(ok[..., None], X - body, 0.0)
     if smooth > 0:  # a normalised convolution: the measured frames' offsets weighed by a Gaussian in time
         R = math.ceil(3 * smooth)
-        kernel = torch.exp(-0.5 * (torch.arange(-R, R + 1, device=body.device) / smooth) ** 2).to(body)
+        kernel = get_gaussian_kernel1d(2 * R + 1, float(smooth), device=body.device, dtype=body.dtype)[0]
 
         def conv(a: torch.Tensor) -> torch.Tensor:  # (T, ...) along time
             flat = a.reshape(T, -1).T[:, None]
