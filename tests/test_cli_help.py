@@ -124,7 +124,7 @@ def test_track_help_quotes_the_shipped_config(parser, capsys, monkeypatch):
     for action in track._actions:
         found = CONFIG_NOTE.findall(_rendered(track, action)) if action.help else []
         if found:
-            notes[action.option_strings[-1]] = found
+            notes[[o for o in action.option_strings if o.startswith("--")][0]] = found  # --x of --x / --no-x
     assert set(notes) == set(CONFIG_OPTIONS)
     for option, found in notes.items():
         ((section, key, printed),) = found

@@ -102,9 +102,11 @@ class BackgroundConfig:
         fill_static_subject: when estimating from a moving sequence, find the parts of the subject that stay in
             place (left in the temporal median) by their colours and paint them out of the background
             (:mod:`torchtrack.background.static`). For a subject who stays in place (a balancing trial, arms
-            raised on the spot); off by default because on a subject who moves through the scene, whose
-            median is clean, it paints out room that looks like the subject (``scripts/eval_static_fill.py``;
-            docs/results.md, "Occupancy"). No effect on a model from empty-scene frames.
+            raised on the spot). Off in this class: on a subject who moves through the scene, whose median is
+            clean, it paints out room that looks like the subject, a fatter silhouette
+            (``scripts/eval_static_fill.py``); the tracking config turns it on, as its tracks gain far more where a
+            subject stays in place than they lose (docs/results.md, "Recordings without empty frames"). No effect
+            on a model from empty-scene frames.
         fill_prior_log_odds: the fill's prior log odds of room against subject for a pixel near where the subject
             moved, subtracted from the colour evidence before the graph cut. 0 (even odds) paints out every
             pixel whose colour the subject explains better, skin-toned walls and wooden furniture included, and

@@ -107,10 +107,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, choices=(0, 1), default=None,
                    help=f"1: read and observe frames in a worker process ahead of the tracker (CPU); 0: in this "
                         f"process ({conf('observation.workers')})")
-    p.add_argument("--fill-static-subject", action="store_true", default=None,
+    p.add_argument("--fill-static-subject", action=argparse.BooleanOptionalAction, default=None,
                    help=f"without background/ frames: paint the parts of the subject that never move out of the "
-                        f"estimated background, for a subject balancing in place "
-                        f"({conf('observation.fill_static_subject')})")
+                        f"background estimated from the video (a subject balancing or turning in place); --no-... "
+                        f"keeps them ({conf('observation.fill_static_subject')})")
     p.add_argument("--refine-passes", type=int, default=None, metavar="N",
                    help=f"without background/ frames: re-estimate the background from the track and track again, "
                         f"at most N times, background_refinement.keep choosing the result (0: off; "

@@ -463,9 +463,10 @@ def _track(seq, config, model, voxel_m, scale, init_pose, height_m, start, stop,
                    f"{tracker.start_refusals[0]})")
         else:
             why = "nobody was found in the capture volume in any frame"
-            if bg.from_moving_sequence and not bg_config.fill_static_subject:
+            if bg.from_moving_sequence:
                 why += (" (the background was estimated from the video: a subject who stays in place is in it; "
-                        "record empty frames in background/, or try --fill-static-subject)")
+                        "record empty frames in background/"
+                        + (")" if bg_config.fill_static_subject else ", or try --fill-static-subject)"))
         raise NothingTracked(f"none of the {poses.num_frames} frames of {folder.root} was tracked: {why}", poses)
     poses = smooth_track(poses, tracker.subject.skeleton, scfg)
     return TrackResult(poses, len(passes), tuple(refits), time.perf_counter() - t0)
