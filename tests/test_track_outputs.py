@@ -198,7 +198,7 @@ def test_a_run_that_tracks_no_frame_exits_non_zero_and_keeps_an_earlier_track(ri
     assert main(["track", str(still), "--out", str(tmp_path / "still_out"), *FAST]) == 3
     err = capsys.readouterr().err
     assert "nobody was found in the capture volume" in err and "estimated from the video" in err
-    assert "--fill-static-subject" in err
+    assert "record empty frames in background/" in err and "--fill-static-subject" not in err  # the fill was on
     earlier = tmp_path / "earlier"
     assert main(["track", str(seq), "--out", str(earlier), "--stop", "4", *FAST]) == 0
     before = _snapshot(earlier)
