@@ -159,14 +159,17 @@ def reference_poses(names: list[str], ref: np.ndarray, fps: float, joint_names: 
                  confidence=np.ones((T, len(joint_names)), np.float32))
 
 
-def score(path: Path, demo: Path) -> None:
-    """Print the MPJPE of a poses.npz of the demo against Pose2Sim's raw and filtered keypoints."""
+def score(path: Path, demo: Path, per_landmark: bool = False) -> None:
+    """Print the MPJPE of a poses.npz of the demo against Pose2Sim's raw and filtered keypoints (with
+    ``per_landmark``, each landmark's too)."""
     poses = load_poses(path)
     for filtered in (False, True):
         names, ref = reference_landmarks(demo, filtered=filtered)
         r = evaluate(poses, reference_poses(names, ref, poses.fps, poses.joint_names), landmarks=names)
         print(f"{path} against Pose2Sim's {'filtered' if filtered else 'raw'} keypoints: MPJPE {r.mpjpe_mm:.1f} mm, "
               f"{int((~poses.valid).sum())} of {poses.num_frames} frames invalid")
+        if per_landmark:
+            print("  " + " ".join(f"{n} {v:.1f}" for n, v in zip(r.landmark_names, r.per_landmark_mm)))
 
 
 def start_scores(folder: SequenceFolder, background: BackgroundModel, config: dict, args: argparse.Namespace,
@@ -428,6 +431,8 @@ def main() -> None:
     ap.add_argument("--score", type=Path, default=None, metavar="POSES",
                     help="only score POSES, a poses.npz of the demo (e.g. `torchtrack track`'s output of the "
                          "README's worked example), against the raw and the filtered reference, and exit")
+    ap.add_argument("--per-landmark", action="store_true",
+                    help="with --score: also print each landmark's mean error (mm)")
     ap.add_argument("--save-poses", type=Path, default=None,
                     help="write the kept track's poses.npz (with the fitted body) here, e.g. for "
                          "eval_pose2sim_occupancy.py --background-from-track")
@@ -472,7 +477,7 @@ def main() -> None:
         reference_fit(args.demo, not args.scale_only)
         return
     if args.score is not None:
-        score(args.score, args.demo)
+        score(args.score, args.demo, args.per_landmark)
         return
     with tempfile.TemporaryDirectory() as tmp:
         folder = SequenceFolder(pose2sim_sequence(args.demo, Path(tmp) / "seq"))

@@ -245,3 +245,28 @@ def test_coverage_of_a_ball_with_its_top_cut_off(eval_tracking):
     # a volume whose top is at 1.04 m: the cap is out of view, so not counted as missed
     boxed, _ = eval_tracking.coverage(obs(((-1.0, -1.0, 0.0), (1.0, 1.0, 1.04))), truth, samples=4000)
     assert boxed["head"] < 0.01, boxed
+
+
+def test_score_per_landmark_against_a_known_shift(tmp_path, capsys):
+    """--score --per-landmark of the raw reference itself with the left ankle moved 0.1 m up and the right wrist
+    0.03 m sideways: 100 and 30 mm there, 0 elsewhere (closed form)."""
+    mod = _script("eval_pose2sim_tracking")
+    if not (mod.DEMO / "videos").is_dir():
+        pytest.skip(f"{mod.DEMO}: the Pose2Sim demo is not there")
+    from torchtrack.io.poses import save_poses
+
+    names, ref = mod.reference_landmarks(mod.DEMO)
+    moved = ref.copy()
+    moved[:, names.index("l_ankle"), 2] += 0.1
+    moved[:, names.index("r_wrist"), 0] += 0.03
+    path = tmp_path / "poses.npz"
+    poses = mod.reference_poses(names, moved, 60.0, list(Skeleton.from_urdf().output_names))
+    poses.joints3d = np.nan_to_num(poses.joints3d)  # joints that are not landmarks: any finite value
+    save_poses(poses, path)
+    mod.score(path, mod.DEMO, per_landmark=True)
+    line = capsys.readouterr().out.splitlines()[1].split()
+    got = dict(zip(line[::2], map(float, line[1::2])))
+    assert set(got) == set(names)
+    expect = {n: 100.0 if n == "l_ankle" else 30.0 if n == "r_wrist" else 0.0 for n in names}
+    for n in names:
+        assert got[n] == pytest.approx(expect[n], abs=0.06), n
