@@ -90,12 +90,53 @@ def test_refined_background_keeps_the_sequence_estimate_where_the_body_stays_nea
     assert not torch.allclose(got.mean_yuv, without.mean_yuv)
 
 
+def test_refined_background_keeps_the_sequence_estimate_where_the_feet_stay_near(skel):
+    """near_feet_fraction: the pixels with fewer than clear_frames frames that far from the drawn feet (a plain
+    count over cv2's distance transform of the feet's masks) take the plain sequence estimate; the others what they
+    take without it."""
+    import cv2
+
+    rig = _rig()
+    gen = torch.Generator().manual_seed(4)
+    room = 0.25 + 0.5 * torch.rand(2, 3, H, W, generator=gen)
+    poses = []
+    for t in range(30):  # the body sways sideways, up to 0.2 m: the pixels nearest the feet stay near them
+        a = _pose(skel, 0.0)
+        a[skel.dof_names.index("root_ty")] = 0.2 * math.sin(t / 3)
+        poses.append(a)
+    angles = torch.stack(poses)
+    body = body_masks(rig, skel, angles)
+    feet = body_masks(rig, skel, angles, bones=("l_foot", "r_foot"))
+    assert bool((body | ~feet).all())  # the feet are part of the body
+    shirt = torch.tensor([0.9, 0.1, 0.1])[None, None, :, None, None]
+    frames = torch.where(body[:, :, None], shirt, room[None]) + 0.004 * torch.randn(30, 2, 3, H, W, generator=gen)
+    frames = frames.clamp(0, 1)
+    config = RefineConfig(blob_scale=1.0, near_feet_fraction=0.1)
+    near_px = config.near_feet_fraction * max(H, W)
+    far = np.zeros((2, H, W), int)  # frames at least near_px from the feet, per pixel
+    for t in range(30):
+        for c in range(2):
+            d = cv2.distanceTransform((~feet[t, c]).numpy().astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+            far[c] += d >= near_px
+    near = torch.from_numpy(far < config.clear_frames)
+    assert 20 < int(near.sum()) < 0.3 * near.numel()
+    plain = BackgroundModel.from_sequence(frames, BackgroundConfig())
+    without = refined_background(frames, angles, rig, skel, BackgroundConfig(), dataclasses.replace(
+        config, near_feet_fraction=0.0))
+    got = refined_background(frames, angles, rig, skel, BackgroundConfig(), config)
+    for c in range(2):
+        torch.testing.assert_close(got.mean_yuv[c][:, near[c]], plain.mean_yuv[c][:, near[c]])
+        torch.testing.assert_close(got.mean_yuv[c][:, ~near[c]], without.mean_yuv[c][:, ~near[c]])
+    assert not torch.allclose(got.mean_yuv, without.mean_yuv)
+
+
 def test_refine_config_names_bad_settings():
     assert RefineConfig.from_dict(None) == RefineConfig()
     with pytest.raises(InputError, match="unknown background_refinement settings"):
         RefineConfig.from_dict({"pases": 2}, "my.yaml")
     for bad in ({"passes": -1}, {"blob_scale": 0.5}, {"clear_frames": 2}, {"clear_fraction": 0.0},
-                {"near_fraction": -0.01}, {"near_fraction": 1.0},
+                {"near_fraction": -0.01}, {"near_fraction": 1.0}, {"near_feet_fraction": -0.1},
+                {"near_feet_fraction": 1.0}, {"near_feet_fraction": float("nan")},
                 {"passes": 2.5}, {"passes": True}, {"blob_scale": "big"}, {"keep": "best"}, {"keep": 1},
                 {"patience": 0}, {"patience": 1.5}):
         with pytest.raises(InputError, match=next(iter(bad))):

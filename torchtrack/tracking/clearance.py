@@ -9,6 +9,7 @@ which the background refinement (:mod:`torchtrack.tracking.refine`) re-estimates
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -46,7 +47,8 @@ class PixelTiles:
 
 
 def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_scale: float = 1.0,
-               blobs: BlobModel | None = None, tiles: PixelTiles | None = None) -> torch.Tensor:
+               blobs: BlobModel | None = None, tiles: PixelTiles | None = None,
+               bones: Sequence[str] | None = None) -> torch.Tensor:
     """Where the body of the blob model is seen: the union of its ellipsoids in every view.
 
     A pixel is set when its ray (through the lens model, :meth:`CameraRig.pixel_rays`) meets an ellipsoid in
@@ -60,6 +62,7 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
             set everywhere (the body may be anywhere).
         blob_scale: the ellipsoids' semi-axes are multiplied by this.
         tiles: ``PixelTiles(rig)``, made once for many calls on one rig (default: made here).
+        bones: only the blobs of these bones (default: all).
 
     Returns:
         (T, C, H, W) bool on the rig's device.
@@ -81,6 +84,10 @@ def body_masks(rig: CameraRig, skeleton: Skeleton, angles: torch.Tensor, blob_sc
     if bool(ok.any()):
         centres, R = blobs.ellipsoids(skeleton.forward(angles[ok]).bone_frames)  # (T', K, 3), (T', K, 3, 3)
         axes = (blobs.semi_axes * blob_scale).to(origins.dtype)
+        if bones is not None:
+            keep = torch.tensor([k for k, b in enumerate(blobs.bone_of_blob.tolist())
+                                 if skeleton.bone_names[b] in bones], dtype=torch.long, device=device)
+            centres, R, axes = centres[:, keep], R[:, keep], axes[keep]
         out[ok] = rays_meet_ellipsoids(origins, dirs, centres.to(origins.dtype), R.to(origins.dtype), axes,
                                        bundle=64)
     tiles = out.view(T, C, th, tw, 8, 8).permute(0, 1, 2, 4, 3, 5)  # (T, C, th, 8, tw, 8)

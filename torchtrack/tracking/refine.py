@@ -14,7 +14,9 @@ where the body is in every frame, even when it is imperfect, and that is what ea
    (:func:`~torchtrack.tracking.clearance.clear_frame_masks`): every
    frame at least ``clear_fraction`` of the image's larger side away from the body, or, where fewer than
    ``clear_frames`` are, its ``clear_frames`` clearest ones
-   (``BackgroundModel.from_sequence(..., subject_masks=...)``);
+   (``BackgroundModel.from_sequence(..., subject_masks=...)``); a pixel that is never ``near_feet_fraction`` clear
+   of the drawn feet keeps the sequence estimate instead (a stance foot that never moves, held a few cm off by the
+   track, is otherwise in the clearest frames: the static-subject fill's estimate has the room there);
 4. the sequence is tracked again: from the same start where one was given, else from a start searched for
    again on the refined observation (a start found on the first, poorest observation is not kept);
 5. of the refined passes, the track that fits its own observation best (``RefineConfig.keep``) is the result.
@@ -63,6 +65,9 @@ __all__ = ["RefineConfig", "background_from_track", "refined_background", "track
 
 log = logging.getLogger(__name__)
 
+#: The bones whose blobs ``RefineConfig.near_feet_fraction`` draws.
+FOOT_BONES = ("l_foot", "r_foot")
+
 
 #: ``RefineConfig.keep``: the best-fitting refined pass, or the last pass.
 KEEP_CHOICES = ("fit", "last")
@@ -86,6 +91,10 @@ class RefineConfig:
             off). On the Pose2Sim demo's occupancy it brings the stance foot's toes back and grows the volume
             (docs/results.md, "Occupancy"); between tracking passes it made the track worse, so the tracking config
             leaves it off (docs/results.md, "Tracker settings").
+        near_feet_fraction: ``near_fraction`` for the feet alone: a pixel with fewer than ``clear_frames`` frames
+            this far from the drawn feet keeps the sequence estimate. A stance foot that never moves is in the
+            video's median, which the static-subject fill paints out, but drawn where the track holds it, a few cm
+            off, the real foot's pixels are clear of it in every frame, and so back in the background (0: off).
         min_change_m: a pass whose track moved less than this from the one before (:func:`track_change_m`) has
             settled. With ``keep: fit`` only settled passes compete (once there are any); with ``keep: last`` the
             passes stop early at the first that settled without losing a frame the one before tracked: one more
@@ -111,6 +120,7 @@ class RefineConfig:
     clear_frames: int = 10
     clear_fraction: float = 0.04
     near_fraction: float = 0.0
+    near_feet_fraction: float = 0.0
     min_change_m: float = 0.01
     keep: str = "fit"
     patience: int = 3
@@ -118,7 +128,8 @@ class RefineConfig:
 
     def __post_init__(self) -> None:
         for name, kind in (("passes", int), ("clear_frames", int), ("patience", int), ("blob_scale", float),
-                           ("clear_fraction", float), ("near_fraction", float), ("min_change_m", float),
+                           ("clear_fraction", float), ("near_fraction", float), ("near_feet_fraction", float),
+                           ("min_change_m", float),
                            ("max_fps", float)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float) if kind is float else int):
@@ -137,9 +148,10 @@ class RefineConfig:
                              f"frames a pixel's background is estimated from), got {self.clear_frames}")
         if not 0.0 < self.clear_fraction < 1.0:
             raise InputError(f"background_refinement.clear_fraction must be in (0, 1), got {self.clear_fraction}")
-        if not 0.0 <= self.near_fraction < 1.0:
-            raise InputError(f"background_refinement.near_fraction must be in [0, 1) (0: off), got "
-                             f"{self.near_fraction}")
+        for name in ("near_fraction", "near_feet_fraction"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise InputError(f"background_refinement.{name} must be in [0, 1) (0: off), got "
+                                 f"{getattr(self, name)}")
         for name in ("min_change_m", "max_fps"):
             value = getattr(self, name)
             if not (value >= 0 and np.isfinite(value)):
@@ -192,10 +204,16 @@ def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tens
     body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs,
                       tiles).cpu()
     near_px = config.near_fraction * max(H, W)
+    feet_px = config.near_feet_fraction * max(H, W)
+    feet = None if feet_px <= 0 else body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32),
+                                                 config.blob_scale, blobs, tiles, bones=FOOT_BONES).cpu()
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
         # clear_frame_masks compares clearances with thresholds up to clear_px and near_px only
         clearance = clearance_px(body[:, c], within_px=max(clear_px, near_px))
         masks[:, c] = clear_frame_masks(clearance, config.clear_frames, clear_px, near_px)
+        if feet is not None:  # the pixels never that far from the feet: no frame (the sequence estimate)
+            masks[:, c] |= clear_frame_masks(clearance_px(feet[:, c], within_px=feet_px), config.clear_frames,
+                                             0.0, feet_px).all(0)[None]
     if isinstance(frames, MovingSequence):
         return BackgroundModel.from_moving(frames, masks.to(frames.frames.device))
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
