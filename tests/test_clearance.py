@@ -10,7 +10,7 @@ import torch
 from torchtrack.blobs import BlobModel
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.skeleton import Skeleton
-from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px
+from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px, stays_near
 
 from conftest import facing_pair_rig as _rig
 from conftest import pose_at as _pose
@@ -134,9 +134,11 @@ def test_clear_frame_masks_leave_pixels_that_stay_near_the_body_to_the_fallback(
     without = clear_frame_masks(clearance, k, big)
     got = clear_frame_masks(clearance, k, big, near)
     assert bool(got[:, 0, 0].all()) and not bool(without[:, 0, 0].all())
+    alone = stays_near(clearance, k, near)  # (40, 7): the rule on its own
     for i in range(40):
         for j in range(7):
             far = sum(float(c) >= near for c in clearance[:, i, j])
             expect = [True] * 12 if far < k else without[:, i, j].tolist()
             assert got[:, i, j].tolist() == expect, (i, j)
+            assert bool(alone[i, j]) == (far < k), (i, j)
     assert torch.equal(clear_frame_masks(clearance, k, big, 0.0), without)

@@ -20,7 +20,7 @@ from torchtrack.checks import InputError, ShapeError, check_shape
 from torchtrack.ellipsoids import rays_meet_ellipsoids
 from torchtrack.skeleton import Skeleton
 
-__all__ = ["PixelTiles", "body_masks", "clear_frame_masks", "clearance_px"]
+__all__ = ["PixelTiles", "body_masks", "clear_frame_masks", "clearance_px", "stays_near"]
 
 
 class PixelTiles:
@@ -135,13 +135,23 @@ def clear_frame_masks(clearance: torch.Tensor, clear_frames: int, clear_px: floa
     Returns:
         (N, ..., H, W) bool, True where a frame is not used for a pixel's background.
     """
-    if clearance.dim() < 3:
-        raise ShapeError(f"clearance: expected shape (N, ..., H, W), got {tuple(clearance.shape)}")
-    k = min(clear_frames, clearance.shape[0])
-    kth = clearance.topk(k, dim=0).values[-1]  # (..., H, W) the k-th largest
+    kth = _kth_clearest(clearance, clear_frames)
     threshold = torch.clamp(torch.minimum(kth, torch.tensor(clear_px, dtype=kth.dtype, device=kth.device)),
                             min=torch.finfo(kth.dtype).tiny)
     out = clearance < threshold
     if near_px > 0:
         out |= (kth < near_px)[None]
     return out
+
+
+def stays_near(clearance: torch.Tensor, clear_frames: int, near_px: float) -> torch.Tensor:
+    """(..., H, W) bool: the pixels with fewer than k frames (all N when N <= k) at least ``near_px`` clear of
+    the body, ``clearance (N, ..., H, W)`` as for :func:`clear_frame_masks` (its ``near_px`` rule on its own)."""
+    return _kth_clearest(clearance, clear_frames) < near_px
+
+
+def _kth_clearest(clearance: torch.Tensor, clear_frames: int) -> torch.Tensor:
+    """(..., H, W) each pixel's k-th largest clearance over the N frames, k = min(clear_frames, N)."""
+    if clearance.dim() < 3:
+        raise ShapeError(f"clearance: expected shape (N, ..., H, W), got {tuple(clearance.shape)}")
+    return clearance.topk(min(clear_frames, clearance.shape[0]), dim=0).values[-1]

@@ -54,7 +54,7 @@ from torchtrack.io.sequence import SequenceFolder, evenly_spaced
 from torchtrack.io.video import DataWarning
 from torchtrack.skeleton import Skeleton
 from torchtrack.tracking.body_refit import mean_ik_residual_m
-from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px
+from torchtrack.tracking.clearance import PixelTiles, body_masks, clear_frame_masks, clearance_px, stays_near
 from torchtrack.tracking.markerless import MarkerlessTracker
 from torchtrack.tracking.observation import Observer
 from torchtrack.tracking.run import track_sequence
@@ -201,19 +201,19 @@ def refined_background(frames: torch.Tensor | MovingSequence, angles: torch.Tens
     check_shape(angles, (N, skeleton.num_dofs), "angles")
     clear_px = config.clear_fraction * max(H, W)
     masks = torch.empty((N, C, H, W), dtype=torch.bool)
-    body = body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32), config.blob_scale, blobs,
-                      tiles).cpu()
+    angles = angles.to(rig.K.device, torch.float32)
+    body = body_masks(rig, skeleton, angles, config.blob_scale, blobs, tiles).cpu()
     near_px = config.near_fraction * max(H, W)
     feet_px = config.near_feet_fraction * max(H, W)
-    feet = None if feet_px <= 0 else body_masks(rig, skeleton, angles.to(rig.K.device, torch.float32),
-                                                 config.blob_scale, blobs, tiles, bones=FOOT_BONES).cpu()
+    feet = None
+    if feet_px > 0:  # the feet alone, for near_feet_fraction
+        feet = body_masks(rig, skeleton, angles, config.blob_scale, blobs, tiles, bones=FOOT_BONES).cpu()
     for c in range(C):  # one camera at a time: the clearance is 4 bytes a pixel and frame
         # clear_frame_masks compares clearances with thresholds up to clear_px and near_px only
         clearance = clearance_px(body[:, c], within_px=max(clear_px, near_px))
         masks[:, c] = clear_frame_masks(clearance, config.clear_frames, clear_px, near_px)
-        if feet is not None:  # the pixels never that far from the feet: no frame (the sequence estimate)
-            masks[:, c] |= clear_frame_masks(clearance_px(feet[:, c], within_px=feet_px), config.clear_frames,
-                                             0.0, feet_px).all(0)[None]
+        if feet is not None:  # the pixels that stay near the feet: no frame (the sequence estimate)
+            masks[:, c] |= stays_near(clearance_px(feet[:, c], within_px=feet_px), config.clear_frames, feet_px)
     if isinstance(frames, MovingSequence):
         return BackgroundModel.from_moving(frames, masks.to(frames.frames.device))
     return BackgroundModel.from_sequence(frames, bg_config, camera_names, subject_masks=masks.to(frames.device))
