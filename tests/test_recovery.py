@@ -221,3 +221,39 @@ def test_the_lost_hands_count_starts_again_after_a_frame_with_nobody(skel, monke
     assert tracker.hands_off == [2, 0] and not calls
     tracker.step(obs)
     assert len(calls) == 2 and tracker.hands_off == [0, 0]
+
+
+@pytest.mark.parametrize("hold_s", [0.0, 1.0])
+def test_a_walker_out_of_the_observed_volume_is_held_in_the_images(skel, hold_s):
+    """A walker tracked up to the observed volume's side (x = 2.4 m) and on out of it, 5 cm a frame, the grid's
+    voxels cut by the side (the voxelised body inside it), each camera's foreground its true silhouette (each
+    pixel's ray met with the body's ellipsoids, clearance.body_masks): with ``image_hold_s`` each frame is tracked
+    in the images, valid, within 80 mm of the truth (its forward kinematics; 4 px cells of 320x240 images, the
+    far cameras 7 m away) and at ``image_hold_confidence``; without it the last, with no voxel left, is invalid."""
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.clearance import body_masks
+    from torchtrack.tracking.voxels import ViewSilhouettes
+
+    tracker = MarkerlessTracker(skel, TrackerConfig(image_hold_s=hold_s))
+    names = list(skel.dof_names)
+    walk = procedural_motion(skel.scaled_to_height(1.75), "walk", 0.4, 30, starfish_s=0.0)
+    walk[:, names.index("root_rz")] = 0.0  # facing +x, as it walks
+    walk[:, names.index("root_ty")] = 0.0
+    walk[:, names.index("root_tx")] = 2.2 + 0.05 * torch.arange(walk.shape[0]).to(walk)
+    tracker.initialize_from_pose(walk[1], 1.75)
+    tracker.previous = walk[0].clone()
+    sub = tracker.subject
+    rig = make_ring_rig(RigConfig(num_cameras=8, width=320, height=240, radius_m=4.5)).float()
+    for t in range(2, 12):
+        obs = _observation(sub.skeleton, sub.blobs, walk[t], cameras=8)
+        keep = obs.points[:, 0] < 2.4
+        fg = body_masks(rig, sub.skeleton, walk[t][None], blobs=sub.blobs)[0].float()
+        obs = dataclasses.replace(obs, points=obs.points[keep], sizes=obs.sizes[keep], weights=obs.weights[keep],
+                                  colours=obs.colours[keep], volume_m=((-2.4, -2.4, 0.0), (2.4, 2.4, 2.1)),
+                                  silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
+        res = tracker.step(obs)
+        if hold_s > 0 and t >= 4:  # from half out of the volume
+            err = float((_landmarks(sub.skeleton, res.angles) - _landmarks(sub.skeleton, walk[t])).norm(dim=-1).mean())
+            assert res.valid and err < 0.08, (t, res.valid, err)  # the walker is 0.1-0.4 m out
+            assert torch.all(res.confidence == tracker.config.image_hold_confidence)
+    assert res.valid == (hold_s > 0) and int(keep.sum()) == 0

@@ -98,9 +98,11 @@ def mean_ik_residual_m(poses: Poses) -> float:
 
 
 def refit_frames(poses: Poses, count: int) -> np.ndarray:
-    """Indices into ``poses`` of up to ``count`` of its valid frames, evenly spaced from the first to the last
-    (sorted, distinct)."""
-    ok = np.flatnonzero(np.asarray(poses.valid, bool))
+    """Indices into ``poses`` of up to ``count`` of its valid frames that the voxels tracked (a finite IK residual:
+    not a frame the images held, ``TrackerConfig.image_hold_s``), evenly spaced from the first to the last (sorted,
+    distinct)."""
+    residual = np.asarray(poses.extra.get("ik_residual_m", np.zeros(len(poses.valid))), np.float64)
+    ok = np.flatnonzero(np.asarray(poses.valid, bool) & np.isfinite(residual))
     return ok[evenly_spaced(ok.size, count)] if ok.size else ok
 
 

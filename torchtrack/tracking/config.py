@@ -74,6 +74,12 @@ class TrackerConfig:
             sooner is tracked back from its last frame, :meth:`MarkerlessTracker.finish`): the first frames after a
             re-acquisition at the volume's edge, tracked from a guess, are the track's worst
             (docs/results.md, "Robustness", the subject who leaves).
+        image_hold_s: a body that walks out of the observed volume (where fewer cameras see it than the grid asks
+            for, ``observation.min_views``), whose voxels are gone or cut off, is tracked for up to this long in
+            the images of the cameras that still show it (:func:`~torchtrack.tracking.search.search_near_in_images`
+            from the prediction, where at least ``image_hold_min_cameras`` cameras show it), where
+            it would be invalid and then re-acquired; such frames' confidence is ``image_hold_confidence``. Needs
+            ``observation.silhouettes`` (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,
@@ -172,6 +178,9 @@ class TrackerConfig:
     start_prior_exclude: tuple[str, ...] = ()
     start_race_s: float = 0.5
     settle_back_s: float = 1.0
+    image_hold_s: float = 0.0
+    image_hold_min_cameras: int = 3
+    image_hold_confidence: float = 0.5
     fit_bone_lengths: bool = True
     bone_fit: str = "blobs"
     em_cell_m: float = 0.0
@@ -205,6 +214,15 @@ class TrackerConfig:
         if not 0 <= self.settle_back_s < math.inf:
             raise InputError(f"TrackerConfig.settle_back_s must be a number of seconds >= 0, got "
                              f"{self.settle_back_s}")
+        if not 0 <= self.image_hold_s < math.inf:
+            raise InputError(f"TrackerConfig.image_hold_s must be a number of seconds >= 0, got {self.image_hold_s}")
+        if isinstance(self.image_hold_min_cameras, bool) or not isinstance(self.image_hold_min_cameras, int) or \
+                self.image_hold_min_cameras < 2:
+            raise InputError(f"TrackerConfig.image_hold_min_cameras must be a whole number of cameras >= 2, got "
+                             f"{self.image_hold_min_cameras!r}")
+        if not 0 <= self.image_hold_confidence <= 1:
+            raise InputError(f"TrackerConfig.image_hold_confidence must be within [0, 1], got "
+                             f"{self.image_hold_confidence}")
         if self.start_hypotheses < 1:
             raise InputError(f"TrackerConfig.start_hypotheses must be >= 1, got {self.start_hypotheses}")
         if self.bone_fit not in BONE_FITS:

@@ -93,6 +93,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.previous: torch.Tensor | None = None  # (D,) the one before (velocity)
         self.colour: Blobs | None = None  # carries the learnt colour model
         self.lost = 0
+        self.held = 0  # image_hold_s: frames in a row the images have held the body out of the observed volume
+        self._unheld: list[VoxelObservation] = []  # image_hold_s: the invalid frames in a row up to this one
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
         self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
@@ -191,7 +193,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None
-        self.lost = 0
+        self.lost = self.held = 0
+        self._unheld = []
         self.hands_off = [0, 0]
 
 
@@ -325,6 +328,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.previous = self.angles
         self._settle = None  # the frames to track back end at a gap
         res = self._invalid()
+        self._hold_back(None, res, self.angles is not None)
         if self._race is not None:
             twin = self._race.twin
             version = twin.body_version
@@ -336,13 +340,34 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         track back from a settled track (``settle_back_s``), may revise the frames before (:meth:`take_revised`)."""
         racing = self._race is not None  # a race started by this frame's initialisation has scored it already
         version = self.body_version
+        started = self.angles is not None
         res = self._step(obs)
+        self._hold_back(obs, res, started)
         if racing:  # the twin races without a race of its own: its frame is its _step
             twin = self._race.twin
             version = twin.body_version
             self._race_step(obs, res, twin._step(obs), version)
         self._settle_step(obs, res, version)
         return res
+
+    def _hold_back(self, obs: VoxelObservation | None, res: FrameResult, started: bool) -> None:
+        """``image_hold_s``: keeps the observations of the invalid frames in a row (at most ``image_hold_s``; None
+        for an unreadable one), and where a re-acquisition ends them (not the first start: the frames before it
+        stay invalid), the frames before it that the images hold (:meth:`_held_back`) revise them
+        (:meth:`take_revised`)."""
+        hold_frames = self._hold_frames()
+        if hold_frames < 1 or self._twin:
+            return
+        if not res.valid:
+            self._unheld = (self._unheld + [obs])[-hold_frames:]
+            return
+        unheld, self._unheld = self._unheld, []
+        if not (started and res.reinitialised and unheld and not self._revised):
+            return
+        back = self._held_back(unheld, res)
+        if back:
+            log.debug("image hold: %d frames before the re-acquisition held in the images", len(back))
+            self._revised = [(r, self.body_version) for r in back] + [(res, self.body_version)]
 
     def finish(self) -> None:
         """The sequence has ended: a start in its last second gets what an earlier start gets later. A start race
@@ -361,6 +386,10 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
             self._settle_back()
 
     def _step(self, obs: VoxelObservation) -> FrameResult:
+        held = self._held_in_images(obs)
+        if held is not None:
+            return held
+        self.held = 0
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap
             self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back
@@ -386,7 +415,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         frame goes through :meth:`step`. A driver that runs the plain step itself (several sequences in lockstep,
         :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to :meth:`accept`."""
         if (self._race is not None or self.subject is None or self.angles is None
-                or self.lost >= self.config.lost_frames or not self._has_person(obs)):
+                or self.lost >= self.config.lost_frames or not self._has_person(obs)
+                or self._hold_prediction(obs) is not None):
             return None
         obs = self._without_floor_band(obs)
         return obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs

@@ -26,6 +26,11 @@ REACQUIRE_SEARCH_EVERY = 5
 #: heading or pose from the right one, but it also prefers a limb no view shows (a stance leg learnt into the
 #: background) moved onto voxels; the fit cost leaves such a limb where the pose puts it.
 REACQUIRE_SCORE_MARGIN = 0.05
+#: ``image_hold_s``: the images hold a body whose voxels the observed volume's sides cut (at least this share of
+#: their weight within two voxels of a side: a body's cross-section is a tenth or so of it) or whose predicted
+#: blobs' centres lie out of the sides for at least this share of its volume.
+IMAGE_HOLD_CUT = 0.1
+IMAGE_HOLD_OUTSIDE = 0.25
 
 
 class RecoveryMixin:
@@ -89,6 +94,92 @@ class RecoveryMixin:
             res = self._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
             self.angles = self.previous = res.angles
         return res
+
+    def _hold_prediction(self, obs: VoxelObservation) -> torch.Tensor | None:
+        """``image_hold_s``: the predicted state ``(D,)`` where the images are to track this frame (the observed
+        volume's sides cut the body's voxels, or its prediction lies out of them: IMAGE_HOLD_CUT,
+        IMAGE_HOLD_OUTSIDE; the track not yet lost, held for fewer than ``image_hold_s`` in a row, the cameras'
+        foreground kept); else None."""
+        cfg, sub = self.config, self.subject
+        hold_frames = self._hold_frames()
+        if (hold_frames < 1 or obs.silhouettes is None or obs.volume_m is None or sub is None or self.angles is None
+                or self._race is not None or self._twin or self.held >= hold_frames
+                or self.lost >= cfg.lost_frames):
+            return None
+        skel = sub.skeleton
+        predicted = skel.clamp((self.angles + self.prediction_velocity * (self.angles - self.previous))[None])[0]
+        c, _ = sub.blobs.ellipsoids(skel.forward(predicted[None]).bone_frames)
+        lower, upper = (c.new_tensor(v) for v in obs.volume_m)
+        out = ((c[0, :, :2] < lower[:2]) | (c[0, :, :2] > upper[:2])).any(-1)  # (K,)
+        vol = sub.blobs.semi_axes.to(c).prod(-1)
+        if float((vol * out).sum() / vol.sum()) >= IMAGE_HOLD_OUTSIDE:
+            return predicted
+        if obs.num_voxels == 0:
+            return None
+        p, w = obs.points[:, :2].to(c), obs.weights.to(c)
+        edge = 2 * float(obs.sizes.max())
+        cut = ((p - lower[:2] < edge) | (upper[:2] - p < edge)).any(-1)
+        return predicted if float((w * cut).sum() / w.sum()) >= IMAGE_HOLD_CUT else None
+
+    def _hold_frames(self) -> int:
+        """``image_hold_s`` in frames of the sequence."""
+        return round(self.config.image_hold_s * (self.frame_rate or self.config.velocity_fps))
+
+    def _near_in_images(self, obs: VoxelObservation, predicted: torch.Tensor, seed: int) -> FrameResult | None:
+        """The body near ``predicted (D,)`` in ``obs``' images as a held frame (confidence
+        ``image_hold_confidence``), or None where fewer than ``image_hold_min_cameras`` cameras show it."""
+        from torchtrack.tracking.search import search_near_in_images
+
+        cfg, skel = self.config, self.subject.skeleton
+        gen = torch.Generator(device=obs.silhouettes.fg.device).manual_seed(seed)
+        found = search_near_in_images(obs.silhouettes, obs.cameras_valid, skel, self.subject.blobs, predicted, gen,
+                                      particles=256)
+        if found.cameras < cfg.image_hold_min_cameras:
+            log.debug("image hold: %d cameras show the body (score %.3f), fewer than %d", found.cameras,
+                      found.score, cfg.image_hold_min_cameras)
+            return None
+        angles = found.angles.to(predicted)
+        fk = skel.forward(angles[None])
+        J = fk.output_points.shape[1]
+        return FrameResult(angles, fk.output_points[0], fk.output_points.new_full((J,), cfg.image_hold_confidence),
+                           True, math.nan, found.score, False, None, fk.bone_frames[0])
+
+    def _held_back(self, unheld: list[VoxelObservation], res: FrameResult) -> list[FrameResult]:
+        """``image_hold_s``: the invalid frames ``unheld`` just before a re-acquisition ``res`` (oldest first),
+        tracked back from it in their images (:meth:`_near_in_images`, the motion of the frames held so far
+        carried on) while at least ``image_hold_min_cameras`` cameras show the body: the walker who came back
+        into the volume was in the views before it. Returns the held frames, oldest first (the last of them the
+        frame before ``res``)."""
+        skel = self.subject.skeleton
+        out: list[FrameResult] = []
+        later, last = res.angles, res.angles
+        for k, obs in enumerate(reversed(unheld)):
+            if obs is None or obs.silhouettes is None:
+                break
+            predicted = skel.clamp((last + self.prediction_velocity * (last - later))[None])[0]
+            held = self._near_in_images(obs, predicted, self.config.search_seed + k)
+            if held is None:
+                break
+            out.append(held)
+            later, last = last, held.angles
+        return out[::-1]
+
+    def _held_in_images(self, obs: VoxelObservation) -> FrameResult | None:
+        """``image_hold_s``: the frame tracked in the images (:meth:`_near_in_images` from the prediction) where
+        :meth:`_hold_prediction` says so and the cameras show the body; else None (the frame goes on as without
+        it)."""
+        predicted = self._hold_prediction(obs)
+        if predicted is None:
+            return None
+        held = self._near_in_images(obs, predicted, self.config.search_seed + self.held)
+        if held is None:
+            return None
+        if self.lost == 0:
+            self.previous = self.angles
+        self.angles = held.angles.clone()
+        self.lost, self.held = 0, self.held + 1
+        self._settle = None  # the frames to track back end here: the voxels cannot track these again
+        return held
 
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
         """Re-initialise: around the last good pose (moved onto the voxels' centroid, four headings) and, at once

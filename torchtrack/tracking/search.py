@@ -39,7 +39,8 @@ from torchtrack.skeleton.model import Skeleton
 from torchtrack.tracking.poses import ARM_POSES, pose_prior, real_pose_prior
 from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
-__all__ = ["SearchConfig", "SearchResult", "score_states", "search_pose", "two_way_score"]
+__all__ = ["NearResult", "SearchConfig", "SearchResult", "score_states", "search_near_in_images", "search_pose",
+           "two_way_score"]
 
 #: The body's DOFs the annealed search perturbs, with the step (rad) of its first layer.
 STEP_RAD = 0.3
@@ -399,6 +400,82 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
     pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
     return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
+
+
+#: :func:`search_near_in_images`: each layer's first steps, along the floor (m), of the heading and of the joints
+#: (rad), shrinking by ``shrink`` per layer; a body a step of a frame's walk or turn from its prediction.
+NEAR_STEP_M = 0.08
+NEAR_STEP_HEADING = 0.15
+NEAR_STEP_RAD = 0.15
+#: :func:`search_near_in_images`: a camera shows the body where at least this share of the body's volume lies in its
+#: image and this share of that on its foreground.
+NEAR_SEEN = 0.5
+
+
+@dataclass(frozen=True)
+class NearResult:
+    """:func:`search_near_in_images`' answer: the best state ``angles (D,)``, its score in the images (0-1) and how
+    many cameras show the body (:data:`NEAR_SEEN`)."""
+
+    angles: torch.Tensor
+    score: float
+    cameras: int
+
+
+def search_near_in_images(silhouettes: ViewSilhouettes, cameras_valid: torch.Tensor, skel: Skeleton,
+                          blobs: BlobModel, predicted: torch.Tensor, generator: torch.Generator | None = None,
+                          particles: int = 128, layers: int = 8, keep: int = 16, shrink: float = 0.7,
+                          samples: int = SearchConfig.samples) -> NearResult:
+    """The state near ``predicted (D,)`` (of ``skel``, placed as it is) that the cameras' foreground holds best: an
+    annealed search, each child changing one part of the body from a kept parent (the place: along the floor, the
+    heading and the tilt; the trunk; one limb), scored by :func:`image_terms`' two shares alone. For a body the
+    observed volume no longer holds (it walked out to where fewer cameras see it than the grid asks for), which
+    the voxels cannot track; the prediction keeps its depth along the few views' rays."""
+    views = _Views(silhouettes, cameras_valid)
+    dev = views.fg.device
+    names = list(skel.dof_names)
+    place = [names.index(n) for n in ("root_tx", "root_ty", "root_rz")]
+    groups = _dof_groups(skel).to(dev)  # group 0, the tilt, moves with the place
+    groups[0, place] = 1.0
+    steps = torch.full((skel.num_dofs,), NEAR_STEP_RAD, device=dev)
+    steps[place[:2]], steps[place[2]] = NEAR_STEP_M, NEAR_STEP_HEADING
+    pts = unit_ball_samples(samples, dtype=torch.float32, device=dev)
+    lo, hi = skel.lower.float().to(dev), skel.upper.float().to(dev)
+    semi0 = blobs.semi_axes.to(dev).float()
+
+    def bodies(states):  # blobs (h, K, 3), (h, K, 3, 3), (h, K, 3), sample points (h, K, S, 3), volumes (h, K)
+        c, R = blobs.ellipsoids(skel.forward(states.to(skel.lower)).bone_frames)
+        c, R = c.float().to(dev), R.float().to(dev)
+        semi = semi0[None].expand(c.shape[0], -1, -1)
+        return c, R, semi, c[:, :, None] + torch.einsum("hkij,hksj->hksi", R, semi[:, :, None] * pts[None, None]), \
+            semi.prod(-1)
+
+    def scored(states):
+        c, R, semi, q, vol = bodies(states)
+        e, f = image_terms(c, R, semi, q, vol, views)
+        return 2 * e * f / (e + f).clamp(min=1e-12)
+
+    states = predicted.float().to(dev)[None]
+    score = scored(states)
+    step = 1.0
+    for _ in range(layers):
+        parent = torch.randint(states.shape[0], (particles,), generator=generator, device=dev)
+        group = torch.randint(groups.shape[0], (particles,), generator=generator, device=dev)
+        noise = torch.randn(particles, skel.num_dofs, generator=generator, device=dev) * step
+        child = torch.maximum(torch.minimum(states[parent] + noise * steps * groups[group], hi), lo)
+        states, score = torch.cat([states, child]), torch.cat([score, scored(child)])
+        best = _top(score, keep)
+        states, score = states[best], score[best]
+        step *= shrink
+    top = int(score.argmax())
+    c, R, semi, q, vol = bodies(states[top:top + 1])
+    uv, ok = views.rig.project(q.reshape(-1, 3))  # (C, KS, 2)
+    on = views.lookup(uv, ok).float().reshape(uv.shape[0], *q.shape[1:3]).mean(-1)  # (C, K)
+    seen = ok.float().reshape(uv.shape[0], *q.shape[1:3]).mean(-1)
+    v = vol[0]
+    seen_v, on_v = (seen * v).sum(-1), (on * v).sum(-1)  # (C,)
+    shows = (seen_v >= NEAR_SEEN * v.sum()) & (on_v >= NEAR_SEEN * seen_v) & views.used
+    return NearResult(states[top].to(predicted), float(score[top]), int(shows.sum()))
 
 
 def _top(score: torch.Tensor, n: int) -> torch.Tensor:
