@@ -257,3 +257,50 @@ def test_a_walker_out_of_the_observed_volume_is_held_in_the_images(skel, hold_s)
             assert res.valid and err < 0.08, (t, res.valid, err)  # the walker is 0.1-0.4 m out
             assert torch.all(res.confidence == tracker.config.image_hold_confidence)
     assert res.valid == (hold_s > 0) and int(keep.sum()) == 0
+
+
+def test_the_frames_before_a_walker_is_reacquired_are_held_back_in_the_images(skel):
+    """A lost track (a frame with nobody), then a walker coming back into the observed volume (x = 2.4 m) from
+    outside it, 5 cm a frame, the grid's voxels cut by its side, each camera's foreground the true silhouette
+    (clearance.body_masks): once the walker is re-acquired, the invalid frames before it where the cameras show
+    the body are tracked back in their images (take_revised), valid, within 100 mm of the truth (its forward
+    kinematics) and at ``image_hold_confidence``."""
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.clearance import body_masks
+    from torchtrack.tracking.voxels import ViewSilhouettes
+
+    tracker = MarkerlessTracker(skel, TrackerConfig(image_hold_s=1.0, start_race_s=0.0, settle_back_s=0.0))
+    names = list(skel.dof_names)
+    walk = procedural_motion(skel.scaled_to_height(1.75), "walk", 0.6, 30, starfish_s=0.0)
+    walk[:, names.index("root_rz")] = math.pi  # facing -x, as it walks back in
+    walk[:, names.index("root_ty")] = 0.0
+    walk[:, names.index("root_tx")] = 2.85 - 0.05 * torch.arange(walk.shape[0]).to(walk)
+    tracker.initialize_from_pose(walk[0], 1.75)
+    sub = tracker.subject
+    rig = make_ring_rig(RigConfig(num_cameras=8, width=320, height=240, radius_m=4.5)).float()
+    box = ((-2.4, -2.4, 0.0), (2.4, 2.4, 2.1))
+
+    def observed(t):
+        obs = _observation(sub.skeleton, sub.blobs, walk[t], cameras=8)
+        keep = obs.points[:, 0] < 2.4
+        fg = body_masks(rig, sub.skeleton, walk[t][None], blobs=sub.blobs)[0].float()
+        return dataclasses.replace(obs, points=obs.points[keep], sizes=obs.sizes[keep], weights=obs.weights[keep],
+                                   colours=obs.colours[keep], volume_m=box,
+                                   silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
+
+    nobody = observed(0)
+    nobody = dataclasses.replace(nobody, points=nobody.points[:0], sizes=nobody.sizes[:0],
+                                 weights=nobody.weights[:0], colours=nobody.colours[:0],
+                                 silhouettes=ViewSilhouettes(torch.zeros_like(nobody.silhouettes.fg), 4, rig))
+    assert not tracker.step(nobody).valid  # lost: the images do not hold a body nobody's cameras show
+    for t in range(1, walk.shape[0]):
+        res = tracker.step(observed(t))
+        if res.valid:
+            break
+    assert res.reinitialised and t >= 5, t
+    revised = tracker.take_revised()
+    assert len(revised) >= 4 and revised[-1][0] is res, len(revised)
+    for j, (r, _) in enumerate(revised[:-1]):
+        truth = walk[t - len(revised) + 1 + j]
+        err = float((_landmarks(sub.skeleton, r.angles) - _landmarks(sub.skeleton, truth)).norm(dim=-1).mean())
+        assert r.valid and err < 0.1 and torch.all(r.confidence == 0.5), (j, r.valid, err)

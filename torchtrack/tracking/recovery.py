@@ -132,8 +132,7 @@ class RecoveryMixin:
 
         cfg, skel = self.config, self.subject.skeleton
         gen = torch.Generator(device=obs.silhouettes.fg.device).manual_seed(seed)
-        found = search_near_in_images(obs.silhouettes, obs.cameras_valid, skel, self.subject.blobs, predicted, gen,
-                                      particles=256)
+        found = search_near_in_images(obs.silhouettes, obs.cameras_valid, skel, self.subject.blobs, predicted, gen)
         if found.cameras < cfg.image_hold_min_cameras:
             log.debug("image hold: %d cameras show the body (score %.3f), fewer than %d", found.cameras,
                       found.score, cfg.image_hold_min_cameras)

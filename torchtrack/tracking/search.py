@@ -424,13 +424,14 @@ class NearResult:
 
 def search_near_in_images(silhouettes: ViewSilhouettes, cameras_valid: torch.Tensor, skel: Skeleton,
                           blobs: BlobModel, predicted: torch.Tensor, generator: torch.Generator | None = None,
-                          particles: int = 128, layers: int = 8, keep: int = 16, shrink: float = 0.7,
+                          particles: int = 256, layers: int = 8, keep: int = 16, shrink: float = 0.7,
                           samples: int = SearchConfig.samples) -> NearResult:
     """The state near ``predicted (D,)`` (of ``skel``, placed as it is) that the cameras' foreground holds best: an
     annealed search, each child changing one part of the body from a kept parent (the place: along the floor, the
     heading and the tilt; the trunk; one limb), scored by :func:`image_terms`' two shares alone. For a body the
     observed volume no longer holds (it walked out to where fewer cameras see it than the grid asks for), which
-    the voxels cannot track; the prediction keeps its depth along the few views' rays."""
+    the voxels cannot track; the prediction keeps its depth along the few views' rays. 256 children a layer
+    rather than 128 (docs/results.md, "Robustness", the image hold)."""
     views = _Views(silhouettes, cameras_valid)
     dev = views.fg.device
     names = list(skel.dof_names)
