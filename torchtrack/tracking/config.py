@@ -77,9 +77,11 @@ class TrackerConfig:
         image_hold_s: a body that walks out of the observed volume (where fewer cameras see it than the grid asks
             for, ``observation.min_views``), whose voxels are gone or cut off, is tracked for up to this long in
             the images of the cameras that still show it (:func:`~torchtrack.tracking.search.search_near_in_images`
-            from the prediction, where at least ``image_hold_min_cameras`` cameras show it), where
-            it would be invalid and then re-acquired; such frames' confidence is ``image_hold_confidence``. Needs
-            ``observation.silhouettes`` (0: off).
+            from the prediction, where at least ``image_hold_min_cameras`` cameras show it), where it would be
+            invalid and then re-acquired; the count starts again once the voxels accept a frame. After a
+            re-acquisition, the invalid frames just before it (up to ``image_hold_s``) are tracked back from it in
+            their images likewise, while the cameras show the body. Such frames' confidence is
+            ``image_hold_confidence``. Needs ``observation.silhouettes`` (0: off).
         fit_bone_lengths: at initialisation fit the bones' lengths and the neck's height to the blobs (else one
             scale for the whole body). On by default: real people's proportions differ from the template's (the
             CMU walks' torsos are 0.25 m, the template's scaled to their height 0.37; docs/results.md,

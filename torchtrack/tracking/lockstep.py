@@ -80,7 +80,8 @@ class Lockstep:
                 try:
                     version = tracker.body_version
                     out[i] = tracker.accept(obs, res)
-                    tracker._settle_step(obs, out[i], version)  # as step() does
+                    tracker._hold_back(obs, out[i], True)  # as step() does
+                    tracker._settle_step(obs, out[i], version)
                 except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
                     errors[i] = exc
         return dict(sorted(out.items())), errors

@@ -94,7 +94,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.colour: Blobs | None = None  # carries the learnt colour model
         self.lost = 0
         self.held = 0  # image_hold_s: frames in a row the images have held the body out of the observed volume
-        self._unheld: list[VoxelObservation] = []  # image_hold_s: the invalid frames in a row up to this one
+        self._unheld: list[VoxelObservation | None] = []  # image_hold_s: the invalid frames in a row up to this one
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
         self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
@@ -171,7 +171,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self._start_hips(learn=skeleton is None)
         self.angles = self.previous = angles.clone()
         self.colour = None
-        self.lost = 0
+        self.lost = self.held = 0
+        self._unheld = []
         self.hands_off = [0, 0]
         self._remember_feet()
         if floor_z_m is None:
@@ -356,7 +357,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         stay invalid), the frames before it that the images hold (:meth:`_held_back`) revise them
         (:meth:`take_revised`)."""
         hold_frames = self._hold_frames()
-        if hold_frames < 1 or self._twin:
+        if hold_frames < 1 or self._twin or not started:
             return
         if not res.valid:
             self._unheld = (self._unheld + [obs])[-hold_frames:]
@@ -364,6 +365,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         unheld, self._unheld = self._unheld, []
         if not (started and res.reinitialised and unheld and not self._revised):
             return
+        if self._race is not None:  # the race this re-acquisition started holds them back anew if its twin wins
+            self._race.unheld = unheld
         back = self._held_back(unheld, res)
         if back:
             log.debug("image hold: %d frames before the re-acquisition held in the images", len(back))
@@ -389,7 +392,6 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         held = self._held_in_images(obs)
         if held is not None:
             return held
-        self.held = 0
         if not self._has_person(obs):
             self.previous = self.angles  # no velocity across a gap
             self.lost = max(self.lost, self.config.lost_frames)  # re-acquire when the person comes back
@@ -431,7 +433,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
                 return self._reacquire(obs)
             self.previous = self.angles  # keep the last good pose, without velocity
             return replace(res, valid=False)
-        self.lost = 0
+        self.lost = self.held = 0
         res, found = self._search_lost_arms(obs, res)
         self.previous, self.angles = self.angles.clone(), res.angles
         for arm in found:  # no velocity across the search's jump (it ran off again the way it came)

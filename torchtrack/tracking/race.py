@@ -52,6 +52,8 @@ class _Race:
     fits: list[tuple[float, float, float, float]] = field(default_factory=list)  # scores, then fit costs
     results: list[tuple[FrameResult, int]] = field(default_factory=list)
     moved_at: int | None = None  # the index in fits of the first frame where the body had moved
+    # image_hold_s: the invalid frames before the re-acquisition that started it (MarkerlessTracker._hold_back)
+    unheld: list = field(default_factory=list)
 
 class RaceMixin:
     """The start race's methods of :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its state: see there)."""
@@ -117,9 +119,12 @@ class RaceMixin:
                   race.moved_at, own, other, 1e3 * own_cost, 1e3 * other_cost)
         if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
                 other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
-            revised, settle = race.results, self._settle
+            revised, settle, unheld = race.results, self._settle, self._unheld
             self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
-            self._race, self._revised, self._twin, self._settle = None, revised, False, settle
+            self._race, self._revised, self._twin, self._settle, self._unheld = None, revised, False, settle, unheld
+            if race.unheld:  # the frames held back from the start are held back from the twin's instead
+                back = self._held_back(race.unheld, revised[0][0])
+                self._revised = [(r, revised[0][1]) for r in back] + revised
 
     def take_revised(self) -> list[tuple[FrameResult, int]]:
         """The results that replace the last ``len(...)`` frames this tracker returned, each with the body version

@@ -27,9 +27,11 @@ REACQUIRE_SEARCH_EVERY = 5
 #: background) moved onto voxels; the fit cost leaves such a limb where the pose puts it.
 REACQUIRE_SCORE_MARGIN = 0.05
 #: ``image_hold_s``: the images hold a body whose voxels the observed volume's sides cut (at least this share of
-#: their weight within two voxels of a side: a body's cross-section is a tenth or so of it) or whose predicted
-#: blobs' centres lie out of the sides for at least this share of its volume.
+#: the weight of the voxels within IMAGE_HOLD_NEAR_M of its predicted blobs' centres, along the floor, lie within
+#: two voxels of a side: a body's cross-section is a tenth or so of it) or whose predicted blobs' centres lie out
+#: of the sides for at least IMAGE_HOLD_OUTSIDE of its volume.
 IMAGE_HOLD_CUT = 0.1
+IMAGE_HOLD_NEAR_M = 0.3
 IMAGE_HOLD_OUTSIDE = 0.25
 
 
@@ -117,13 +119,17 @@ class RecoveryMixin:
         if obs.num_voxels == 0:
             return None
         p, w = obs.points[:, :2].to(c), obs.weights.to(c)
+        body = torch.cdist(p, c[0, :, :2]).amin(1) < IMAGE_HOLD_NEAR_M  # the body's voxels, not a ghost's or clutter's
+        if not bool(body.any()):
+            return None
+        p, w = p[body], w[body]
         edge = 2 * float(obs.sizes.max())
         cut = ((p - lower[:2] < edge) | (upper[:2] - p < edge)).any(-1)
         return predicted if float((w * cut).sum() / w.sum()) >= IMAGE_HOLD_CUT else None
 
     def _hold_frames(self) -> int:
         """``image_hold_s`` in frames of the sequence."""
-        return round(self.config.image_hold_s * (self.frame_rate or self.config.velocity_fps))
+        return round(self.config.image_hold_s * (self.frame_rate or self.config.velocity_fps or 30.0))
 
     def _near_in_images(self, obs: VoxelObservation, predicted: torch.Tensor, seed: int) -> FrameResult | None:
         """The body near ``predicted (D,)`` in ``obs``' images as a held frame (confidence
@@ -143,7 +149,7 @@ class RecoveryMixin:
         return FrameResult(angles, fk.output_points[0], fk.output_points.new_full((J,), cfg.image_hold_confidence),
                            True, math.nan, found.score, False, None, fk.bone_frames[0])
 
-    def _held_back(self, unheld: list[VoxelObservation], res: FrameResult) -> list[FrameResult]:
+    def _held_back(self, unheld: list[VoxelObservation | None], res: FrameResult) -> list[FrameResult]:
         """``image_hold_s``: the invalid frames ``unheld`` just before a re-acquisition ``res`` (oldest first),
         tracked back from it in their images (:meth:`_near_in_images`, the motion of the frames held so far
         carried on) while at least ``image_hold_min_cameras`` cameras show the body: the walker who came back
@@ -176,8 +182,11 @@ class RecoveryMixin:
         if self.lost == 0:
             self.previous = self.angles
         self.angles = held.angles.clone()
-        self.lost, self.held = 0, self.held + 1
+        self.lost, self.held = 0, self.held + 1  # held counts until the voxels accept a frame again
         self._settle = None  # the frames to track back end here: the voxels cannot track these again
+        if self.feet_seen is not None:  # the feet move on with the held body, not held until seen still
+            self.feet_seen = self.subject.skeleton.forward(self.angles[None]).joints[0, self.subject.feet]
+            self.feet_still = torch.zeros_like(self.feet_still)
         return held
 
     def _reacquire(self, obs: VoxelObservation) -> FrameResult:
@@ -214,7 +223,7 @@ class RecoveryMixin:
         close = [r for r, x in zip(held, score.tolist()) if x >= float(score.max()) - REACQUIRE_SCORE_MARGIN]
         best = min(close, key=self._fit_cost)
         self.angles = self.previous = best.angles
-        self.lost = 0
+        self.lost = self.held = 0
         self.hands_off = [0, 0]
         if self.feet_seen is not None and best.feet is not None:  # a held foot the new pose left is let go
             far = (best.feet[0] - self.feet_seen).norm(dim=-1) > REACQUIRED_FOOT_M

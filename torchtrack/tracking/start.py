@@ -132,11 +132,12 @@ class StartMixin:
     def _fork(self) -> MarkerlessTracker:
         """A copy of this tracker's state that tracks on its own (the models and settings shared, read-only)."""
         shared = (self.generic, self.config, self.blob_specs, self.subject)
-        settle, self._settle = self._settle, None  # the frames kept to track back stay with this tracker
+        # the frames kept to track back, and the invalid ones kept to hold back (image_hold_s), stay with this tracker
+        settle, unheld, self._settle, self._unheld = self._settle, self._unheld, None, []
         try:
             return copy.deepcopy(self, memo={id(x): x for x in shared})
         finally:
-            self._settle = settle
+            self._settle, self._unheld = settle, unheld
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
