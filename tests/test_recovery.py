@@ -304,3 +304,34 @@ def test_the_frames_before_a_walker_is_reacquired_are_held_back_in_the_images(sk
         truth = walk[t - len(revised) + 1 + j]
         err = float((_landmarks(sub.skeleton, r.angles) - _landmarks(sub.skeleton, truth)).norm(dim=-1).mean())
         assert r.valid and err < 0.1 and torch.all(r.confidence == 0.5), (j, r.valid, err)
+
+
+@pytest.mark.parametrize("where", ["middle", "cut", "clutter"])
+def test_the_images_hold_a_body_the_volume_cuts_not_one_beside_clutter_at_its_side(skel, where):
+    """The image hold's trigger on voxelised bodies in a volume whose side is x = 2.4 m: a body in the middle, no;
+    a body at x = 2.35 m whose voxels the side cuts (those beyond it removed), yes; the body in the middle with a
+    slab of clutter voxels along the side 2 m from it (a door, a ghost), no."""
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.voxels import ViewSilhouettes
+
+    tracker = MarkerlessTracker(skel, TrackerConfig(image_hold_s=1.0))
+    angles = skel.scaled_to_height(1.75).rest_angles().double()
+    names = list(skel.dof_names)
+    angles[names.index("root_tx")] = 2.35 if where == "cut" else 0.0
+    tracker.initialize_from_pose(angles, 1.75)
+    sub = tracker.subject
+    obs = _observation(sub.skeleton, sub.blobs, angles, cameras=8)
+    if where == "clutter":
+        y, z = torch.meshgrid(torch.arange(-0.3, 0.3, 0.03), torch.arange(0.0, 1.8, 0.03), indexing="ij")
+        slab = torch.stack([torch.full_like(y, 2.385), y, z], -1).reshape(-1, 3).float()
+        obs = dataclasses.replace(obs, points=torch.cat([obs.points, slab]),
+                                  sizes=torch.cat([obs.sizes, obs.sizes[:1].expand(len(slab))]),
+                                  weights=torch.cat([obs.weights, obs.weights[:1].expand(len(slab))]),
+                                  colours=torch.cat([obs.colours, obs.colours[:1].expand(len(slab), -1, -1)]))
+    keep = obs.points[:, 0] < 2.4
+    assert int((~keep).sum()) > 0 if where == "cut" else int((~keep).sum()) == 0
+    rig = make_ring_rig(RigConfig(num_cameras=8, width=64, height=48)).float()
+    obs = dataclasses.replace(obs, points=obs.points[keep], sizes=obs.sizes[keep], weights=obs.weights[keep],
+                              colours=obs.colours[keep], volume_m=((-2.4, -2.4, 0.0), (2.4, 2.4, 2.1)),
+                              silhouettes=ViewSilhouettes.from_evidence(torch.ones(8, 48, 64), rig))
+    assert (tracker._hold_prediction(obs) is not None) == (where == "cut")

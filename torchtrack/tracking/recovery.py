@@ -146,8 +146,9 @@ class RecoveryMixin:
         angles = found.angles.to(predicted)
         fk = skel.forward(angles[None])
         J = fk.output_points.shape[1]
+        # no IK residual and no voxel weight explained: the images, not the voxels, placed it
         return FrameResult(angles, fk.output_points[0], fk.output_points.new_full((J,), cfg.image_hold_confidence),
-                           True, math.nan, found.score, False, None, fk.bone_frames[0])
+                           True, math.nan, math.nan, False, None, fk.bone_frames[0])
 
     def _held_back(self, unheld: list[VoxelObservation | None], res: FrameResult) -> list[FrameResult]:
         """``image_hold_s``: the invalid frames ``unheld`` just before a re-acquisition ``res`` (oldest first),

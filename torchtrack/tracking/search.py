@@ -214,6 +214,16 @@ def _covered(cu: torch.Tensor, cv: torch.Tensor, m: torch.Tensor, a: torch.Tenso
     return ((quad <= 1.0) & front[..., None]).any(2)
 
 
+def _on_foreground(q: torch.Tensor, views: _Views) -> tuple[torch.Tensor, torch.Tensor]:
+    """The body's sample points ``q (h, K, S, 3)`` in each camera -> (C, h, K) each blob's share of its points on
+    the camera's foreground cells, and its share in the camera's image."""
+    h, K = q.shape[:2]
+    uvq, okq = views.rig.project(q.reshape(h, -1, 3))  # (C, h, KS, 2)
+    C = uvq.shape[0]
+    on = views.lookup(uvq, okq).float().reshape(C, h, K, -1).mean(-1)
+    return on, okq.float().reshape(C, h, K, -1).mean(-1)
+
+
 def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor, q: torch.Tensor, vol: torch.Tensor,
                 views: _Views) -> tuple[torch.Tensor, torch.Tensor]:
     """The two terms of the score in the images, camera by camera (a camera's miss or the hull's phantom volume
@@ -247,9 +257,7 @@ def image_terms(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor,
                                   c[:, i:i + step], front[:, i:i + step]) for i in range(0, h, step)], 1)
     covered = covered & views.cell_ok[:, None]  # (C, h, N)
     explained_c = covered.float().sum(-1) / views.counts.clamp(min=1)[:, None]  # (C, h)
-    uvq, okq = rig.project(q.reshape(h, -1, 3))  # (C, h, KS, 2)
-    on = views.lookup(uvq, okq).float().reshape(C, h, K, -1).mean(-1)  # (C, h, K)
-    seen = okq.float().reshape(C, h, K, -1).mean(-1)
+    on, seen = _on_foreground(q, views)  # (C, h, K)
     used = views.used.float()[:, None]
     n = used.sum().clamp(min=1.0)  # no camera with foreground: both terms 0
     # filled: pooled over the cameras by what each sees of the body (one that sees none of it has no say)
@@ -469,12 +477,10 @@ def search_near_in_images(silhouettes: ViewSilhouettes, cameras_valid: torch.Ten
         states, score = states[best], score[best]
         step *= shrink
     top = int(score.argmax())
-    c, R, semi, q, vol = bodies(states[top:top + 1])
-    uv, ok = views.rig.project(q.reshape(-1, 3))  # (C, KS, 2)
-    on = views.lookup(uv, ok).float().reshape(uv.shape[0], *q.shape[1:3]).mean(-1)  # (C, K)
-    seen = ok.float().reshape(uv.shape[0], *q.shape[1:3]).mean(-1)
+    _, _, _, q, vol = bodies(states[top:top + 1])
+    on, seen = _on_foreground(q, views)  # (C, 1, K)
     v = vol[0]
-    seen_v, on_v = (seen * v).sum(-1), (on * v).sum(-1)  # (C,)
+    seen_v, on_v = (seen[:, 0] * v).sum(-1), (on[:, 0] * v).sum(-1)  # (C,)
     shows = (seen_v >= NEAR_SEEN * v.sum()) & (on_v >= NEAR_SEEN * seen_v) & views.used
     return NearResult(states[top].to(predicted), float(score[top]), int(shows.sum()))
 

@@ -330,7 +330,8 @@ class FrameResult:
     Attributes:
         angles: (D,) state vector. output_points: (22, 3) the skeleton's output points (``output_names``).
         confidence: (22,) 0..1 per output point. valid: whether the frame was tracked.
-        residual_m: mean goal-to-joint distance after IK. explained: fraction of voxel weight in blobs.
+        residual_m: mean goal-to-joint distance after IK. explained: fraction of voxel weight in blobs. Both
+            NaN where the images, not the voxels, placed the body (``TrackerConfig.image_hold_s``).
         reinitialised: the tracker re-initialised on this frame. blobs: the fitted blobs (None if invalid).
         bone_frames: (nb, 4, 4) of the solved pose.
         feet: the solved pose's ankle and toe positions (2, 2, 3) and whether the observation gave them goals
