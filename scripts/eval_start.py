@@ -21,6 +21,7 @@ search's own error before EM/CCD; and the share within 50 mm before the race (``
     .venv/bin/python scripts/eval_start.py --from-truth          # the ceiling: the tracker's fit from the true pose
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --tracker init_passes=6   # a tracker setting
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --voxels   # the search on the voxels alone
+    .venv/bin/python scripts/eval_start.py --cameras 8 --motions cmu:131_02 --at 76 80 --per-start  # given frames
 
 ``--from-truth`` starts no search: the tracker is given the true pose and the subject's own body (the rendered
 ``body.urdf``) and fits the start frame from them as it tracks any frame (EM/CCD from the predicted pose); the share
@@ -111,6 +112,8 @@ def main() -> None:
     ap.add_argument("--motions", nargs="+", default=list(MOTIONS))
     ap.add_argument("--cameras", nargs="+", type=int, default=[8, 4])
     ap.add_argument("--frames", type=int, default=50, help="random start frames per motion and rig (default: 50)")
+    ap.add_argument("--at", nargs="+", type=int, default=None, metavar="FRAME",
+                    help="start from these frames of each motion's sequence instead of --frames random ones")
     ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
     ap.add_argument("--per-start", action="store_true",
                     help="also print each start: its frame, MPJPE, heading and pelvis error and worst landmark")
@@ -200,6 +203,10 @@ def main() -> None:
             rng = np.random.default_rng(i)
             last = truth.num_frames - race + 1  # a start whose race ends within the sequence
             frames = np.sort(rng.choice(last, size=min(args.frames, last), replace=False))
+            if args.at is not None:
+                if max(args.at) >= last or min(args.at) < 0:
+                    ap.error(f"--at: frames of {motion}'s sequence are 0-{last - 1} (its race ends within it)")
+                frames = np.asarray(sorted(set(args.at)))
             errors, search_errors, seconds, before = [], [], [], []
             for t in frames.tolist():
                 fb = next(iter(folder.iter_batches(1, t, t + 1, size_wh=(W, H))))
