@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import replace
 
 import pytest
@@ -52,6 +53,22 @@ def _sequences(skel: Skeleton, device: str) -> list[list[VoxelObservation]]:
     return [[_double(o, device) for o in seq] for seq in out]
 
 
+def _in_lockstep(trackers: list[MarkerlessTracker], seqs: list[list[VoxelObservation]],
+                 revise: Callable[[list, MarkerlessTracker], None] | None = None) -> list[list]:
+    """Each sequence's results, its tracker stepped in lockstep with the others' (a shorter one ends early); with
+    ``revise``, each track revised after each frame (the tracker's take_revised)."""
+    lockstep = Lockstep(trackers)
+    got: list[list] = [[] for _ in seqs]
+    for k in range(max(len(s) for s in seqs)):
+        results, errors = lockstep.step({i: s[k] for i, s in enumerate(seqs) if k < len(s)})
+        assert not errors
+        for i, res in results.items():
+            got[i].append(res)
+            if revise is not None:
+                revise(got[i], trackers[i])
+    return got
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_sequences_in_lockstep_are_tracked_as_each_alone(device, monkeypatch):
     """Three different sequences (one with a frame of nobody, one that re-acquires, one shorter) in lockstep, and
@@ -71,13 +88,7 @@ def test_sequences_in_lockstep_are_tracked_as_each_alone(device, monkeypatch):
     trackers = [MarkerlessTracker(skel, config) for _ in seqs]
     for t in trackers:
         t.set_frame_rate(30.0)
-    lockstep = Lockstep(trackers)
-    got: list[list] = [[] for _ in seqs]
-    for k in range(max(len(s) for s in seqs)):
-        results, errors = lockstep.step({i: s[k] for i, s in enumerate(seqs) if k < len(s)})
-        assert not errors
-        for i, res in results.items():
-            got[i].append(res)
+    got = _in_lockstep(trackers, seqs)
     for i, seq in enumerate(seqs):
         assert len(got[i]) == len(seq)
         for k, (g, a) in enumerate(zip(got[i], alone[i])):
@@ -171,15 +182,7 @@ def test_frames_held_in_the_images_are_the_same_in_lockstep_as_alone():
             track.append(tracker.step(obs))
             revise(track, tracker)
         alone.append(track)
-    trackers = started()
-    lockstep = Lockstep(trackers)
-    got: list[list] = [[] for _ in frames]
-    for k in range(max(len(seq) for seq in frames)):
-        results, errors = lockstep.step({i: seq[k] for i, seq in enumerate(frames) if k < len(seq)})
-        assert not errors
-        for i, res in results.items():
-            got[i].append(res)
-            revise(got[i], trackers[i])
+    got = _in_lockstep(started(), frames, revise)
     for i in range(len(frames)):
         assert len(got[i]) == len(alone[i]) == len(frames[i])
         for k, (g, a) in enumerate(zip(got[i], alone[i])):
