@@ -363,7 +363,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
             self._unheld = (self._unheld + [obs])[-hold_frames:]
             return
         unheld, self._unheld = self._unheld, []
-        if not (started and res.reinitialised and unheld and not self._revised):
+        if not (res.reinitialised and unheld and not self._revised):
             return
         if self._race is not None:  # the race this re-acquisition started holds them back anew if its twin wins
             self._race.unheld = unheld
