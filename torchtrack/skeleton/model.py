@@ -406,7 +406,7 @@ class _LeanChain:
         ones = (1,) * (q.dim() - 1)
         turn = torch.where(self.revolute.view(-1, *ones), q, 0.0)[:, None, None]  # (F, 1, 1, *batch)
         R0, R0K, R0K2 = (m.view(*m.shape, *ones) for m in (self.R0, self.R0K, self.R0K2))
-        R = torch.addcmul(R0, turn.sin(), R0K).addcmul_(1 - turn.cos(), R0K2)  # (F, 3, 3, *batch): offset, joint
+        R = torch.mul(turn.sin(), R0K).addcmul_(1 - turn.cos(), R0K2).add_(R0)  # (F, 3, 3, *batch): offset, joint
         t0 = self.t0.view(*self.t0.shape, *ones) if origins is None else origins
         t = t0 + torch.einsum("fi,f...->fi...", (self.R0 @ self.axis[..., None])[..., 0],
                               torch.where(self.prismatic.view(-1, *ones), q, 0.0))  # (F, 3, *batch)
@@ -421,11 +421,16 @@ class _LeanChain:
             if grad and isinstance(parent, slice):  # a view of Rw, which the next levels write: autograd keeps a copy
                 Rp = Rp.clone()
             Rl, tl = R[level], t[level]
-            if many:  # the products as three elementwise multiply-adds each (no (n, 3, 3, 3, *batch) temporary)
-                Rw[level] = (Rp[:, :, :1] * Rl[:, :1]).addcmul_(Rp[:, :, 1:2], Rl[:, 1:2]).addcmul_(
-                    Rp[:, :, 2:], Rl[:, 2:])
-                tw[level] = torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1]).addcmul_(
-                    Rp[:, :, 1], tl[:, 1:2]).addcmul_(Rp[:, :, 2], tl[:, 2:])
+            if many:  # the products as three elementwise multiply-adds each (no (n, 3, 3, 3, *batch) temporary),
+                # written straight into the level's rows where they are a view and no gradient is kept
+                direct = isinstance(level, slice) and not grad
+                Rn = torch.mul(Rp[:, :, :1], Rl[:, :1], out=Rw[level]) if direct else Rp[:, :, :1] * Rl[:, :1]
+                Rn.addcmul_(Rp[:, :, 1:2], Rl[:, 1:2]).addcmul_(Rp[:, :, 2:], Rl[:, 2:])
+                tn = (torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1], out=tw[level]) if direct else
+                      torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1]))
+                tn.addcmul_(Rp[:, :, 1], tl[:, 1:2]).addcmul_(Rp[:, :, 2], tl[:, 2:])
+                if not direct:
+                    Rw[level], tw[level] = Rn, tn
             else:  # as one elementwise product and a sum each: fewer operations
                 Rw[level] = (Rp[:, :, :, None] * Rl[:, None]).sum(2)
                 tw[level] = (Rp * tl[:, None]).sum(2) + tw[parent]

@@ -95,8 +95,7 @@ class EpipolarCost:
         cap = torch.as_tensor(outlier_px, dtype=torch.float64).to(dev).expand(Q)
         self.cap = cap.square().to(dtype).view(Q, 1, 1, 1, 1)  # (Q, 1, 1, 1, 1): against (Q, C, M, A, N)
         # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
-        # A = C - 1 first views i, so that one product per view j and marker takes all its pairs' lines at once
-        A = C - 1
+        # A = C - 1 first views i, so that each view j's and marker's terms take all its pairs' lines at once
         src = torch.tensor([[i for i in range(C) if i != j] for j in range(C)], dtype=torch.long, device=dev)  # (C, A)
         Fji = F.to(dev, torch.float64)[:, src, torch.arange(C, device=dev)[:, None]]  # (Q, C, A, 3, 3): x_j^T F x_i
         Fji = Fji / Fji.flatten(3).norm(dim=3).clamp(min=1e-300)[..., None, None]
@@ -115,37 +114,62 @@ class EpipolarCost:
         far = torch.zeros_like(unit)
         far[..., 2] = torch.where(self.pair[..., None], far_px, 0.0)
         unit = torch.where(self.ok[..., None], unit, far)
-        # laid out for states last (N contiguous): each contraction is one batched product, each reduction over K
-        # runs along contiguous rows (several times faster than states first)
-        self.unit = unit.reshape(Q, C, M, A * K, 3).to(dtype)
+        # laid out for states last (N contiguous), as elementwise multiply-adds on each view's projection (u, v, 1):
+        # each line's three coefficients (Q, C, M, A, K, 1) and the back-projected line's (F^T y)_r = F_0r u + F_1r
+        # v + F_2r, r = 0, 1, as (s, r, Q, C, 1, A, 1); a few passes over (Q, C, M, A, K, N) where batched 3 x 3
+        # products of 140 small matrices and their temporaries took twice as long
+        self.lines = unit.permute(5, 0, 1, 2, 3, 4)[..., None].contiguous().to(dtype)  # (3, Q, C, M, A, K, 1)
         self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, C, M, A, K, 1)
-        self.F12_T = Fji[..., :2].transpose(-1, -2).reshape(Q, C, 1, A * 2, 3).contiguous().to(dtype)
-        self.P = P.to(dtype)[:, :, None]  # (Q, C, 1, 3, 4)
+        self.back = Fji[..., :2].permute(3, 4, 0, 1, 2)[:, :, :, :, None, :, None].contiguous().to(dtype)
+        self.P = P.to(dtype)  # (Q, C, 3, 4)
         self.not_ok = ~self.ok[..., None]  # (Q, C, M, A, K, 1)
+
+    def _project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``(Q, M, 3, N)`` -> their pinhole pixels ``u, v (Q, C, M, 1, N)`` in each view (all views' rows
+        of P in one (3C x 3) product with all the points)."""
+        Q, M, _, N = points.shape
+        C = self.P.shape[1]
+        P = self.P.to(points)
+        y = torch.baddbmm(P[..., 3].reshape(Q, 3 * C, 1), P[..., :3].reshape(Q, 3 * C, 3),
+                          points.transpose(1, 2).reshape(Q, 3, M * N)).view(Q, C, 3, M, N)
+        w = y[:, :, 2]
+        return (y[:, :, 0] / w)[:, :, :, None], (y[:, :, 1] / w)[:, :, :, None]
+
+    def _back(self, u: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Projections ``u, v (Q, C, M, 1, N)`` in views j -> the first two coefficients ``(Q, C, M, A, N)`` of
+        their epilines ``F^T y`` in views i (``|.|^2`` the squared norm that scales the distance there)."""
+        G = self.back.to(u)
+        return tuple(torch.mul(u, G[0, r]).addcmul_(v, G[1, r]).add_(G[2, r]) for r in range(2))
 
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
         ``(Q, C, M, A, K, N)`` (px; view j, marker, view i, candidate) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2``
-        (the same shape): the symmetric distance is their product with the first squared."""
-        Q, C, M, A, K, _ = self.norm2.shape
-        N = points.shape[-1]
-        h = torch.cat([points, torch.ones_like(points[:, :, :1])], 2)  # (Q, M, 4, N)
-        y = self.P.to(h) @ h[:, None]  # (Q, C, M, 3, N)
-        y = y / y[:, :, :, 2:3]  # each view's projection, w = 1
-        dist = (self.unit.to(y) @ y).view(Q, C, M, A, K, N)  # y_j from z_ik's epiline, px
-        b = (self.F12_T.to(y) @ y).view(Q, C, M, A, 2, N)
-        back = b.square().sum(4).clamp(min=1e-30)  # (Q, C, M, A, N)
-        return dist, self.norm2.to(y) / back[:, :, :, :, None] + 1
+        (the same shape): the symmetric distance is their product with the first squared. Differentiable."""
+        u, v = self._project(points)
+        b0, b1 = self._back(u, v)
+        back = (b0.square() + b1.square()).clamp(min=1e-30)[:, :, :, :, None]  # (Q, C, M, A, 1, N)
+        L = self.lines.to(u)
+        dist = L[2] + L[0] * u[..., None, :] + L[1] * v[..., None, :]  # y_j from z_ik's epiline, px
+        return dist, self.norm2.to(u) / back + 1
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
         """``points (Q, M, 3, N)``, N finite states of each subject (padded markers too: a marker without
         candidates adds its zero lines times its projection) -> (Q, N) costs, or (Q, M, N) with ``per_marker``. In
         place where no gradient is asked for (the particle filter's layers)."""
-        dist, factor = self._terms(points)
-        if torch.is_grad_enabled() and (points.requires_grad or dist.requires_grad or factor.requires_grad):
+        if torch.is_grad_enabled() and any(t.requires_grad for t in (points, self.P, self.lines, self.back)):
+            dist, factor = self._terms(points)
             d = (dist.square() * factor).amin(4).clamp(max=self.cap)
-        else:
-            d = dist.square_().mul_(factor).amin(4).clamp_(max=self.cap)  # (Q, C, M, A, N)
+        else:  # _terms' distance, each full-size tensor made once and the rest in place
+            u, v = self._project(points)
+            b0, b1 = self._back(u, v)
+            inv = b0.square_().addcmul_(b1, b1).clamp_(min=1e-30).reciprocal_()[:, :, :, :, None]
+            L, u, v = self.lines.to(u), u[..., None, :], v[..., None, :]
+            dist2 = torch.mul(u, L[0]).addcmul_(v, L[1]).add_(L[2]).square_()  # (Q, C, M, A, K, N)
+            dist2.mul_(torch.mul(inv, self.norm2.to(u)).add_(1.0))
+            d = dist2[:, :, :, :, 0]  # the nearest candidate, by a minimum per candidate (K is a few; a reduction
+            for k in range(1, dist2.shape[4]):  # over so short an axis is several times slower)
+                d = torch.minimum(d, dist2[:, :, :, :, k], out=d if k > 1 else None)
+            d = d.clamp_(max=self.cap)
         cost = d.sum(3).sum(1)  # (Q, M, N)
         return cost if per_marker else cost.sum(1)
 

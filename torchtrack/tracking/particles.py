@@ -99,8 +99,10 @@ class APFConfig:
 
 
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
-#: the cost below which it stops (a ten-thousandth: well under a pixel's worth over the markers).
-FD_STEP, POLISH_TOL = 1e-6, 1e-4
+#: the cost below which it stops: a thousandth of a cost that is about the frame's residuals (100-300) times the
+#: pixel noise's variance is a fifth of one variance or less, a change of pose well inside the estimate's own
+#: uncertainty (a chi-square change below 1), which the slow last steps on the outlier cap's edges only creep along.
+FD_STEP, POLISH_TOL = 1e-6, 1e-3
 #: The polish's dampings a step tries (each ten times the one before), all in one batch.
 DAMPING_TRIES = 4
 #: On a CPU the layers anneal at most about this many particles at once (subjects in lockstep in chunks, one
@@ -360,7 +362,9 @@ class MarkerAPF:
         rows = (bone * Q + self.subject[:Q]).view(-1)  # each marker's row of (bone, subject) pairs
         Rm = R.movedim(3, 1).reshape(nb * Q, 3, 3, N).index_select(0, rows).view(Q, M, 3, 3, N)
         tm = t.movedim(2, 1).reshape(nb * Q, 3, N).index_select(0, rows).view(Q, M, 3, N)
-        return (Rm * offset.to(Rm)[:, :, None, :, None]).sum(3) + tm
+        o = offset.to(Rm)[:, :, None, :, None]  # (Q, M, 1, 3, 1)
+        return tm.addcmul_(Rm[:, :, :, 0], o[..., 0, :]).addcmul_(Rm[:, :, :, 1], o[..., 1, :]).addcmul_(
+            Rm[:, :, :, 2], o[..., 2, :])
 
     def _layer_costs(self, score: EpipolarCost, x: torch.Tensor, subjects: torch.Tensor
                      ) -> tuple[torch.Tensor, torch.Tensor]:
