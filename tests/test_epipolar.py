@@ -240,7 +240,7 @@ def test_the_reprojection_polish_reaches_scipys_least_squares():
     cap = 1e4
     cost = ReprojectionCost(det[None], apf.P, cap)
     start = apf.clamp(truth[None] + 0.05 * torch.randn(1, skel.num_dofs, generator=gen, dtype=torch.float64))
-    got = apf._polish(start, cost, torch.ones(1, dtype=torch.bool))[0]
+    got = apf._polish(start, cost, torch.ones(1, dtype=torch.bool))[0][0]
 
     Pn, zn = P.numpy(), det[:, :, 0].numpy()
     seen = np.isfinite(zn).all(-1)
@@ -264,5 +264,5 @@ def test_the_reprojection_polish_reaches_scipys_least_squares():
     ideal = apf.markers(torch.from_numpy(ref.x)[None])[0]
     assert float((apf.markers(got[None])[0] - ideal).norm(dim=-1).max()) < 3e-3
     # the epipolar cost's least is another pose (docs/results.md, "Marker-based capture")
-    epi = apf._polish(start, EpipolarCost(det[None], apf.P, apf.F, cap), torch.ones(1, dtype=torch.bool))[0]
+    epi = apf._polish(start, EpipolarCost(det[None], apf.P, apf.F, cap), torch.ones(1, dtype=torch.bool))[0][0]
     assert float(np.sum(residuals(epi.numpy()) ** 2)) > 1.03 * best

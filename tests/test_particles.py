@@ -106,7 +106,7 @@ def test_the_polish_takes_each_subjects_least_damping_as_trying_them_in_turn_doe
     start = truth[None] + torch.tensor([[0.02], [0.08]], dtype=torch.float64) * torch.randn(
         2, skel.num_dofs, generator=gen, dtype=torch.float64)
     start = apf.clamp(start)
-    got = apf._polish(start, score, torch.ones(2, dtype=torch.bool))
+    got, _ = apf._polish(start, score, torch.ones(2, dtype=torch.bool))
 
     D = skel.num_dofs
     moves = torch.cat([torch.zeros(1, D, dtype=torch.float64), torch.eye(D, dtype=torch.float64) * FD_STEP])
@@ -181,7 +181,7 @@ def test_the_polishs_jacobian_is_the_markers_derivative_and_holds_dofs_that_move
     uv = torch.einsum("cij,mj->cmi", P, torch.cat([X, torch.ones(M, 1, dtype=torch.float64)], -1))
     det = (uv[..., :2] / uv[..., 2:])[:, :, None]
     start = apf.clamp(theta + 0.05 * torch.randn(theta.shape, generator=gen, dtype=torch.float64))
-    out = apf._polish(start, EpipolarCost(det[None], apf.P, apf.F, 20.0), torch.ones(1, dtype=torch.bool))
+    out, _ = apf._polish(start, EpipolarCost(det[None], apf.P, apf.F, 20.0), torch.ones(1, dtype=torch.bool))
     assert float(out[0, ankle]) == float(start[0, ankle])
     assert float((out - theta).abs().max()) < float((start - theta).abs().max())
 

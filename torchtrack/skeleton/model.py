@@ -389,6 +389,7 @@ class _LeanChain:
         K = torch.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z], -1).reshape(-1, 3, 3)
         # the local rotation R0 (I + sin q K + (1 - cos q) K^2) as R0 + sin q (R0 K) + (1 - cos q) (R0 K^2)
         self.R0K, self.R0K2, self.axis = self.R0 @ K, self.R0 @ K @ K, a
+        self.slide = (self.R0 @ a[..., None])[..., 0]  # (F, 3) a sliding joint's axis in its parent's frame
         parent = chain._direct_parent_idx
         # (F, depth) each link's chain from the root to itself (pytorch-kinematics' parents_indices), -1 padded
         self.ancestors = torch.nn.utils.rnn.pad_sequence(list(chain.parents_indices), batch_first=True,
@@ -408,8 +409,8 @@ class _LeanChain:
         R0, R0K, R0K2 = (m.view(*m.shape, *ones) for m in (self.R0, self.R0K, self.R0K2))
         R = torch.mul(turn.sin(), R0K).addcmul_(1 - turn.cos(), R0K2).add_(R0)  # (F, 3, 3, *batch): offset, joint
         t0 = self.t0.view(*self.t0.shape, *ones) if origins is None else origins
-        t = t0 + torch.einsum("fi,f...->fi...", (self.R0 @ self.axis[..., None])[..., 0],
-                              torch.where(self.prismatic.view(-1, *ones), q, 0.0))  # (F, 3, *batch)
+        slide = self.slide.view(*self.slide.shape, *ones)
+        t = torch.addcmul(t0, slide, torch.where(self.prismatic.view(-1, *ones), q, 0.0)[:, None])  # (F, 3, *batch)
         Rw, tw = torch.empty_like(R), torch.empty_like(t)
         grad = torch.is_grad_enabled() and (R.requires_grad or t.requires_grad)
         many = q.shape[-1] >= LEAN_MANY_STATES  # by the last axis alone: bodies in lockstep round as one alone
@@ -421,9 +422,8 @@ class _LeanChain:
             if grad and isinstance(parent, slice):  # a view of Rw, which the next levels write: autograd keeps a copy
                 Rp = Rp.clone()
             Rl, tl = R[level], t[level]
-            if many:  # the products as three elementwise multiply-adds each (no (n, 3, 3, 3, *batch) temporary),
-                # written straight into the level's rows where they are a view and no gradient is kept
-                direct = isinstance(level, slice) and not grad
+            direct = isinstance(level, slice) and not grad  # written straight into the level's rows (a view)
+            if many:  # the products as three elementwise multiply-adds each (no (n, 3, 3, 3, *batch) temporary)
                 Rn = torch.mul(Rp[:, :, :1], Rl[:, :1], out=Rw[level]) if direct else Rp[:, :, :1] * Rl[:, :1]
                 Rn.addcmul_(Rp[:, :, 1:2], Rl[:, 1:2]).addcmul_(Rp[:, :, 2:], Rl[:, 2:])
                 tn = (torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1], out=tw[level]) if direct else
@@ -431,7 +431,10 @@ class _LeanChain:
                 tn.addcmul_(Rp[:, :, 1], tl[:, 1:2]).addcmul_(Rp[:, :, 2], tl[:, 2:])
                 if not direct:
                     Rw[level], tw[level] = Rn, tn
-            else:  # as one elementwise product and a sum each: fewer operations
+            elif direct:  # as one elementwise product and a sum each: fewer operations
+                torch.sum(Rp[:, :, :, None] * Rl[:, None], 2, out=Rw[level])
+                torch.add((Rp * tl[:, None]).sum(2), tw[parent], out=tw[level])
+            else:
                 Rw[level] = (Rp[:, :, :, None] * Rl[:, None]).sum(2)
                 tw[level] = (Rp * tl[:, None]).sum(2) + tw[parent]
         return Rw, tw

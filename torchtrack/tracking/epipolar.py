@@ -114,43 +114,41 @@ class EpipolarCost:
         far = torch.zeros_like(unit)
         far[..., 2] = torch.where(self.pair[..., None], far_px, 0.0)
         unit = torch.where(self.ok[..., None], unit, far)
-        # laid out for states last (N contiguous), as elementwise multiply-adds on each view's projection (u, v, 1):
-        # each line's three coefficients (Q, C, M, A, K, 1) and the back-projected line's (F^T y)_r = F_0r u + F_1r
-        # v + F_2r, r = 0, 1, as (s, r, Q, C, 1, A, 1); a few passes over (Q, C, M, A, K, N) where batched 3 x 3
-        # products of 140 small matrices and their temporaries took twice as long
-        self.lines = unit.permute(5, 0, 1, 2, 3, 4)[..., None].contiguous().to(dtype)  # (3, Q, C, M, A, K, 1)
-        self.norm2 = torch.where(self.ok, norm2, 0.0)[..., None].to(dtype)  # (Q, C, M, A, K, 1)
-        self.back = Fji[..., :2].permute(3, 4, 0, 1, 2)[:, :, :, :, None, :, None].contiguous().to(dtype)
+        # laid out for states last (N contiguous), with view i before the marker: the layers' cost is then a few
+        # elementwise passes over (Q, C, A, M, K, N) and one product per view (below), where batched products of
+        # C x M small matrices and their temporaries took twice as long. Each line's three coefficients
+        # (3, Q, C, A, M, K, 1); the pairs' F^T as (Q, C, 2A, 3), its rows r = 0, 1 of each view i: F^T y's first
+        # two coefficients, whose squared norm scales the distance in view i
+        self.lines = unit.permute(5, 0, 1, 3, 2, 4)[..., None].contiguous().to(dtype)
+        self.norm2 = torch.where(self.ok, norm2, 0.0).transpose(2, 3)[..., None].contiguous().to(dtype)
+        self.back = Fji[..., :2].permute(0, 1, 4, 2, 3).reshape(Q, C, 2 * (C - 1), 3).to(dtype)
         self.P = P.to(dtype)  # (Q, C, 3, 4)
         self.not_ok = ~self.ok[..., None]  # (Q, C, M, A, K, 1)
 
     def _project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Points ``(Q, M, 3, N)`` -> their pinhole pixels ``u, v (Q, C, M, 1, N)`` in each view (all views' rows
-        of P in one (3C x 3) product with all the points)."""
+        """Points ``(Q, M, 3, N)`` -> their homogeneous pinhole pixels ``y (Q, C, 3, M, N)`` in each view (all
+        views' rows of P in one (3C x 3) product with all the points) and the first two coefficients of their
+        epilines ``F^T y`` in each other view, ``(Q, C, 2, A, M, N)`` (one (2A x 3) product per view)."""
         Q, M, _, N = points.shape
         C = self.P.shape[1]
         P = self.P.to(points)
         y = torch.baddbmm(P[..., 3].reshape(Q, 3 * C, 1), P[..., :3].reshape(Q, 3 * C, 3),
-                          points.transpose(1, 2).reshape(Q, 3, M * N)).view(Q, C, 3, M, N)
-        w = y[:, :, 2]
-        return (y[:, :, 0] / w)[:, :, :, None], (y[:, :, 1] / w)[:, :, :, None]
-
-    def _back(self, u: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Projections ``u, v (Q, C, M, 1, N)`` in views j -> the first two coefficients ``(Q, C, M, A, N)`` of
-        their epilines ``F^T y`` in views i (``|.|^2`` the squared norm that scales the distance there)."""
-        G = self.back.to(u)
-        return tuple(torch.mul(u, G[0, r]).addcmul_(v, G[1, r]).add_(G[2, r]) for r in range(2))
+                          points.transpose(1, 2).reshape(Q, 3, M * N))  # (Q, 3C, M N)
+        back = torch.bmm(self.back.to(y).view(Q * C, -1, 3), y.view(Q * C, 3, M * N))
+        return y.view(Q, C, 3, M, N), back.view(Q, C, 2, C - 1, M, N)
 
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
         ``(Q, C, M, A, K, N)`` (px; view j, marker, view i, candidate) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2``
         (the same shape): the symmetric distance is their product with the first squared. Differentiable."""
-        u, v = self._project(points)
-        b0, b1 = self._back(u, v)
-        back = (b0.square() + b1.square()).clamp(min=1e-30)[:, :, :, :, None]  # (Q, C, M, A, 1, N)
+        y, b = self._project(points)
+        w = y[:, :, 2]
+        u, v = (y[:, :, 0] / w)[:, :, None, :, None], (y[:, :, 1] / w)[:, :, None, :, None]  # (Q, C, 1, M, 1, N)
+        back = (b[:, :, 0].square() + b[:, :, 1].square()).clamp(min=1e-30) / w.square()[:, :, None]  # (Q, C, A, M, N)
         L = self.lines.to(u)
-        dist = L[2] + L[0] * u[..., None, :] + L[1] * v[..., None, :]  # y_j from z_ik's epiline, px
-        return dist, self.norm2.to(u) / back + 1
+        dist = L[2] + L[0] * u + L[1] * v  # y_j from z_ik's epiline, px
+        factor = self.norm2.to(u) / back[:, :, :, :, None] + 1
+        return dist.transpose(2, 3), factor.transpose(2, 3)
 
     def cost(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:
         """``points (Q, M, 3, N)``, N finite states of each subject (padded markers too: a marker without
@@ -158,19 +156,22 @@ class EpipolarCost:
         place where no gradient is asked for (the particle filter's layers)."""
         if torch.is_grad_enabled() and any(t.requires_grad for t in (points, self.P, self.lines, self.back)):
             dist, factor = self._terms(points)
-            d = (dist.square() * factor).amin(4).clamp(max=self.cap)
-        else:  # _terms' distance, each full-size tensor made once and the rest in place
-            u, v = self._project(points)
-            b0, b1 = self._back(u, v)
-            inv = b0.square_().addcmul_(b1, b1).clamp_(min=1e-30).reciprocal_()[:, :, :, :, None]
-            L, u, v = self.lines.to(u), u[..., None, :], v[..., None, :]
-            dist2 = torch.mul(u, L[0]).addcmul_(v, L[1]).add_(L[2]).square_()  # (Q, C, M, A, K, N)
-            dist2.mul_(torch.mul(inv, self.norm2.to(u)).add_(1.0))
-            d = dist2[:, :, :, :, 0]  # the nearest candidate, by a minimum per candidate (K is a few; a reduction
-            for k in range(1, dist2.shape[4]):  # over so short an axis is several times slower)
-                d = torch.minimum(d, dist2[:, :, :, :, k], out=d if k > 1 else None)
-            d = d.clamp_(max=self.cap)
-        cost = d.sum(3).sum(1)  # (Q, M, N)
+            cost = (dist.square() * factor).amin(4).clamp(max=self.cap).sum(3).sum(1)  # (Q, M, N)
+            return cost if per_marker else cost.sum(1)
+        # _terms' distance, each full-size tensor made once and the rest in place
+        y, b = self._project(points)
+        w = y[:, :, 2]
+        u, v = (y[:, :, 0] / w)[:, :, None, :, None], (y[:, :, 1] / w)[:, :, None, :, None]  # (Q, C, 1, M, 1, N)
+        # 1 / |(F^T y)_12|^2 of the projection y = (u, v, 1): of the homogeneous one's, times w^2
+        inv = b[:, :, 0].square_().addcmul_(b[:, :, 1], b[:, :, 1]).clamp_(min=1e-30).reciprocal_().mul_(
+            w.square()[:, :, None])  # (Q, C, A, M, N)
+        L = self.lines.to(u)
+        dist2 = torch.mul(u, L[0]).addcmul_(v, L[1]).add_(L[2]).square_()  # (Q, C, A, M, K, N)
+        dist2.mul_(torch.mul(inv[:, :, :, :, None], self.norm2.to(u)).add_(1.0))
+        d = dist2[:, :, :, :, 0]  # the nearest candidate, by a minimum per candidate (K is a few; a reduction over
+        for k in range(1, dist2.shape[4]):  # so short an axis is several times slower)
+            d = torch.minimum(d, dist2[:, :, :, :, k], out=d if k > 1 else None)
+        cost = d.clamp_(max=self.cap).sum(2).sum(1)  # (Q, M, N)
         return cost if per_marker else cost.sum(1)
 
     def __call__(self, points: torch.Tensor, per_marker: bool = False) -> torch.Tensor:

@@ -103,6 +103,10 @@ class APFConfig:
 #: pixel noise's variance is a fifth of one variance or less, a change of pose well inside the estimate's own
 #: uncertainty (a chi-square change below 1), which the slow last steps on the outlier cap's edges only creep along.
 FD_STEP, POLISH_TOL = 1e-6, 1e-3
+#: The least exponent a particle's weight ``exp(-beta * cost)`` is taken at (relative to the best particle's 1): below
+#: about -87 float32's exp underflows into subnormal numbers, which a CPU computes about a hundred times slower, and a
+#: weight of e^-80 (2e-35) is as good as none beside the best particle's.
+LEAST_EXPONENT = -80.0
 #: The polish's dampings a step tries (each ten times the one before), all in one batch.
 DAMPING_TRIES = 4
 #: On a CPU the layers anneal at most about this many particles at once (subjects in lockstep in chunks, one
@@ -134,7 +138,8 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     then only the costs tied with the least keep a weight), the last (30 / (points - 1)^stages wide, 0.09 by
     default) is closed by taking log rate as linear in log beta across it: the rate within about 1e-3 of
     ``survival``.
-    The weights are summed in float32 (half float64's cost; the rate's rounding is far below that). Returns
+    The weights are summed in float32 (half float64's cost; the rate's rounding is far below that), each at least
+    ``exp(LEAST_EXPONENT)`` (:data:`LEAST_EXPONENT`). Returns
     ``(...,)`` float64; 0 where a row's costs are all equal."""
     if not 0 < survival < 1:
         raise InputError(f"annealing_beta: survival must be in (0, 1), got {survival}")
@@ -149,7 +154,7 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     steps = torch.linspace(0.0, 1.0, points, dtype=c.dtype, device=c.device)
     for _ in range(stages):
         grid = lo[..., None] + (hi - lo)[..., None] * steps  # (..., P) log beta
-        w = torch.exp(-grid.exp().float()[..., None] * c32[..., None, :])  # (..., P, N)
+        w = torch.exp((-grid.exp().float()[..., None] * c32[..., None, :]).clamp_(min=LEAST_EXPONENT))  # (..., P, N)
         rate = (w.sum(-1) ** 2 / (n * w.square().sum(-1))).double()  # (..., P), falling along P
         k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
         lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
@@ -405,7 +410,8 @@ class MarkerAPF:
             costs = torch.cat([parts.sum(1, keepdim=True), parts[:, 1:]], 1)
             if not cfg.partitioned:
                 costs = costs[:, :1]
-            W = torch.exp(-annealing_beta(costs, cfg.survival)[..., None] * (costs - costs.amin(-1, keepdim=True)))
+            W = torch.exp((-annealing_beta(costs, cfg.survival)[..., None] * (costs - costs.amin(-1, keepdim=True)))
+                          .clamp_(min=LEAST_EXPONENT))
             keep, w = x, W[:, 0]
             idx = resample(W, generator)  # (q, rows, N): each row's draw of whole particles
             x = keep.gather(1, idx[:, part].mT)  # each DOF from its part's row: keep[q, idx[q, part[d], n], d]
@@ -454,15 +460,16 @@ class MarkerAPF:
         return (J * self.marker_moves[..., None]).transpose(-1, -2)
 
     def _polish(self, angles: torch.Tensor, score: EpipolarCost | ReprojectionCost, going: torch.Tensor
-                ) -> torch.Tensor:
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Levenberg-Marquardt on the cost's residuals from the filter's estimates ``(Q, D)`` (of the subjects
-        ``going (Q,)``), within the joint limits; each subject damps and stops on its own. The Jacobian is the
-        residuals' derivatives by each marker's position (forward differences: a residual depends on its own
-        marker's position alone, so three moves of all markers give them) times the markers' derivatives by the
-        state in closed form (:meth:`_marker_jacobian`), from the links of the step's accepted trial: one forward
-        kinematics a step, of the trials. Hand-written over scipy's ``least_squares`` because a step is kept only
-        where the true cost falls (each marker's nearest candidate and the outlier cap change under it): scipy's LM
-        and TRF stalled on such frames (docs/results.md, "Marker-based capture")."""
+        ``going (Q,)``), within the joint limits; each subject damps and stops on its own. Returns the states
+        ``(Q, D)`` and their markers ``(Q, M, 3)``, in float64. The Jacobian is the residuals' derivatives by each
+        marker's position (forward differences: a residual depends on its own marker's position alone, so three
+        moves of all markers give them) times the markers' derivatives by the state in closed form
+        (:meth:`_marker_jacobian`), from the links of the step's accepted trial: one forward kinematics a step, of
+        the trials. Hand-written over scipy's ``least_squares`` because a step is kept only where the true cost falls
+        (each marker's nearest candidate and the outlier cap change under it): scipy's LM and TRF stalled on such
+        frames (docs/results.md, "Marker-based capture")."""
         theta = angles.detach().double()
         Q, D = theta.shape
         dev = theta.device
@@ -504,7 +511,7 @@ class MarkerAPF:
             cost = trial_cost
             lam = torch.where(moved, (lams[rows, k] / 10.0).clamp(min=1e-7), lam)
             going = moved & ~converged
-        return theta
+        return theta, X
 
     def step(self, detections: torch.Tensor) -> torch.Tensor:
         """One frame of a single-subject filter: ``detections (C, M, K, 2)`` in pinhole pixels
@@ -540,16 +547,18 @@ class MarkerAPF:
             keep[qs] = last.to(keep)
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
+        at = None
         if cfg.polish_steps > 0:
             z = detections.double()
             cost = (ReprojectionCost(z, self.P, self.outlier_px) if cfg.polish == "reprojection" else
                     EpipolarCost(z, self.P, self.F, self.outlier_px, self.far_px))
-            estimate = self._polish(estimate, cost, active)
+            estimate, at = self._polish(estimate, cost, active)  # (Q, D), and its markers (Q, M, 3)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
         with torch.no_grad():
             for qs, pts in zip(chunks, clouds):
-                d2 = (pts - self.markers_all(self.states[qs, None].float(), qs)).square().sum(2)  # (q, M, N)
+                mine = self.markers_all(self.states[qs, None].float(), qs) if at is None else at[qs, ..., None].float()
+                d2 = (pts - mine).square().sum(2)  # (q, M, N)
                 mask = self.marker_mask[qs]
                 d2 = (d2 * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
                 spreads[qs.cpu()] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
