@@ -52,8 +52,8 @@ def projection_matrices(rig: nn.Module) -> torch.Tensor:
 
 class EpipolarCost:
     """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), of Q subjects at once,
-    with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two small
-    contractions per view and marker. Hand-written over kornia's
+    with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two
+    products (the projections and their lines in the other views) and a few elementwise passes. Hand-written over kornia's
     :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it) because
     that one recomputes every candidate's line for every state.
 
