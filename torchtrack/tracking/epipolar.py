@@ -53,9 +53,9 @@ def projection_matrices(rig: nn.Module) -> torch.Tensor:
 class EpipolarCost:
     """The cost of states' markers against one frame's detections (:func:`epipolar_cost`), of Q subjects at once,
     with the detections' epipolar lines computed once for the frame: each layer of each frame then costs two
-    products (the projections and their lines in the other views) and a few elementwise passes. Hand-written over kornia's
-    :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it) because
-    that one recomputes every candidate's line for every state.
+    products (the projections and their lines in the other views) and a few elementwise passes. Hand-written over
+    kornia's :func:`~kornia.geometry.epipolar.symmetrical_epipolar_distance` (the same distance, tested against it)
+    because that one recomputes every candidate's line for every state.
 
     The distance is invariant to each fundamental matrix's scale and to the lines' scale, so both are normalised
     here (in float64): the lines then give pixel distances directly, and the states' side runs in their own dtype
@@ -137,13 +137,18 @@ class EpipolarCost:
         back = torch.bmm(self.back.to(y).view(Q * C, -1, 3), y.view(Q * C, 3, M * N))
         return y.view(Q, C, 3, M, N), back.view(Q, C, 2, C - 1, M, N)
 
+    @staticmethod
+    def _pixels(y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Homogeneous pixels ``y (Q, C, 3, M, N)`` -> ``u, v (Q, C, 1, M, 1, N)``, laid out against the lines."""
+        w = y[:, :, 2]
+        return (y[:, :, 0] / w)[:, :, None, :, None], (y[:, :, 1] / w)[:, :, None, :, None]
+
     def _terms(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``(Q, M, 3, N)``, states last -> each candidate's signed distance from the projection's epiline
         ``(Q, C, M, A, K, N)`` (px; view j, marker, view i, candidate) and ``1 + |(F z)_12|^2 / |(F^T y)_12|^2``
         (the same shape): the symmetric distance is their product with the first squared. Differentiable."""
         y, b = self._project(points)
-        w = y[:, :, 2]
-        u, v = (y[:, :, 0] / w)[:, :, None, :, None], (y[:, :, 1] / w)[:, :, None, :, None]  # (Q, C, 1, M, 1, N)
+        w, (u, v) = y[:, :, 2], self._pixels(y)
         back = (b[:, :, 0].square() + b[:, :, 1].square()).clamp(min=1e-30) / w.square()[:, :, None]  # (Q, C, A, M, N)
         L = self.lines.to(u)
         dist = L[2] + L[0] * u + L[1] * v  # y_j from z_ik's epiline, px
@@ -160,8 +165,7 @@ class EpipolarCost:
             return cost if per_marker else cost.sum(1)
         # _terms' distance, each full-size tensor made once and the rest in place
         y, b = self._project(points)
-        w = y[:, :, 2]
-        u, v = (y[:, :, 0] / w)[:, :, None, :, None], (y[:, :, 1] / w)[:, :, None, :, None]  # (Q, C, 1, M, 1, N)
+        w, (u, v) = y[:, :, 2], self._pixels(y)
         # 1 / |(F^T y)_12|^2 of the projection y = (u, v, 1): of the homogeneous one's, times w^2
         inv = b[:, :, 0].square_().addcmul_(b[:, :, 1], b[:, :, 1]).clamp_(min=1e-30).reciprocal_().mul_(
             w.square()[:, :, None])  # (Q, C, A, M, N)
