@@ -93,7 +93,7 @@ class EpipolarCost:
                 raise InputError(f"EpipolarCost: outlier_px must be finite and > 0; got {outlier_px}")
             far_px = max(FAR_PX, 10.0 * float(caps.max()))  # beyond the cap, whatever it is
         cap = torch.as_tensor(outlier_px, dtype=torch.float64).to(dev).expand(Q)
-        self.cap = cap.square().to(dtype).view(Q, 1, 1, 1, 1)  # (Q, 1, 1, 1, 1): against (Q, C, M, A, N)
+        self.cap = cap.square().to(dtype).view(Q, 1, 1, 1, 1)  # (Q, 1, 1, 1, 1): against the (Q, C, ., ., N) minima
         # the ordered view pairs grouped by their second view j (the one a state's marker is projected into): its
         # A = C - 1 first views i, so that each view j's and marker's terms take all its pairs' lines at once
         src = torch.tensor([[i for i in range(C) if i != j] for j in range(C)], dtype=torch.long, device=dev)  # (C, A)
@@ -117,8 +117,8 @@ class EpipolarCost:
         # laid out for states last (N contiguous), with view i before the marker: the layers' cost is then a few
         # elementwise passes over (Q, C, A, M, K, N) and one product per view (below), where batched products of
         # C x M small matrices and their temporaries took twice as long. Each line's three coefficients
-        # (3, Q, C, A, M, K, 1); the pairs' F^T as (Q, C, 2A, 3), its rows r = 0, 1 of each view i: F^T y's first
-        # two coefficients, whose squared norm scales the distance in view i
+        # (3, Q, C, A, M, K, 1); the pairs' F^T as (Q, C, 2A, 3), its row r = 0 for every view i in turn, then row
+        # r = 1: F^T y's first two coefficients, whose squared norm scales the distance in view i
         self.lines = unit.permute(5, 0, 1, 3, 2, 4)[..., None].contiguous().to(dtype)
         self.norm2 = torch.where(self.ok, norm2, 0.0).transpose(2, 3)[..., None].contiguous().to(dtype)
         self.back = Fji[..., :2].permute(0, 1, 4, 2, 3).reshape(Q, C, 2 * (C - 1), 3).to(dtype)

@@ -100,12 +100,13 @@ class APFConfig:
 
 #: The polish's forward-difference step (m for the root's translation, rad for angles), and the relative fall of
 #: the cost below which it stops: a thousandth of a cost that is about the frame's residuals (100-300) times the
-#: pixel noise's variance is a fifth of one variance or less, a change of pose well inside the estimate's own
-#: uncertainty (a chi-square change below 1), which the slow last steps on the outlier cap's edges only creep along.
+#: pixel noise's variance is 0.1-0.3 of one variance (more where outliers sit at the cap), a change of pose well
+#: inside the estimate's own uncertainty (a chi-square change below 1), which the slow last steps on the outlier
+#: cap's edges only creep along.
 FD_STEP, POLISH_TOL = 1e-6, 1e-3
 #: The least exponent a particle's weight ``exp(-beta * cost)`` is taken at (relative to the best particle's 1): below
-#: about -87 float32's exp underflows into subnormal numbers, which a CPU computes about a hundred times slower, and a
-#: weight of e^-80 (2e-35) is as good as none beside the best particle's.
+#: about -87 float32's exp underflows into subnormal numbers (float64's below about -708), which a CPU computes about
+#: a hundred times slower, and a weight of e^-80 (2e-35) is as good as none beside the best particle's.
 LEAST_EXPONENT = -80.0
 #: The polish's dampings a step tries (each ten times the one before), all in one batch.
 DAMPING_TRIES = 4
@@ -139,14 +140,14 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     default) is closed by taking log rate as linear in log beta across it: the rate within about 1e-3 of
     ``survival``.
     The weights are summed in float32 (half float64's cost; the rate's rounding is far below that), each at least
-    ``exp(LEAST_EXPONENT)`` (:data:`LEAST_EXPONENT`). Returns
-    ``(...,)`` float64; 0 where a row's costs are all equal."""
+    ``exp(LEAST_EXPONENT)`` (:data:`LEAST_EXPONENT`). Returns ``(...,)`` float64; 0 where a row's costs are all
+    equal."""
     if not 0 < survival < 1:
         raise InputError(f"annealing_beta: survival must be in (0, 1), got {survival}")
     c = (cost - cost.amin(-1, keepdim=True)).double()  # (..., N)
     c32 = c.float()
     n = c.shape[-1]
-    top = torch.where(torch.isfinite(c), c, 0.0).amax(-1)  # an infinite cost gets no weight at any beta
+    top = torch.where(torch.isfinite(c), c, 0.0).amax(-1)  # an infinite cost gets only the floor's weight
     # (at most 50: beta then stays within float32's range, and a row whose costs all lie within 1e-22 of each
     # other keeps every weight near 1 anyway)
     lo = torch.log(-math.log(survival) / (2 * top.clamp(min=1e-300))).clamp(max=50.0)
