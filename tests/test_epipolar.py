@@ -41,6 +41,8 @@ def test_epipolar_cost_matches_a_plain_loop(tau):
     points = truth[None] + 0.01 * torch.randn(B, M, 3, generator=gen, dtype=torch.float64)
     F = fundamental_matrices(rig)
     got = epipolar_cost(points, det, P, F, tau)
+    grad_path = epipolar_cost(points.clone().requires_grad_(True), det, P, F, tau).detach()
+    single = epipolar_cost(points.float(), det, P, F, tau)
     Pn, Fn, zn = P.numpy(), F.numpy(), det.numpy()
     for b in range(B):
         total = 0.0
@@ -65,6 +67,9 @@ def test_epipolar_cost_matches_a_plain_loop(tau):
                         best = min(best, d)
                     total += min(best, tau ** 2)
         assert float(got[b]) == pytest.approx(total, rel=1e-6)
+        # the differentiable path (points that need a gradient) and the particle layers' float32 give the same sums
+        assert float(grad_path[b]) == pytest.approx(total, rel=1e-6)
+        assert float(single[b]) == pytest.approx(total, rel=1e-3, abs=1e-2)
     # padded with empty candidate slots (before and between the real ones), as a sequence's detections are: the same
     padded = torch.full((C, M, K + 2, 2), math.nan, dtype=torch.float64)
     padded[:, :, 1], padded[:, :, 3:] = det[:, :, 0], det[:, :, 1:]

@@ -422,21 +422,19 @@ class _LeanChain:
             if grad and isinstance(parent, slice):  # a view of Rw, which the next levels write: autograd keeps a copy
                 Rp = Rp.clone()
             Rl, tl = R[level], t[level]
-            direct = isinstance(level, slice) and not grad  # written straight into the level's rows (a view)
+            # written straight into the level's rows where they are a view and no gradient is kept
+            direct = isinstance(level, slice) and not grad
+            outR, outt = (Rw[level], tw[level]) if direct else (None, None)
             if many:  # the products as three elementwise multiply-adds each (no (n, 3, 3, 3, *batch) temporary)
-                Rn = torch.mul(Rp[:, :, :1], Rl[:, :1], out=Rw[level]) if direct else Rp[:, :, :1] * Rl[:, :1]
-                Rn.addcmul_(Rp[:, :, 1:2], Rl[:, 1:2]).addcmul_(Rp[:, :, 2:], Rl[:, 2:])
-                tn = (torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1], out=tw[level]) if direct else
-                      torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1]))
-                tn.addcmul_(Rp[:, :, 1], tl[:, 1:2]).addcmul_(Rp[:, :, 2], tl[:, 2:])
-                if not direct:
-                    Rw[level], tw[level] = Rn, tn
-            elif direct:  # as one elementwise product and a sum each: fewer operations
-                torch.sum(Rp[:, :, :, None] * Rl[:, None], 2, out=Rw[level])
-                torch.add((Rp * tl[:, None]).sum(2), tw[parent], out=tw[level])
-            else:
-                Rw[level] = (Rp[:, :, :, None] * Rl[:, None]).sum(2)
-                tw[level] = (Rp * tl[:, None]).sum(2) + tw[parent]
+                Rn = torch.mul(Rp[:, :, :1], Rl[:, :1], out=outR).addcmul_(Rp[:, :, 1:2], Rl[:, 1:2]).addcmul_(
+                    Rp[:, :, 2:], Rl[:, 2:])
+                tn = torch.addcmul(tw[parent], Rp[:, :, 0], tl[:, :1], out=outt).addcmul_(
+                    Rp[:, :, 1], tl[:, 1:2]).addcmul_(Rp[:, :, 2], tl[:, 2:])
+            else:  # as one elementwise product and a sum each: fewer operations
+                Rn = torch.sum(Rp[:, :, :, None] * Rl[:, None], 2, out=outR)
+                tn = torch.add((Rp * tl[:, None]).sum(2), tw[parent], out=outt)
+            if not direct:
+                Rw[level], tw[level] = Rn, tn
         return Rw, tw
 
 

@@ -130,6 +130,11 @@ def _part(name: str) -> int:
     return 0
 
 
+def _floored_exp(x: torch.Tensor) -> torch.Tensor:
+    """``exp(max(x, LEAST_EXPONENT))``: the particles' weights, none of them subnormal (:data:`LEAST_EXPONENT`)."""
+    return torch.exp(x.clamp(min=LEAST_EXPONENT))
+
+
 def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points: int = 8) -> torch.Tensor:
     """Per row of ``cost (..., N)``, the ``beta`` whose weights ``exp(-beta * (cost - min))`` have an effective
     sample size of ``survival`` times N; the survival rate falls as beta grows, so each of ``stages`` rounds
@@ -140,7 +145,7 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     default) is closed by taking log rate as linear in log beta across it: the rate within about 1e-3 of
     ``survival``.
     The weights are summed in float32 (half float64's cost; the rate's rounding is far below that), each at least
-    ``exp(LEAST_EXPONENT)`` (:data:`LEAST_EXPONENT`). Returns ``(...,)`` float64; 0 where a row's costs are all
+    ``exp(LEAST_EXPONENT)`` (:func:`_floored_exp`). Returns ``(...,)`` float64; 0 where a row's costs are all
     equal."""
     if not 0 < survival < 1:
         raise InputError(f"annealing_beta: survival must be in (0, 1), got {survival}")
@@ -155,7 +160,7 @@ def annealing_beta(cost: torch.Tensor, survival: float, stages: int = 3, points:
     steps = torch.linspace(0.0, 1.0, points, dtype=c.dtype, device=c.device)
     for _ in range(stages):
         grid = lo[..., None] + (hi - lo)[..., None] * steps  # (..., P) log beta
-        w = torch.exp((-grid.exp().float()[..., None] * c32[..., None, :]).clamp_(min=LEAST_EXPONENT))  # (..., P, N)
+        w = _floored_exp(-grid.exp().float()[..., None] * c32[..., None, :])  # (..., P, N)
         rate = (w.sum(-1) ** 2 / (n * w.square().sum(-1))).double()  # (..., P), falling along P
         k = (rate > survival).sum(-1, keepdim=True).clamp(1, points - 1)  # the first point at or below
         lo, hi = grid.gather(-1, k - 1)[..., 0], grid.gather(-1, k)[..., 0]
@@ -411,8 +416,7 @@ class MarkerAPF:
             costs = torch.cat([parts.sum(1, keepdim=True), parts[:, 1:]], 1)
             if not cfg.partitioned:
                 costs = costs[:, :1]
-            W = torch.exp((-annealing_beta(costs, cfg.survival)[..., None] * (costs - costs.amin(-1, keepdim=True)))
-                          .clamp_(min=LEAST_EXPONENT))
+            W = _floored_exp(-annealing_beta(costs, cfg.survival)[..., None] * (costs - costs.amin(-1, keepdim=True)))
             keep, w = x, W[:, 0]
             idx = resample(W, generator)  # (q, rows, N): each row's draw of whole particles
             x = keep.gather(1, idx[:, part].mT)  # each DOF from its part's row: keep[q, idx[q, part[d], n], d]
@@ -548,18 +552,19 @@ class MarkerAPF:
             keep[qs] = last.to(keep)
             clouds.append(pts)
         estimate = (w[..., None] * keep).sum(1)  # (Q, D): the held subjects' predictions
-        at = None
+        polished = None
         if cfg.polish_steps > 0:
             z = detections.double()
             cost = (ReprojectionCost(z, self.P, self.outlier_px) if cfg.polish == "reprojection" else
                     EpipolarCost(z, self.P, self.F, self.outlier_px, self.far_px))
-            estimate, at = self._polish(estimate, cost, active)  # (Q, D), and its markers (Q, M, 3)
+            estimate, polished = self._polish(estimate, cost, active)  # (Q, D), and its markers (Q, M, 3)
         self.previous, self.states = self.states, torch.where(active[:, None], estimate, self.states)
         spreads = torch.full((Q,), math.nan, dtype=torch.float64)
         with torch.no_grad():
             for qs, pts in zip(chunks, clouds):
-                mine = self.markers_all(self.states[qs, None].float(), qs) if at is None else at[qs, ..., None].float()
-                d2 = (pts - mine).square().sum(2)  # (q, M, N)
+                at = (self.markers_all(self.states[qs, None].float(), qs) if polished is None else
+                      polished[qs, ..., None].float())  # the estimate's markers (q, M, 3, 1)
+                d2 = (pts - at).square().sum(2)  # (q, M, N)
                 mask = self.marker_mask[qs]
                 d2 = (d2 * mask[..., None]).sum(1) / mask.sum(1, keepdim=True)
                 spreads[qs.cpu()] = (w[qs] * d2).sum(-1).sqrt().double().cpu()
