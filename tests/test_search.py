@@ -291,3 +291,66 @@ def test_the_search_near_a_prediction_finds_the_body_the_images_show(seed, camer
     assert err(found.angles) < bound and err(found.angles) < err(predicted) - 0.03, (err(found.angles),
                                                                                     err(predicted))
     assert found.cameras == cameras_shown and 0.5 < found.score <= 1.0, found
+
+
+def _stooped_observation(case, cameras):
+    """A 1.6 m body stooped over (spine flexed, head bowed, knees bent, a hand at the chest, the other arm swung
+    back; each joint near its value), at a heading, with its voxels and the silhouettes of its blobs on a ring of
+    ``cameras`` (ground truth: clearance.body_masks): the observation, the template and the true landmarks."""
+    from conftest import voxelised_observation
+    from torchtrack.blobs import BlobModel
+    from torchtrack.conventions import LANDMARKS
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.clearance import body_masks
+    from torchtrack.tracking.voxels import ViewSilhouettes
+
+    skel = Skeleton.from_urdf()
+    names, idx = list(skel.dof_names), [list(skel.output_names).index(n) for n in LANDMARKS]
+    gen = torch.Generator().manual_seed(case)
+    truth = torch.zeros(skel.num_dofs, dtype=torch.float64)
+    for dof, value in {"spine_flex": 0.5, "neck_flex": 0.95, "l_knee_flex": 0.7, "r_knee_flex": 0.9,
+                       "l_hip_flex": 0.4, "r_hip_flex": 0.5, "r_shoulder_flex": 0.6, "r_elbow_flex": 2.1,
+                       "l_shoulder_flex": -0.7, "l_elbow_flex": 0.3}.items():
+        truth[names.index(dof)] = value + 0.1 * float(torch.randn(1, generator=gen))
+    truth[names.index("root_rz")] = 0.5 + 2.0 * case
+    truth = skel.clamp(truth[None])[0]
+    subj = skel.scaled_to_height(1.6)
+    blobs = BlobModel.from_config(subj)
+    truth[names.index("root_tz")] -= float(subj.forward(truth[None]).output_points[0, :, 2].min())
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
+    fg = body_masks(rig, subj, truth[None], blobs=blobs)[0].float()
+    obs = voxelised_observation(subj, blobs, truth, cameras=cameras)
+    obs = dataclasses.replace(obs, silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
+    return obs, skel, subj.forward(truth[None]).output_points[0, idx], idx
+
+
+@pytest.mark.parametrize("case", [1, 2])
+def test_a_stooped_body_is_found_where_the_images_score_it(case):
+    """8 cameras: the search with the stooped prior lands within 60 mm of a stooped body's landmarks and at least
+    80 mm nearer than without it (an upright pose meets the voxels only shrunk to their top)."""
+    from torchtrack.blobs import BlobModel
+    from torchtrack.tracking.search import SearchConfig, search_pose
+
+    obs, skel, want, idx = _stooped_observation(case, 8)
+    err = {}
+    for stooped in (False, True):
+        found = search_pose(obs, skel, BlobModel.from_config(skel), SearchConfig(stooped=stooped),
+                            torch.Generator().manual_seed(0), n=1)
+        body = skel.scaled_to_height(skel.height() * float(found.scale[0]))
+        got = body.forward(found.angles[:1].double()).output_points[0, idx]
+        err[stooped] = float((got - want).norm(dim=-1).mean())
+    assert err[True] < 0.06 and err[True] < err[False] - 0.08, err
+
+
+def test_the_stooped_prior_stays_off_on_fewer_than_7_cameras():
+    """4 cameras (the images do not compare finished bodies there): the same hypotheses, the same answer."""
+    from torchtrack.blobs import BlobModel
+    from torchtrack.tracking.search import SearchConfig, search_pose
+
+    obs, skel, _, _ = _stooped_observation(1, 4)
+    config = SearchConfig(layers=2)
+    on, off = (search_pose(obs, skel, BlobModel.from_config(skel), dataclasses.replace(config, stooped=s),
+                           torch.Generator().manual_seed(0), n=1) for s in (True, False))
+    assert on.hypotheses == off.hypotheses
+    torch.testing.assert_close(on.angles, off.angles, rtol=0, atol=0)

@@ -53,6 +53,13 @@ CELL_M = 0.03
 #: abduction x knee flexion. Each limb of each kept hypothesis is set to every point, the rest of the body kept.
 ARM_GRID = ((-0.6, 0.0, 0.6, 1.2, 1.8, 2.6), (0.1, 0.5, 1.0, 1.6), (0.1, 0.8, 1.6))
 LEG_GRID = ((-0.4, 0.0, 0.5, 1.0, 1.5), (0.0, 0.3), (0.1, 0.9, 1.8))
+#: Where the images compare finished bodies (:data:`IMAGE_COMPARE_MIN_CAMERAS`), the prior's poses also stooped
+#: over (spine and neck flexion added, rad) and the arm sweep's elbow also folded to a hand at the chest: an upright
+#: pose meets a crouched body's voxels only shrunk to their top, and the annealing's one-part steps do not bend the
+#: trunk from there (the bend lowers the top that sized the pose). On fewer views the hull's phantom volume takes
+#: the stooped poses in (docs/results.md, "The stooped trunk").
+STOOP = {"spine_flex": 0.5, "neck_flex": 0.9}
+STOOPED_ELBOW = 2.3
 
 
 @dataclass(frozen=True)
@@ -69,6 +76,9 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
+        stooped: the prior's poses also stooped over (:data:`STOOP`) and the arm sweep's elbow also at
+            :data:`STOOPED_ELBOW`, on rigs of :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras and more where the images
+            score the body.
         sweep: before the annealing, each limb of each kept hypothesis swept over a grid of its main joints
             (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept, each candidate sized as the
             first stages size a pose (its top at the voxels' top). Only where the images score the body
@@ -90,6 +100,7 @@ class SearchConfig:
     scale_range: tuple[float, float] = (0.8, 1.2)
     sweep: bool = True
     sweep_voxels: bool = False
+    stooped: bool = True
     real_poses: bool = False
     prior_exclude: tuple[str, ...] = ()
 
@@ -371,13 +382,14 @@ GROUPS = (("root_ry", "root_rx"), ("spine_", "neck_"), ("l_shoulder", "l_elbow",
           ("r_shoulder", "r_elbow", "r_wrist"), ("l_hip", "l_knee", "l_ankle"), ("r_hip", "r_knee", "r_ankle"))
 
 
-def _limb_grids(skel: Skeleton) -> list[tuple[torch.Tensor, torch.Tensor]]:
+def _limb_grids(skel: Skeleton, stooped: bool = False) -> list[tuple[torch.Tensor, torch.Tensor]]:
     """Per limb, its swept DOFs' indices ``(3,)`` and the grid's values ``(V, 3)`` (:data:`ARM_GRID`,
-    :data:`LEG_GRID`)."""
+    :data:`LEG_GRID`; with ``stooped`` the arms' elbows also at :data:`STOOPED_ELBOW`)."""
     names, dev = list(skel.dof_names), skel.lower.device
+    arm = ARM_GRID[:2] + (ARM_GRID[2] + (STOOPED_ELBOW,),) if stooped else ARM_GRID
     out = []
     for side in "lr":
-        for joints, grid in ((("shoulder_flex", "shoulder_abd", "elbow_flex"), ARM_GRID),
+        for joints, grid in ((("shoulder_flex", "shoulder_abd", "elbow_flex"), arm),
                              (("hip_flex", "hip_abd", "knee_flex"), LEG_GRID)):
             idx = torch.tensor([names.index(f"{side}_{j}") for j in joints], device=dev)
             out.append((idx, torch.cartesian_prod(*(torch.tensor(g, device=dev) for g in grid)).float()))
@@ -536,8 +548,15 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
     def keep(score, heading):  # the hypotheses a stage passes on
         return _top(score, config.keep) if vox.views is None else _top_both_ways(score, heading, config.keep)
 
-    # stage 1: the structured prior's legs x arms alike, and the real captures' poses, each at every heading
+    # stage 1: the structured prior's legs x arms alike (also stooped over, where the images compare), and the real
+    # captures' poses, each at every heading
+    stooped = config.stooped and vox.views is not None and obs.cameras_valid.numel() >= IMAGE_COMPARE_MIN_CAMERAS
     base = pose_prior(skel, symmetric_arms=True).float()
+    if stooped:
+        bent = base.clone()
+        for dof, value in STOOP.items():
+            bent[:, skel.dof_names.index(dof)] += value
+        base = torch.cat([base, skel.clamp(bent).float()])
     structured = base.shape[0] * headings.shape[0]  # the first hypotheses; the real poses' after them
     if config.real_poses:
         base = torch.cat([base, real_pose_prior(skel, config.prior_exclude).float()])
@@ -575,7 +594,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         # candidate sized as the first stages size a pose (its top at the voxels' top), since a leg's bend or a
         # raised arm changes the body's height
         H, rows = poses.shape[0], torch.arange(poses.shape[0], device=dev)
-        for idx, values in _limb_grids(skel):
+        for idx, values in _limb_grids(skel, stooped):
             V = values.shape[0]
             cand = poses.repeat_interleave(V, 0)
             cand[:, idx] = values.repeat(H, 1)
