@@ -296,7 +296,8 @@ def test_the_search_near_a_prediction_finds_the_body_the_images_show(seed, camer
 def _stooped_observation(case, cameras):
     """A 1.6 m body stooped over (spine flexed, head bowed, knees bent, a hand at the chest, the other arm swung
     back; each joint near its value), at a heading, with its voxels and the silhouettes of its blobs on a ring of
-    ``cameras`` (ground truth: clearance.body_masks): the observation, the template and the true landmarks."""
+    ``cameras`` (ground truth: clearance.body_masks): the observation, the template, the true landmarks and their
+    indices among the skeleton's outputs."""
     from conftest import voxelised_observation
     from torchtrack.blobs import BlobModel
     from torchtrack.conventions import LANDMARKS
@@ -328,7 +329,8 @@ def _stooped_observation(case, cameras):
 @pytest.mark.parametrize("case", [1, 2])
 def test_a_stooped_body_is_found_where_the_images_score_it(case):
     """8 cameras: the search with the stooped prior lands within 60 mm of a stooped body's landmarks and at least
-    80 mm nearer than without it (an upright pose meets the voxels only shrunk to their top)."""
+    80 mm nearer than without it (an upright pose meets the voxels only shrunk to their top; measured 41 / 20 mm
+    with it against 160 / 171 without)."""
     from torchtrack.blobs import BlobModel
     from torchtrack.tracking.search import SearchConfig, search_pose
 
@@ -343,14 +345,19 @@ def test_a_stooped_body_is_found_where_the_images_score_it(case):
     assert err[True] < 0.06 and err[True] < err[False] - 0.08, err
 
 
-def test_the_stooped_prior_stays_off_on_fewer_than_7_cameras():
-    """4 cameras (the images do not compare finished bodies there): the same hypotheses, the same answer."""
+@pytest.mark.parametrize("cameras", [6, 7])
+def test_the_stooped_prior_is_tried_from_7_cameras_only(cameras):
+    """On 6 cameras (the images do not compare finished bodies there) the same hypotheses and the same answer with
+    or without it; on 7, more hypotheses (the stooped poses and the folded elbows)."""
     from torchtrack.blobs import BlobModel
     from torchtrack.tracking.search import SearchConfig, search_pose
 
-    obs, skel, _, _ = _stooped_observation(1, 4)
-    config = SearchConfig(layers=2)
+    obs, skel, _, _ = _stooped_observation(1, cameras)
+    config = SearchConfig(layers=0)
     on, off = (search_pose(obs, skel, BlobModel.from_config(skel), dataclasses.replace(config, stooped=s),
                            torch.Generator().manual_seed(0), n=1) for s in (True, False))
-    assert on.hypotheses == off.hypotheses
-    torch.testing.assert_close(on.angles, off.angles, rtol=0, atol=0)
+    if cameras < 7:
+        assert on.hypotheses == off.hypotheses
+        torch.testing.assert_close(on.angles, off.angles, rtol=0, atol=0)
+    else:
+        assert on.hypotheses > off.hypotheses

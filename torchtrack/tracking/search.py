@@ -16,11 +16,11 @@ device of the voxels.
 
 The hypotheses: the skeleton's poses from a structured prior (:func:`~torchtrack.tracking.poses.pose_prior`: arms
 hanging, bent, forward, sideways, raised, each side on its own; legs standing, apart, stepping, squatting, a knee
-raised, kicking) and, with ``real_poses``, from real captures (:func:`~torchtrack.tracking.poses.real_pose_prior`:
-crouches, twists and reaches that no product of per-limb poses gives), at every heading; placed with their lowest
-point on the floor (the voxels' lowest) and the centroid of their blobs over the voxels' centroid, scaled so that
-their top meets the voxels' top (within ``scale_range``: the template is the prior of the subject's size, whose
-proportions the tracker's bone fit then measures).
+raised, kicking; from 7 cameras also stooped over, ``stooped``) and, with ``real_poses``, from real captures
+(:func:`~torchtrack.tracking.poses.real_pose_prior`: crouches, twists and reaches that no product of per-limb poses
+gives), at every heading; placed with their lowest point on the floor (the voxels' lowest) and the centroid of their
+blobs over the voxels' centroid, scaled so that their top meets the voxels' top (within ``scale_range``: the template
+is the prior of the subject's size, whose proportions the tracker's bone fit then measures).
 """
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ LEG_GRID = ((-0.4, 0.0, 0.5, 1.0, 1.5), (0.0, 0.3), (0.1, 0.9, 1.8))
 #: over (spine and neck flexion added, rad) and the arm sweep's elbow also folded to a hand at the chest: an upright
 #: pose meets a crouched body's voxels only shrunk to their top, and the annealing's one-part steps do not bend the
 #: trunk from there (the bend lowers the top that sized the pose). On fewer views the hull's phantom volume takes
-#: the stooped poses in (docs/results.md, "The stooped trunk").
+#: the stooped poses in (docs/results.md, "The stooped trunk, tried everywhere").
 STOOP = {"spine_flex": 0.5, "neck_flex": 0.9}
 STOOPED_ELBOW = 2.3
 
@@ -76,14 +76,14 @@ class SearchConfig:
         samples: points per blob of the body-to-voxel term.
         scale_range: the subject's size relative to the skeleton searched with (the template: 0.8-1.2, a
             subject 1.40-2.10 m tall; a known body, re-acquired: 1).
-        stooped: the prior's poses also stooped over (:data:`STOOP`) and the arm sweep's elbow also at
-            :data:`STOOPED_ELBOW`, on rigs of :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras and more where the images
-            score the body.
         sweep: before the annealing, each limb of each kept hypothesis swept over a grid of its main joints
             (:data:`ARM_GRID`, :data:`LEG_GRID`), one limb after another, the best kept, each candidate sized as the
             first stages size a pose (its top at the voxels' top). Only where the images score the body
             (``observation.silhouettes``), unless ``sweep_voxels``: on a few views' hull the sweep fits limbs into
             phantom volume (docs/results.md, "The limb sweep").
+        stooped: the prior's poses also stooped over (:data:`STOOP`) and the arm sweep's elbow also at
+            :data:`STOOPED_ELBOW`, on rigs of :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras and more where the images
+            score the body; for starts and re-acquisitions alike.
         real_poses: add the real captures' poses (:func:`~torchtrack.tracking.poses.real_pose_prior`) to the
             structured prior (``TrackerConfig.start_real_poses``).
         prior_exclude: leave out the real poses whose capture's name contains one of these (an evaluation on a
@@ -556,7 +556,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         bent = base.clone()
         for dof, value in STOOP.items():
             bent[:, skel.dof_names.index(dof)] += value
-        base = torch.cat([base, skel.clamp(bent).float()])
+        base = torch.cat([base, skel.clamp(bent)])
     structured = base.shape[0] * headings.shape[0]  # the first hypotheses; the real poses' after them
     if config.real_poses:
         base = torch.cat([base, real_pose_prior(skel, config.prior_exclude).float()])
