@@ -207,6 +207,12 @@ class _Views:
 IMAGE_COMPARE_MIN_CAMERAS = 7
 
 
+def _images_compare(obs: VoxelObservation) -> bool:
+    """Whether the rig of ``obs`` has :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras (the score's and the stooped
+    prior's gate; the rig's cameras, not the readable ones)."""
+    return obs.cameras_valid.numel() >= IMAGE_COMPARE_MIN_CAMERAS
+
+
 #: Finite-difference step (m) of the projection's Jacobian at each blob's centre (the image term's ellipses).
 JACOBIAN_STEP_M = 1e-3
 
@@ -413,7 +419,7 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     ``skel`` (placed as they are) on ``obs``: to compare hypotheses that EM/IK has finished. The voxel subsample is
     the same for every call on ``obs``. In the images where ``obs`` keeps them, from
     :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras; on fewer, on the voxels."""
-    if obs.silhouettes is not None and obs.cameras_valid.numel() < IMAGE_COMPARE_MIN_CAMERAS:
+    if obs.silhouettes is not None and not _images_compare(obs):
         obs = replace(obs, silhouettes=None)
     vox = _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
     c, R = blobs.ellipsoids(skel.forward(angles.to(skel.lower)).bone_frames)
@@ -550,7 +556,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
 
     # stage 1: the structured prior's legs x arms alike (also stooped over, where the images compare), and the real
     # captures' poses, each at every heading
-    stooped = config.stooped and vox.views is not None and obs.cameras_valid.numel() >= IMAGE_COMPARE_MIN_CAMERAS
+    stooped = config.stooped and vox.views is not None and _images_compare(obs)
     base = pose_prior(skel, symmetric_arms=True).float()
     if stooped:
         bent = base.clone()
