@@ -78,7 +78,7 @@ def test_sequences_in_lockstep_are_tracked_as_each_alone(device, monkeypatch):
     search (the starfish start; re-acquisition from the last pose's four headings) to keep the test short."""
     monkeypatch.setattr(MarkerlessTracker, "_searched", lambda self, obs: None)
     skel = Skeleton.from_urdf().to(device)
-    seqs = _sequences(skel, device)
+    seqs = _sequences(Skeleton.from_urdf(), device)  # the bodies voxelised on the CPU, then moved
     config = TrackerConfig(start="starfish")
     alone = []
     for seq in seqs:

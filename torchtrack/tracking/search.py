@@ -138,7 +138,8 @@ class _Voxels:
     def __init__(self, obs: VoxelObservation, max_voxels: int, generator: torch.Generator | None) -> None:
         pts, w = obs.points.float(), obs.weights.float()
         if pts.shape[0] > max_voxels:  # a weighted subsample without replacement: the same share per weight
-            pick = torch.multinomial(w.cpu(), max_voxels, replacement=False, generator=generator).to(pts.device)
+            at = w if generator is None else w.to(generator.device)  # drawn where the generator lives
+            pick = torch.multinomial(at, max_voxels, replacement=False, generator=generator).to(pts.device)
             pts, w = pts[pick], w[pick]
         self.points, self.weights = pts, w / w.sum()
         fine = obs.split(CELL_M)
