@@ -5,8 +5,9 @@ Cases (issue targets on the 2-core CPU):
 * bayes: 8 cameras 640x480, Bayesian grid 64^3;
 * ``--lockstep [B ...]``: the tracker's throughput on B different synthetic sequences tracked in lockstep (one
   batched step per frame for all of them, :mod:`torchtrack.tracking.lockstep`), frames/s summed over the B
-  sequences for each B (default 1, 4, 16; a GPU's figure: add 64), observations made beforehand; on CUDA also the
-  host synchronisations a frame of the lockstep step.
+  sequences for each B (default 1, 4, 16; a GPU's figure: add 64), observations made beforehand, timed after the
+  starts (tracked once for all B, ``--start truth``: from the true first pose instead of the trackers' search);
+  on CUDA also the host synchronisations a frame of the lockstep step.
 
 Renders the sequences once under --work (synthetic walk), then tracks them with the defaults of
 configs/markerless.yaml apart from the observation settings named here, and prints ms per frame by stage.
@@ -41,6 +42,7 @@ from pathlib import Path
 import torch
 
 from torchtrack.background import BackgroundModel
+from torchtrack.io.poses import load_poses
 from torchtrack.io.sequence import SequenceFolder
 from torchtrack.occupancy import grid_from_rig
 from torchtrack.skeleton import Skeleton
@@ -137,13 +139,14 @@ def bench(seq: Path, scale: float, model: str, voxel: float | None, grid_n: int 
     return {**{f"{k}_ms": 1e3 * v / m for k, v in t.items()}, "init_s": t_init, "fps": m / sum(t.values())}
 
 
-def lockstep_observations(work: Path, count: int, device: torch.device, config: dict) -> list[list]:
+def lockstep_observations(work: Path, count: int, device: torch.device, config: dict
+                          ) -> tuple[list[Path], list[list]]:
     """``count`` different synthetic sequences (4 cameras 320x240, 30 fps: a 0.5 s starfish, then 3 s of one of
-    the procedural motions, subjects 1.60-1.90 m tall), rendered once under ``work``, and their observations
-    (the Bayesian grid, 3 cm)."""
+    the procedural motions, subjects 1.60-1.90 m tall), rendered once under ``work``: their folders and
+    observations (the Bayesian grid, 3 cm)."""
     from torchtrack.synth.motion import MOTIONS
 
-    out = []
+    seqs, out = [], []
     for i in range(count):
         motion, height = MOTIONS[i % len(MOTIONS)], 1.60 + 0.30 * ((7 * i) % 16) / 15
         seq = work / f"lockstep_{i:02d}_{motion}_{round(100 * height)}cm"
@@ -152,53 +155,72 @@ def lockstep_observations(work: Path, count: int, device: torch.device, config: 
         if not is_current(seq, cfg):
             write_sequence(cfg, seq, progress=False)
         folder, observer = _setup(seq, 1.0, "bayes", 0.03, None, device, config)
+        seqs.append(seq)
         out.append([o for b in observe_batches(folder, observer, 0, folder.num_frames, batch=4, device=device)
                     for o in b.observations])
-    return out
+    return seqs, out
 
 
 def bench_lockstep(observations: list[list], sizes: list[int], device: torch.device, config: dict,
-                   timed_from: int) -> None:
-    """Track the first B of ``observations``' sequences in lockstep (:class:`Lockstep`) for each B in ``sizes``;
-    print frames/s summed over the B sequences over the frames from ``timed_from`` on (after the starts and their
-    races, which each tracker runs on its own), and the share of them the batched step took. On CUDA also the host
+                   timed_from: int, truths: list[Path] | None = None) -> None:
+    """Track the first B of ``observations``' sequences in lockstep (:class:`Lockstep`) for each B in ``sizes``
+    (sequence i is ``observations[i % len(observations)]``); print frames/s summed over the B sequences over the
+    frames from ``timed_from`` on, and the share of them the batched step took. On CUDA also the host
     synchronisations per frame of ``Lockstep.step`` on those frames (torch's sync debug mode: one warning per
-    synchronising call), where the issue allows one (torchtrack/tracking/step.py says where it is)."""
+    synchronising call), where the issue allows one (torchtrack/tracking/step.py says where it is).
+
+    The frames before ``timed_from`` (the starts and their races, which each tracker runs on its own) are tracked
+    once, all sequences in lockstep; each B then starts from copies of those trackers. With ``truths`` (the
+    sequences' folders) each tracker starts instead from its generator's true first pose and body (gt.npz,
+    body.urdf), without the start search."""
+    import copy
     import warnings
 
     from torchtrack.tracking.lockstep import Lockstep
 
+    def step(lockstep: Lockstep, frames: dict) -> None:
+        _, errors = lockstep.step(frames)
+        if errors:
+            raise next(iter(errors.values()))
+
     sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     T = min(len(o) for o in observations)
+    primed = [MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+              for _ in observations]
+    for i, t in enumerate(primed):
+        t.set_frame_rate(30.0)
+        if truths is not None:
+            angles = torch.as_tensor(load_poses(truths[i] / "gt.npz").angles[0], dtype=torch.float32, device=device)
+            t.initialize_from_pose(angles, skeleton=Skeleton.from_urdf(truths[i] / "body.urdf").to(device))
+    started = Lockstep(primed)
+    t0 = time.perf_counter()
+    for k in range(timed_from):
+        step(started, {i: seq[k] for i, seq in enumerate(observations)})
+    print(f"frames 0-{timed_from - 1} of {len(observations)} sequences ("
+          f"{'from the true first pose' if truths is not None else 'their starts'}): "
+          f"{time.perf_counter() - t0:.0f} s", flush=True)
     base = None
     for B in sizes:
-        trackers = [MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
-                    for _ in range(B)]
-        for t in trackers:
-            t.set_frame_rate(30.0)
+        trackers = [copy.deepcopy(primed[i % len(primed)]) for i in range(B)]
         lockstep = Lockstep(trackers)
         plain, syncs = 0, []
-        for k in range(T):
-            if k == timed_from:
-                sync()
-                t0 = time.perf_counter()
+        sync()
+        t0 = time.perf_counter()
+        for k in range(timed_from, T):
             frames = {i: observations[i % len(observations)][k] for i in range(B)}
-            if k >= timed_from:
-                plain += sum(t.routine(o) is not None for t, o in zip(trackers, frames.values()))
-            counting = device.type == "cuda" and k >= timed_from
+            counting = device.type == "cuda"
             with warnings.catch_warnings(record=True) as caught:
                 if counting:
                     warnings.simplefilter("always")
                     torch.cuda.set_sync_debug_mode("warn")
                 try:
-                    _, errors = lockstep.step(frames)
+                    step(lockstep, frames)
+                    plain += lockstep.batched
                 finally:
                     if counting:
                         torch.cuda.set_sync_debug_mode("default")
             if counting:
                 syncs.append(sum("synchroniz" in str(w.message) for w in caught))
-            if errors:
-                raise next(iter(errors.values()))
         sync()
         fps = B * (T - timed_from) / (time.perf_counter() - t0)
         base = fps if base is None else base
@@ -232,6 +254,9 @@ def main() -> None:
     ap.add_argument("--lockstep", type=int, nargs="*", default=None, metavar="B",
                     help="time instead the tracker's step on B different synthetic sequences in lockstep, for each B "
                          "given (default 1 4 16; GPU: add 64): frames/s summed over the B sequences")
+    ap.add_argument("--start", choices=("search", "truth"), default="search",
+                    help="with --lockstep: the trackers' start, their own (default) or the generator's true first "
+                         "pose and body (a GPU's quick figure: 16 starts of small operations take minutes there)")
     ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
                     help="tracking configs to time")
     ap.add_argument("--demo", action="store_true",
@@ -260,8 +285,9 @@ def main() -> None:
         print(f"device {device}, torch {torch.__version__}, {torch.get_num_threads()} threads; the tracker's step on "
               f"sequences in lockstep (observations made beforehand)", flush=True)
         config = load_config("markerless.yaml")
-        observations = lockstep_observations(args.work, min(max(sizes), 16), device, config)
-        bench_lockstep(observations, sizes, device, config, timed_from=45)
+        seqs, observations = lockstep_observations(args.work, min(max(sizes), 16), device, config)
+        bench_lockstep(observations, sizes, device, config, timed_from=45,
+                       truths=seqs if args.start == "truth" else None)
         return
     cases = [("hull 4 cams 320x240, 1.5 cm", (4, 320, 240), 1.0, "hull", 0.015, None, 30.0),
              ("hull 4 cams 320x240, 3 cm", (4, 320, 240), 1.0, "hull", 0.03, None, None),

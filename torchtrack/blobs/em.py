@@ -123,7 +123,8 @@ def mahalanobis2(x: torch.Tensor, mean: torch.Tensor, cov: torch.Tensor) -> torc
     """
     K = mean.shape[-2]
     eye = torch.eye(3, dtype=cov.dtype, device=cov.device).expand_as(cov)
-    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # ([B,] K, 3, 3)
+    # cholesky_ex: no host synchronisation for the check (the covariances are regularised positive definite)
+    W = torch.linalg.solve_triangular(torch.linalg.cholesky_ex(cov).L, eye, upper=False)  # ([B,] K, 3, 3)
     Wmu = torch.einsum("...kij,...kj->...ki", W, mean)  # ([B,] K, 3)
     # the squares summed per blob by a matrix product with a (3 K, K) block of ones: faster than a strided sum
     groups = torch.eye(K, dtype=x.dtype, device=x.device).repeat_interleave(3, dim=0)
@@ -186,7 +187,7 @@ def colour_term(colours: torch.Tensor | None, blobs: Blobs, config: EMConfig) ->
     # an unseen view's colour put far out of every blob's colour range, so that it never is the nearest
     # (cheaper than masking the (N, C, K) distances); voxels no view sees get no colour term
     far = torch.where(seen_views[..., None], colours, _UNSEEN_COLOUR)
-    A = torch.cholesky_inverse(torch.linalg.cholesky(blobs.colour_cov))
+    A = torch.cholesky_inverse(torch.linalg.cholesky_ex(blobs.colour_cov).L)
     least, view = quadric_distance2(far, blobs.colour_mean, A).min(dim=-2)  # ([B,] N, K)
     seen = seen_views.any(dim=-1, keepdim=True) & blobs.colour_known.unsqueeze(-2)  # ([B,] N, K)
     return ColourTerm(seen_views, torch.where(seen, least, 0.0), view)

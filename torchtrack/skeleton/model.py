@@ -14,6 +14,7 @@ Names used here:
 
 from __future__ import annotations
 
+import copy
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -144,6 +145,10 @@ class Skeleton(nn.Module):
         self.register_buffer("lower", torch.as_tensor(low, dtype=torch.float32), persistent=False)
         self.register_buffer("upper", torch.as_tensor(high, dtype=torch.float32), persistent=False)
         self.register_buffer("axes_local", chain.axes.detach().clone().float(), persistent=False)
+        #: the chain's frames, DOFs, limits and axes as host values, which bodies of one chain share (compared
+        #: without a device synchronisation)
+        self.chain_key = (self.frame_names, self.dof_names, tuple(self.lower.tolist()), tuple(self.upper.tolist()),
+                          tuple(map(tuple, self.axes_local.tolist())))
         # Bone geometry from the rest pose (root at the origin): distal joint in the bone's frame.
         rest = chain.forward_kinematics_tensor(torch.zeros(1, chain.n_joints))[:, 0]  # (F, 4, 4)
         T_bone = rest[self.bone_index]  # (nb, 4, 4)
@@ -293,8 +298,8 @@ class Skeleton(nn.Module):
     # ---------------------------------------------------------------------------------------------- FK
     def _chain_for(self, x: torch.Tensor) -> pk.Chain:
         key = (x.device, x.dtype)
-        if key not in self._chains:
-            self._chains[key] = pk.build_chain_from_urdf(self.urdf_text).to(dtype=x.dtype, device=x.device)
+        if key not in self._chains:  # a copy of the parsed chain: the same tensors, a third of a parse's time
+            self._chains[key] = copy.deepcopy(self._chain).to(dtype=x.dtype, device=x.device)
         return self._chains[key]
 
     def forward_frames(self, angles: torch.Tensor) -> torch.Tensor:

@@ -41,10 +41,8 @@ class SkeletonStack(nn.Module):
         if not skeletons:
             raise InputError("SkeletonStack: no bodies given")
         first = skeletons[0]
-        for s in skeletons[1:]:
-            if s.frame_names != first.frame_names or s.dof_names != first.dof_names or not (
-                    torch.equal(s.lower.cpu(), first.lower.cpu()) and torch.equal(s.upper.cpu(), first.upper.cpu())
-                    and torch.equal(s.axes_local.cpu(), first.axes_local.cpu())):
+        for s in skeletons[1:]:  # compared on the host's copies: no device synchronisation
+            if s.chain_key != first.chain_key:
                 raise InputError(f"SkeletonStack: {s.source} is not the chain of {first.source} (frames, DOFs, "
                                  "axes and limits must be the same; only the joints' origins may differ)")
         self.skeleton = first
@@ -57,7 +55,9 @@ class SkeletonStack(nn.Module):
             if p >= i:
                 raise InputError(f"{first.source}: frame {names[i]!r} is indexed before its parent")
             depth[i] = 0 if p < 0 else depth[p] + 1
-        self.levels = [torch.tensor([i for i, d in enumerate(depth) if d == k]) for k in range(max(depth) + 1)]
+        levels = [[i for i, d in enumerate(depth) if d == k] for k in range(max(depth) + 1)]
+        self.level_sizes = [len(lv) for lv in levels]  # the levels as one buffer on the stack's device, split
+        self.register_buffer("level_frames", torch.tensor([i for lv in levels for i in lv]), persistent=False)
         dof_of = {d: i for i, d in enumerate(first.dof_names)}
         kinds = [joints[f].kind if f in joints else "fixed" for f in names]
         dof = [dof_of.get(joints[f].name, -1) if f in joints else -1 for f in names]
@@ -79,7 +79,7 @@ class SkeletonStack(nn.Module):
         """The bodies at ``rows`` (a new stack sharing the chain's buffers)."""
         out = object.__new__(type(self))
         nn.Module.__init__(out)
-        out.skeleton, out.levels = self.skeleton, self.levels
+        out.skeleton, out.level_sizes = self.skeleton, self.level_sizes
         for name, buf in self._buffers.items():
             out.register_buffer(name, buf, persistent=False)
         out.offsets = self.offsets[torch.as_tensor(rows, device=self.offsets.device)]
@@ -102,8 +102,7 @@ class SkeletonStack(nn.Module):
         motion[..., :3, :3], motion[..., :3, 3], motion[..., 3, 3] = R, t, 1.0
         local = self.offsets.to(dt) @ motion  # (B, F, 4, 4)
         world = torch.empty_like(local)
-        for k, level in enumerate(self.levels):  # a level's frames hang from the level above
-            level = level.to(dev)
+        for k, level in enumerate(self.level_frames.split(self.level_sizes)):  # a level hangs from the one above
             world[:, level] = local[:, level] if k == 0 else world[:, self.parent[level]] @ local[:, level]
         return world
 

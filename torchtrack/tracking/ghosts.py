@@ -96,7 +96,7 @@ def ghost_voxels(points: torch.Tensor, seen: torch.Tensor, camera_centres: torch
     cov = cov.to(dt)
     m, c = mean.to(dt) - origin, camera_centres.to(dt) - origin  # (B, K, 3), (B, C, 3)
     eye = torch.eye(3, dtype=dt, device=points.device).expand_as(cov)
-    W = torch.linalg.solve_triangular(torch.linalg.cholesky(cov), eye, upper=False)  # (B, K, 3, 3)
+    W = torch.linalg.solve_triangular(torch.linalg.cholesky_ex(cov).L, eye, upper=False)  # (B, K, 3, 3)
     A = W.mT @ W
     d = c[:, None] - m[:, :, None]  # (B, K, C, 3) from each blob's mean to each camera
     v = torch.einsum("bkij,bkcj->bkci", A, d)  # A (c - m)

@@ -79,6 +79,13 @@ def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
     return axis_angle_to_rotation_matrix(v * (angle.clamp(max=max_angle) / angle.clamp(min=1e-12)))
 
 
+def _dof_slice(skeleton, names: tuple[str, ...]) -> slice | list[int]:  # noqa: ANN001 (a Skeleton or stack)
+    """The state-vector positions of ``names`` as a slice where they run one by one (a view: indexing a device
+    tensor with a host list would copy it there, a host synchronisation per call), else as a list."""
+    i = [skeleton.dof_names.index(n) for n in names]
+    return slice(i[0], i[-1] + 1) if i == list(range(i[0], i[-1] + 1)) else i
+
+
 class GoalModel(nn.Module):
     """Which joints ride on which bone, and where, for turning fitted blobs into joint goals.
 
@@ -118,7 +125,8 @@ class GoalModel(nn.Module):
             raise InputError("GoalModel: at most two blobs per bone")
         self.register_buffer("partner", torch.tensor(partner), persistent=False)
         self.has_pairs = any(p >= 0 for p in partner)
-        self.trunk_index = [JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]
+        self.register_buffer("trunk_index", torch.tensor([JOINT_FRAMES.index(j) for j in TRUNK_JOINTS]),
+                             persistent=False)
 
     @classmethod
     def stack(cls, models: list[GoalModel], blobs: BlobModel) -> GoalModel:
@@ -200,8 +208,8 @@ class GoalModel(nn.Module):
         cs = (w[..., None] * src).sum(1) / w.sum(-1, keepdim=True).clamp(min=1e-12)
         cd = (w[..., None] * dst).sum(1) / w.sum(-1, keepdim=True).clamp(min=1e-12)
         t = cd - torch.einsum("bij,bj->bi", R, cs)
-        root_t = skel.dof_index(["root_tx", "root_ty", "root_tz"]).tolist()
-        root_r = skel.dof_index(["root_rz", "root_ry", "root_rx"]).tolist()
+        root_t = _dof_slice(skel, ("root_tx", "root_ty", "root_tz"))
+        root_r = _dof_slice(skel, ("root_rz", "root_ry", "root_rx"))
         R_root = root_rotation_matrix(angles[:, root_r])
         out = angles.clone()
         out[:, root_t] = torch.einsum("bij,bj->bi", R, angles[:, root_t]) + t

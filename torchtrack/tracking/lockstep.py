@@ -39,6 +39,7 @@ class Lockstep:
                              "tracker config")
         self.trackers = list(trackers)
         self._stacks: dict[tuple, SubjectStack] = {}
+        self.batched = 0  #: the sequences that the last step advanced in the batched step
 
     def _stack(self, trackers: list[MarkerlessTracker]) -> SubjectStack:
         key = tuple(t.subject for t in trackers)  # the subjects themselves: an id could be reused after they go
@@ -57,17 +58,25 @@ class Lockstep:
         out: dict[int, FrameResult] = {}
         errors: dict[int, Exception] = {}
         plain: list[tuple[int, VoxelObservation]] = []
+        tests: dict[int, tuple[VoxelObservation, torch.Tensor] | None] = {}
         for i, obs in frames.items():
-            tracker = self.trackers[i]
             try:
-                ready = None if obs is None else tracker.routine(obs)
-                if ready is None:
-                    out[i] = tracker.skip() if obs is None else tracker.step(obs)
+                tests[i] = None if obs is None else self.trackers[i].routine_test(obs)
             except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
                 errors[i] = exc
+        # the trackers' routine tests read at once (one device, as the batched step's): one host synchronisation
+        pending = [i for i, t in tests.items() if t is not None]
+        passed = dict(zip(pending, torch.stack([tests[i][1] for i in pending]).tolist())) if pending else {}
+        for i, test in tests.items():
+            if passed.get(i, False):
+                plain.append((i, test[0]))
                 continue
-            if ready is not None:
-                plain.append((i, ready))
+            obs, tracker = frames[i], self.trackers[i]
+            try:
+                out[i] = tracker.skip() if obs is None else tracker.step(obs)
+            except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
+                errors[i] = exc
+        self.batched = len(plain)
         if plain:
             trackers = [self.trackers[i] for i, _ in plain]
             first = trackers[0]

@@ -413,15 +413,26 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
     def routine(self, obs: VoxelObservation) -> VoxelObservation | None:
         """``obs`` as the plain per-frame step takes it (merged per ``em_cell_m``) where this frame needs nothing
-        more of this tracker: it is started, not lost, not racing a start, and someone is there. Else None: the
-        frame goes through :meth:`step`. A driver that runs the plain step itself (several sequences in lockstep,
-        :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to :meth:`accept`."""
+        more of this tracker: it is started, not lost, not racing a start, someone is there and the images do not
+        hold the body. Else None: the frame goes through :meth:`step`. A driver that runs the plain step itself
+        (several sequences in lockstep, :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to
+        :meth:`accept`."""
+        test = self.routine_test(obs)
+        return test[0] if test is not None and bool(test[1]) else None
+
+    def routine_test(self, obs: VoxelObservation) -> tuple[VoxelObservation, torch.Tensor] | None:
+        """:meth:`routine` without reading the device, for a driver that reads many trackers' tests at once: None
+        where the tracker's own state rules the plain step out, else the frame as it would take it and a 0-d bool
+        tensor, true where it does."""
         if (self._race is not None or self.subject is None or self.angles is None
-                or self.lost >= self.config.lost_frames or not self._has_person(obs)
-                or self._hold_prediction(obs) is not None):
+                or self.lost >= self.config.lost_frames or obs.num_observed < self.config.min_voxels):
             return None
+        ok = (obs.sizes.double() ** 3).sum() >= self.config.min_volume_m3  # as _has_person
+        hold = self._hold_test(obs)
+        if hold is not None:
+            ok = ok & ~hold[1]
         obs = self._without_floor_band(obs)
-        return obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs
+        return (obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs), ok
 
     def accept(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
         """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine` gave it): a diverging frame counts

@@ -11,7 +11,7 @@ from dataclasses import replace
 import torch
 
 from torchtrack.tracking.start import START_MAX_OUTSIDE
-from torchtrack.tracking.step import FrameResult
+from torchtrack.tracking.step import FrameResult, host_tensor
 from torchtrack.tracking.voxels import VoxelObservation
 
 log = logging.getLogger(__name__)
@@ -102,6 +102,12 @@ class RecoveryMixin:
         volume's sides cut the body's voxels, or its prediction lies out of them: IMAGE_HOLD_CUT,
         IMAGE_HOLD_OUTSIDE; the track not yet lost, held for fewer than ``image_hold_s`` in a row, the cameras'
         foreground kept); else None."""
+        test = self._hold_test(obs)
+        return test[0] if test is not None and bool(test[1]) else None
+
+    def _hold_test(self, obs: VoxelObservation) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """:meth:`_hold_prediction` without reading the device: None where the tracker's state rules the hold out,
+        else the predicted state ``(D,)`` and a 0-d bool tensor, true where the images are to track the frame."""
         cfg, sub = self.config, self.subject
         hold_frames = self._hold_frames()
         if (hold_frames < 1 or obs.silhouettes is None or obs.volume_m is None or sub is None or self.angles is None
@@ -110,22 +116,20 @@ class RecoveryMixin:
             return None
         skel = sub.skeleton
         predicted = skel.clamp((self.angles + self.prediction_velocity * (self.angles - self.previous))[None])[0]
-        c, _ = sub.blobs.ellipsoids(skel.forward(predicted[None]).bone_frames)
-        lower, upper = (c.new_tensor(v) for v in obs.volume_m)
-        out = ((c[0, :, :2] < lower[:2]) | (c[0, :, :2] > upper[:2])).any(-1)  # (K,)
+        c, _ = sub.blobs.ellipsoids(sub.stack.skeleton.forward(predicted[None]).bone_frames)  # no finite check
+        lower, upper = (host_tensor(v[:2], c) for v in obs.volume_m)
+        out = ((c[0, :, :2] < lower) | (c[0, :, :2] > upper)).any(-1)  # (K,)
         vol = sub.blobs.semi_axes.to(c).prod(-1)
-        if float((vol * out).sum() / vol.sum()) >= IMAGE_HOLD_OUTSIDE:
-            return predicted
+        hold = (vol * out).sum() / vol.sum() >= IMAGE_HOLD_OUTSIDE
         if obs.num_voxels == 0:
-            return None
+            return predicted, hold
         p, w = obs.points[:, :2].to(c), obs.weights.to(c)
         body = torch.cdist(p, c[0, :, :2]).amin(1) < IMAGE_HOLD_NEAR_M  # the body's voxels, not a ghost's or clutter's
-        if not bool(body.any()):
-            return None
-        p, w = p[body], w[body]
-        edge = 2 * float(obs.sizes.max())
-        cut = ((p - lower[:2] < edge) | (upper[:2] - p < edge)).any(-1)
-        return predicted if float((w * cut).sum() / w.sum()) >= IMAGE_HOLD_CUT else None
+        edge = 2 * obs.sizes.max().to(c)
+        cut = ((p - lower < edge) | (upper - p < edge)).any(-1)
+        w = w * body
+        # no body voxels: 0 / 0, NaN, which no threshold passes
+        return predicted, hold | ((w * cut).sum() / w.sum() >= IMAGE_HOLD_CUT)
 
     def _hold_frames(self) -> int:
         """``image_hold_s`` in frames of the sequence."""

@@ -82,7 +82,7 @@ class Subject:
         self.blobs = BlobModel(skeleton, specs, ref)
         self.goals = GoalModel(skeleton, self.blobs)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, ccd)
-        self.ccd_goal_index = [JOINT_FRAMES.index(j) for j in CCD_GOALS]
+        self.ccd_goal_index = torch.tensor([JOINT_FRAMES.index(j) for j in CCD_GOALS])
         self.spine_dofs = skeleton.dof_index([n for n in SPINE_DOFS if n in skeleton.dof_names])  # rigid_trunk
         self.feet = feet_index()  # (2, 2) ankle and toe site of each foot (JOINT_FRAMES indices)
         rest = skeleton.forward(skeleton.rest_angles()[None]).joints[0]  # (G, 3)
@@ -100,6 +100,7 @@ class Subject:
         for m in (self.skeleton, self.blobs, self.goals, self.ccd):
             m.to(device)
         self.output_joint, self.spine_dofs = self.output_joint.to(device), self.spine_dofs.to(device)
+        self.ccd_goal_index = self.ccd_goal_index.to(device)
         self.feet, self.ankle_height = self.feet.to(device), self.ankle_height.to(device)
         self.arm_dofs, self.arm_rest = self.arm_dofs.to(device), self.arm_rest.to(device)
         self._stack = None
@@ -176,7 +177,7 @@ class VoxelBatch:
         centres = pad([ref.new_zeros(o.colours.shape[1], 3) if o.camera_centres is None else o.camera_centres.to(ref)
                        for o in observations], 0.0)
         box = [((-math.inf,) * 3, (math.inf,) * 3) if o.volume_m is None else o.volume_m for o in observations]
-        lower, upper = ref.new_tensor([b[0] for b in box]), ref.new_tensor([b[1] for b in box])
+        lower, upper = host_tensor([b[0] for b in box], ref), host_tensor([b[1] for b in box], ref)
         ghosts = tuple(o.camera_centres is not None and o.camera_centres.shape[0] <= ghost_max_cameras
                        for o in observations)
         return cls(points, sizes, weights, colours, valid, centres, ghosts, lower, upper)
@@ -232,6 +233,15 @@ class Stepped:
     feet_observed: torch.Tensor
 
 
+def host_tensor(values: Sequence, like: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
+    """``values`` (host numbers) as a tensor on ``like``'s device (in its dtype unless ``dtype``), copied to a GPU from
+    pinned memory without waiting for the device (a copy from pageable memory synchronises the host)."""
+    dtype = like.dtype if dtype is None else dtype
+    if like.device.type != "cuda":
+        return torch.tensor(values, dtype=dtype, device=like.device)
+    return torch.tensor(values, dtype=dtype, pin_memory=True).to(like.device, non_blocking=True)
+
+
 def prior_state(angles: torch.Tensor, num_blobs: int, colour_std: float = 0.2) -> dict[str, torch.Tensor]:
     """The colour and feet fields of a :class:`StepState` for B states with nothing learnt (hypotheses)."""
     B, dev, dt = angles.shape[0], angles.device, angles.dtype
@@ -274,7 +284,7 @@ def track_step(sub: SubjectStack, obs: VoxelBatch, state: StepState, config: Ste
     weights = obs.weights
     ghosts = [b for b, g in enumerate(obs.ghosts) if g] if predicted and cfg.ghost_weight < 1.0 else []
     if ghosts:
-        i = torch.tensor(ghosts, device=mean.device)
+        i = host_tensor(ghosts, mean, torch.int64)
         seen = torch.isfinite(obs.colours[i]).all(-1) & obs.cameras_valid[i][:, None]
         ghost = ghost_voxels(obs.points[i], seen, obs.camera_centres[i], mean[i], cov[i], cfg.ghost_inside_scale,
                              cfg.ghost_cover_scale, state.covers[i], self_scale=cfg.ghost_self_scale)

@@ -96,7 +96,8 @@ class VoxelObservation:
             return self
         keep = self.points[:, 2] >= self.volume_m[0][2] + band_m
         w = self.weights * keep.to(self.weights.dtype)
-        return self if not bool((w > 0).any()) else replace(self, weights=w)
+        # the weights as they were where the band holds every voxel (chosen on the device: no synchronisation)
+        return replace(self, weights=torch.where((w > 0).any(), w, self.weights))
 
     def volume_m3(self) -> float:
         return float((self.sizes.double() ** 3).sum())
