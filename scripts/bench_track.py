@@ -167,16 +167,27 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
     (sequence i is ``observations[i % len(observations)]``); print frames/s summed over the B sequences over the
     frames from ``timed_from`` on, and the share of them the batched step took. On CUDA also the host
     synchronisations per frame of ``Lockstep.step`` on those frames (torch's sync debug mode: one warning per
-    synchronising call), where the issue allows one (torchtrack/tracking/step.py says where it is).
+    synchronising call) and the places in torchtrack that make most of them (file:line, innermost first).
 
     The frames before ``timed_from`` (the starts and their races, which each tracker runs on its own) are tracked
     once, all sequences in lockstep; each B then starts from copies of those trackers. With ``truths`` (the
     sequences' folders) each tracker starts instead from its generator's true first pose and body (gt.npz,
     body.urdf), without the start search."""
+    import collections
     import copy
+    import traceback
     import warnings
 
     from torchtrack.tracking.lockstep import Lockstep
+
+    places: collections.Counter = collections.Counter()
+
+    def seen(message, category, filename, lineno, file=None, line=None) -> None:  # noqa: ANN001
+        """A sync debug warning: counted under its innermost three frames in torchtrack (others are dropped)."""
+        if "synchroniz" not in str(message):
+            return
+        ours = [f for f in traceback.extract_stack()[:-1] if f"{os.sep}torchtrack{os.sep}" in f.filename]
+        places[" < ".join(f"{Path(f.filename).name}:{f.lineno}" for f in ours[::-1][:3]) or f"{filename}:{lineno}"] += 1
 
     def step(lockstep: Lockstep, frames: dict) -> None:
         _, errors = lockstep.step(frames)
@@ -204,14 +215,17 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
         trackers = [copy.deepcopy(primed[i % len(primed)]) for i in range(B)]
         lockstep = Lockstep(trackers)
         plain, syncs = 0, []
+        places.clear()
         sync()
         t0 = time.perf_counter()
         for k in range(timed_from, T):
             frames = {i: observations[i % len(observations)][k] for i in range(B)}
             counting = device.type == "cuda"
-            with warnings.catch_warnings(record=True) as caught:
+            before = sum(places.values())
+            with warnings.catch_warnings():
                 if counting:
                     warnings.simplefilter("always")
+                    warnings.showwarning = seen  # restored as the block ends
                     torch.cuda.set_sync_debug_mode("warn")
                 try:
                     step(lockstep, frames)
@@ -220,14 +234,16 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
                     if counting:
                         torch.cuda.set_sync_debug_mode("default")
             if counting:
-                syncs.append(sum("synchroniz" in str(w.message) for w in caught))
+                syncs.append(sum(places.values()) - before)
         sync()
         fps = B * (T - timed_from) / (time.perf_counter() - t0)
         base = fps if base is None else base
         print(f"B = {B:3d}: {fps:7.1f} frames/s summed ({fps / base:.1f}x B = {sizes[0]}); "
               f"{plain / (B * (T - timed_from)):.0%} of the frames in the batched step"
-              + (f"; host synchronisations a frame: mean {sum(syncs) / len(syncs):.1f}, most {max(syncs)}" if syncs else ""),
-              flush=True)
+              + (f"; host synchronisations a frame: mean {sum(syncs) / len(syncs):.1f}, most {max(syncs)}"
+                 if syncs else ""), flush=True)
+        for place, n in places.most_common(6):
+            print(f"    {n / len(syncs):6.2f} a frame  {place}", flush=True)
 
 
 def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:

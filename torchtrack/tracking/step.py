@@ -17,8 +17,8 @@ What to do with each result (accept it, count a divergence, re-acquire) is the d
 (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`, :mod:`torchtrack.tracking.lockstep`). Nothing here
 reads files or logs, nor waits for a value from a GPU: EM and the ghost test mask rows rather than select them
 there (on the CPU, where a selection costs no wait, they select), and EM asks whether a colour is known only on
-the CPU. The driver then reads the results once a frame (:meth:`MarkerlessTracker._results`). Not yet measured on
-a device.
+the CPU. The driver then reads the results once a frame (:meth:`MarkerlessTracker._results`). On a GPU the root
+fit's SVD also waits (``torch.linalg.svd`` checks its convergence on the host): docs/results.md, Speed, counts them.
 """
 
 from __future__ import annotations
