@@ -36,6 +36,10 @@ sys.path.insert(0, str(CODE))
 
 from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.markers.capture import simulated_capture  # noqa: E402
+try:
+    from torchtrack.markers.capture import marker_scene  # noqa: E402
+except ImportError:  # a checkout before the scene had a function of its own (a --before run)
+    marker_scene = None
 from torchtrack.markers.model import subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.triangulate import triangulate_candidates  # noqa: E402
@@ -134,12 +138,16 @@ def before_and_after(args: argparse.Namespace) -> int:
     return 0
 
 
-def capture(rig, frames: int, seed: int, dev: torch.device) -> tuple:
-    """The simulated capture's detections drawn with ``seed`` (61 + ``frames`` frames at 30 frames/s) and its
-    subject fitted on the first 60 frames' triangulated markers: the skeleton, the marker set, the pose of frame 59
-    and the detections ``(T, C, M, K, 2)`` in pinhole pixels, on ``dev``."""
-    det, _ = simulated_capture(CAPTURE, rig, 30.0, (frames + 61) / 30.0,
-                               DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), seed=seed)
+def capture(rig, frames: int, seed: int, dev: torch.device, scene=None) -> tuple:  # noqa: ANN001
+    """The simulated capture's detections drawn with ``seed`` (61 + ``frames`` frames at 30 frames/s; from
+    ``scene``, the capture placed in the rig, where given) and its subject fitted on the first 60 frames'
+    triangulated markers: the skeleton, the marker set, the pose of frame 59 and the detections ``(T, C, M, K, 2)``
+    in pinhole pixels, on ``dev``."""
+    model = DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0)
+    if scene is None:
+        det, _ = simulated_capture(CAPTURE, rig, 30.0, (frames + 61) / 30.0, model, seed=seed)
+    else:
+        det = scene.detections(model, seed)
     uv = torch.from_numpy(det.uv.astype("float64"))
     z = pinhole_pixels(rig, uv.permute(1, 0, 2, 3, 4)).permute(1, 0, 2, 3, 4)
     X, _ = triangulate_candidates(z[:60], projection_matrices(rig))
@@ -170,7 +178,8 @@ def lockstep(args: argparse.Namespace, rig, dev: torch.device) -> int:
     its own), the largest Q's sequences the pool of the others."""
     Q_max = max(args.lockstep)
     P, L = (int(v) for v in args.lockstep_setting.lower().split("x"))
-    pool = [capture(rig, args.frames, seed, dev) for seed in range(Q_max)]
+    scene = None if marker_scene is None else marker_scene(CAPTURE, rig, 30.0, (args.frames + 61) / 30.0)
+    pool = [capture(rig, args.frames, seed, dev, scene) for seed in range(Q_max)]  # the capture retargeted once
     print(f"{'sequences':<10} {'frames/s summed':>15} {'ms/frame':>9}   ({args.device}, {args.threads} thread(s), "
           f"{P} particles x {L} layers with the polish, {rig.num_cameras} cameras)")
     base = None

@@ -39,7 +39,7 @@ from torchtrack.cameras import load_calibration  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.io.poses import Poses, save_poses  # noqa: E402
-from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
+from torchtrack.markers.capture import marker_scene, write_marker_capture  # noqa: E402
 from torchtrack.markers.gaps import MEASURED, NONE  # noqa: E402
 from torchtrack.markers.model import fit_poses_to_markers, subject_from_markers  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
@@ -110,11 +110,11 @@ def main() -> int:
     print(f"{'capture':<12} {'setting':<12} {'frames':>6} {'markers':>7} {'MMTA@50':>8} {'MMTP mm':>8} "
           f"{'landmarks mm':>12} {'lost':>5} {'s/frame':>8} {'measured':>8} {'body MMTA':>9} {'body MMTP':>9}")
     for name in args.captures:
+        scene = marker_scene(CAPTURES[name], rig, args.fps, args.duration)  # retargeted once for every run
         for setting in args.settings:
             runs = []
             for seed in range(args.seeds):
-                det, truth = simulated_capture(CAPTURES[name], rig, args.fps, args.duration, SETTINGS[setting],
-                                               seed=seed)
+                det, truth = scene.detections(SETTINGS[setting], seed=seed), scene.truth
                 folder = write_marker_capture(work / f"{name}_{setting}" / f"seed{seed}", rig, det, truth)
                 t0 = time.perf_counter()
                 result = track_markers(folder, apf, seed=seed, progress=False)

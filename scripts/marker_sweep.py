@@ -28,7 +28,7 @@ from torchtrack.checks import InputError  # noqa: E402
 from torchtrack.eval.metrics import evaluate  # noqa: E402
 from torchtrack.io.outputs import script_work_folder  # noqa: E402
 from torchtrack.logging import RunLogger  # noqa: E402
-from torchtrack.markers.capture import simulated_capture, write_marker_capture  # noqa: E402
+from torchtrack.markers.capture import MarkerScene, marker_scene, write_marker_capture  # noqa: E402
 from torchtrack.markers.simulate import DetectorModel  # noqa: E402
 from torchtrack.markers.track import track_markers  # noqa: E402
 from torchtrack.tracking.particles import APFConfig  # noqa: E402
@@ -42,11 +42,10 @@ SWEEPS = {"p_miss": (0.0, 0.2, 0.4, 0.6), "false_rate": (0.0, 0.5, 1.0, 2.0), "s
           "particles": (100, 250, 500, 1000), "layers": (1, 3, 5, 8)}
 
 
-def point(capture: Path, rig, detector: DetectorModel, apf: APFConfig, fps: float, duration: float | None
-          ) -> tuple[float, float]:
-    """(MMTA, MMTP mm) of one setting; NaN where the subject cannot be fitted from the detections (the reason is
-    printed)."""
-    det, truth = simulated_capture(capture, rig, fps, duration, detector, seed=0)
+def point(scene: MarkerScene, rig, detector: DetectorModel, apf: APFConfig) -> tuple[float, float]:
+    """(MMTA, MMTP mm) of one setting on the capture placed in the rig; NaN where the subject cannot be fitted from
+    the detections (the reason is printed)."""
+    det, truth = scene.detections(detector, seed=0), scene.truth
     with tempfile.TemporaryDirectory() as tmp:
         folder = write_marker_capture(tmp, rig, det, truth)
         try:
@@ -78,6 +77,7 @@ def main() -> int:
     base_det, base_apf = DetectorModel(p_miss=0.2, false_rate=0.1, sigma_px=2.0), APFConfig()
     fig, axes = plt.subplots(1, len(args.params), figsize=(4 * len(args.params), 3.4), squeeze=False)
     print(f"{'parameter':<11} {'value':>7} {'MMTA@50':>8} {'MMTP mm':>8}")
+    scene = marker_scene(args.capture, rig, args.fps, args.duration, base_det.skin_m)  # retargeted once
     with RunLogger(out / "tb") as tb:
         for ax, name in zip(axes[0], args.params):
             values = SWEEPS[name]
@@ -87,7 +87,7 @@ def main() -> int:
             for i, v in enumerate(values):
                 det = replace(base_det, **{name: v}) if hasattr(base_det, name) else base_det
                 apf = replace(base_apf, **{name: v}) if hasattr(base_apf, name) else base_apf
-                a, p = point(args.capture, rig, det, apf, args.fps, args.duration)
+                a, p = point(scene, rig, det, apf)
                 mmta.append(100 * a)
                 mmtp.append(p)
                 print(f"{name:<11} {v:>7g} {100 * a:>7.2f}% {p:>8.1f}", flush=True)

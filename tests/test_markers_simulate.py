@@ -146,3 +146,39 @@ def test_synth_markers_names_a_malformed_capture(tmp_path, capsys):
                  "--out", str(tmp_path / "x")]) == 2
     assert "Dance.c3d" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_a_scene_placed_once_gives_each_detector_and_seed_its_detections():
+    """A capture placed in the rig once (:func:`marker_scene`): its projections are OpenCV's of the placed 3D markers;
+    a perfect detector returns exactly the markers it shows, each at its projection; a noisy one draws the same
+    detections for the same seed and others for another, and drawing leaves the scene as it was; a detector of
+    another skin offset (which the occlusion was computed with) is refused."""
+    from torchtrack.markers.capture import marker_scene
+
+    rig = demo_rig()
+    pig = shared_data("mocap", "btk", "c3d", "PiG_Motion-FlatFoot-Full.c3d")
+    scene = marker_scene(pig, rig, 30.0, 0.3)
+    X = scene.truth.markers3d.astype(np.float64)  # (T, M, 3) placed over the capture area
+    T, M = X.shape[:2]
+    assert scene.visible.shape == (T, rig.num_cameras, M) and 0.3 < float(scene.visible.double().mean()) < 1.0
+    for c in range(rig.num_cameras):
+        R, t = rig.R_cam_world[c].double().numpy(), rig.t_cam_world[c].double().numpy()
+        ref = cv2.projectPoints(X.reshape(-1, 3), cv2.Rodrigues(R)[0], t, rig.K[c].double().numpy(),
+                                rig.dist[c].double().numpy())[0][:, 0].reshape(T, M, 2)
+        got = scene.uv[:, c].numpy()
+        both = np.isfinite(got).all(-1) & np.isfinite(ref).all(-1)  # the capture's gaps, points behind a camera
+        assert both.mean() > 0.5 and not scene.visible[:, c].numpy()[~both].any()
+        np.testing.assert_allclose(got[both], ref[both], atol=1e-3)
+    perfect = scene.detections(DetectorModel(p_miss=0.0, false_rate=0.0, sigma_px=0.0), seed=3)
+    seen = scene.visible.numpy()
+    assert np.array_equal(perfect.extra["true_index"] >= 0, seen)
+    t, c, m = np.nonzero(seen)
+    k = perfect.extra["true_index"][t, c, m]
+    np.testing.assert_allclose(perfect.uv[t, c, m, k], scene.uv.numpy()[t, c, m], atol=1e-3)  # float32 pixels
+    before = scene.uv.clone()
+    noisy = DetectorModel(p_miss=0.2, false_rate=0.5, sigma_px=2.0)
+    a, b, other = scene.detections(noisy, 0), scene.detections(noisy, 0), scene.detections(noisy, 1)
+    assert np.array_equal(a.uv, b.uv, equal_nan=True) and not np.array_equal(a.uv, other.uv, equal_nan=True)
+    assert torch.equal(scene.uv, before)
+    with pytest.raises(InputError, match="skin_m"):
+        scene.detections(DetectorModel(skin_m=0.02))

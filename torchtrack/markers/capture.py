@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from torchtrack.occupancy import capture_views, grid_from_rig
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.c3d_motion import c3d_resampled, retarget_c3d
 
-__all__ = ["capture_centre", "simulated_capture", "write_marker_capture"]
+__all__ = ["MarkerScene", "capture_centre", "marker_scene", "simulated_capture", "write_marker_capture"]
 
 log = logging.getLogger(__name__)
 
@@ -40,19 +41,44 @@ def capture_centre(rig: nn.Module) -> torch.Tensor:
                      "cameras: nowhere to place the capture")
 
 
-def simulated_capture(path: str | Path, rig: nn.Module, fps: float | None = None, duration_s: float | None = None,
-                      model: DetectorModel = DetectorModel(), seed: int = 0) -> tuple[Markers2D, Poses]:
-    """The markers of the C3D file ``path`` seen by ``rig`` through the detector ``model``.
+@dataclass(frozen=True)
+class MarkerScene:
+    """A C3D capture placed in a rig, before the detector: the markers' pinhole projections, which the body hides,
+    and the truth. Detections under any detector and seed come from it (:meth:`detections`) without retargeting
+    the capture again, the part that takes long (e.g. a sweep over the detector's settings, or many seeds)."""
+
+    fps: float
+    camera_names: list[str]
+    image_size_wh: torch.Tensor  # (C, 2)
+    uv: torch.Tensor  # (T, C, M, 2) the markers' projections, pixels
+    visible: torch.Tensor  # (T, C, M) in the image and not behind the body
+    skin_m: float  # the skin offset the visibility was computed with
+    truth: Poses  # joints of the retargeted body, marker_names and markers3d
+
+    def detections(self, model: DetectorModel = DetectorModel(), seed: int = 0) -> Markers2D:
+        """The scene through the detector ``model`` (its ``skin_m`` must be the scene's), random draws from a
+        ``torch.Generator`` seeded with ``seed``; ``extra``: ``true_index (T, C, M)`` and ``visible (T, C, M)``."""
+        if model.skin_m != self.skin_m:
+            raise InputError(f"the detector's skin_m {model.skin_m} is not the scene's {self.skin_m}: make the scene "
+                             "again with it (marker_scene)")
+        det = simulate_detections(self.uv, self.visible, self.image_size_wh, model,
+                                  torch.Generator().manual_seed(int(seed)))
+        T = self.visible.shape[0]
+        log.info("%d frames, %d markers, %d cameras: %.1f %% of the markers seen, %.1f %% detected", T,
+                 self.visible.shape[2], self.visible.shape[1], 100.0 * float(self.visible.double().mean()),
+                 100.0 * float((det.true_index >= 0).double().mean()))
+        return Markers2D(self.fps, np.arange(T), list(self.camera_names), list(self.truth.marker_names),
+                         det.uv.float().numpy(),
+                         extra={"true_index": det.true_index.numpy(), "visible": self.visible.numpy()})
+
+
+def marker_scene(path: str | Path, rig: nn.Module, fps: float | None = None, duration_s: float | None = None,
+                 skin_m: float = DetectorModel().skin_m) -> MarkerScene:
+    """The markers of the C3D file ``path`` placed in ``rig``'s capture area, as :class:`MarkerScene`.
 
     The capture is resampled to ``fps`` (None: the file's rate) and cut to ``duration_s`` (None: all of it); its
-    joint centres are retargeted onto our skeleton, whose blob ellipsoids hide the markers behind the body; the
-    hips' path is centred over the rig's capture area (:func:`capture_centre`). Random draws from a
-    ``torch.Generator`` seeded with ``seed``.
-
-    Returns:
-        the detections (``extra``: ``true_index (T, C, M)`` and ``visible (T, C, M)``) and the truth as poses
-        (joints of the retargeted body, ``marker_names`` and ``markers3d``).
-    """
+    joint centres are retargeted onto our skeleton, whose blob ellipsoids (grown by ``skin_m``) hide the markers
+    behind the body; the hips' path is centred over the rig's capture area (:func:`capture_centre`)."""
     c3d = read_c3d(path)
     fps = c3d.rate_hz if fps is None else float(fps)
     names, pos, frames, shift = c3d_resampled(c3d, fps, duration_s)
@@ -72,22 +98,30 @@ def simulated_capture(path: str | Path, rig: nn.Module, fps: float | None = None
         centres, R = blobs.ellipsoids(fk.bone_frames)
     centres = centres + place.new_tensor([*place.tolist(), 0.0])
     joints = fk.output_points + place.new_tensor([*place.tolist(), 0.0])
-    uv, visible = marker_visibility(markers, rig, centres, R, blobs.semi_axes.double(), model.skin_m)
-    gen = torch.Generator().manual_seed(int(seed))
-    det = simulate_detections(uv, visible, rig.image_size_wh, model, gen)
-    T, C, M = visible.shape
-    log.info("%s: %d frames, %d markers, %d cameras: %.1f %% of the markers seen, %.1f %% detected", Path(path).name,
-             T, M, C, 100.0 * float(visible.double().mean()), 100.0 * float((det.true_index >= 0).double().mean()))
+    uv, visible = marker_visibility(markers, rig, centres, R, blobs.semi_axes.double(), skin_m)
+    T = visible.shape[0]
     angles = ret.angles.clone()
     for i, n in enumerate(("root_tx", "root_ty")):  # the body placed with the markers
         angles[:, body.dof_names.index(n)] += float(place[i])
-    detections = Markers2D(fps, np.arange(T), list(rig.names), labels, det.uv.float().numpy(),
-                           extra={"true_index": det.true_index.numpy(), "visible": visible.numpy()})
     truth = Poses(fps=fps, frame_index=np.arange(T), joint_names=list(body.output_names),
                   joints3d=joints.float().numpy(), dof_names=list(body.dof_names), angles=angles.float().numpy(),
                   valid=np.ones(T, dtype=bool), confidence=np.ones((T, len(body.output_names)), dtype=np.float32),
                   marker_names=labels, markers3d=markers.float().numpy())
-    return detections, truth
+    log.info("%s: placed in the rig", Path(path).name)
+    return MarkerScene(fps, list(rig.names), rig.image_size_wh, uv, visible, float(skin_m), truth)
+
+
+def simulated_capture(path: str | Path, rig: nn.Module, fps: float | None = None, duration_s: float | None = None,
+                      model: DetectorModel = DetectorModel(), seed: int = 0) -> tuple[Markers2D, Poses]:
+    """The markers of the C3D file ``path`` seen by ``rig`` through the detector ``model``: :func:`marker_scene`,
+    then its :meth:`~MarkerScene.detections` with ``seed``.
+
+    Returns:
+        the detections (``extra``: ``true_index (T, C, M)`` and ``visible (T, C, M)``) and the truth as poses
+        (joints of the retargeted body, ``marker_names`` and ``markers3d``).
+    """
+    scene = marker_scene(path, rig, fps, duration_s, model.skin_m)
+    return scene.detections(model, seed), scene.truth
 
 
 def write_marker_capture(folder: str | Path, rig: nn.Module, detections: Markers2D, truth: Poses) -> Path:
