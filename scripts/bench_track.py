@@ -161,6 +161,55 @@ def lockstep_observations(work: Path, count: int, device: torch.device, config: 
     return seqs, out
 
 
+def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], device: torch.device, config: dict,
+              timed_from: int, frames: int = 5) -> None:
+    """``--ops``: the torch operations other than views that a frame of the lockstep step makes for each B, counted
+    under their innermost two functions in torchtrack. On a GPU each is about one kernel launch, and launches bound
+    the step there (docs/results.md, Speed), so this count, the same on any device, shows where a GPU's frame goes
+    on a machine without one. The trackers start from the generator's pose at frame ``timed_from``, whose step
+    builds the subject stacks; the ``frames`` after it are counted."""
+    import collections
+    import traceback
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    from torchtrack.tracking.lockstep import Lockstep
+
+    class Count(TorchDispatchMode):
+        def __init__(self) -> None:
+            super().__init__()
+            self.places: collections.Counter = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001
+            if func.is_view:
+                return func(*args, **(kwargs or {}))
+            ours = [f for f in traceback.extract_stack()[:-1] if f"{os.sep}torchtrack{os.sep}" in f.filename]
+            self.places[" < ".join(f"{Path(f.filename).name}:{f.name}" for f in ours[::-1][:2]) or "?"] += 1
+            return func(*args, **(kwargs or {}))
+
+    for B in sizes:
+        trackers = []
+        for i in range(B):
+            seq = seqs[i % len(seqs)]
+            t = MarkerlessTracker(Skeleton.from_urdf().to(device), TrackerConfig.from_dict(config["tracker"]))
+            t.set_frame_rate(30.0)
+            angles = torch.as_tensor(load_poses(seq / "gt.npz").angles[timed_from], dtype=torch.float32,
+                                     device=device)
+            t.initialize_from_pose(angles, skeleton=Skeleton.from_urdf(seq / "body.urdf").to(device))
+            trackers.append(t)
+        lockstep = Lockstep(trackers)
+        obs = observations
+        lockstep.step({i: obs[i % len(obs)][timed_from] for i in range(B)})  # builds the subject stacks
+        with Count() as count:
+            for k in range(timed_from + 1, timed_from + 1 + frames):
+                lockstep.step({i: obs[i % len(obs)][k] for i in range(B)})
+        total = sum(count.places.values()) / frames
+        print(f"B = {B:3d}: {total:.0f} operations a frame, views not counted ({total / B:.0f} a sequence)",
+              flush=True)
+        for place, n in count.places.most_common(8):
+            print(f"    {n / frames:7.1f}  {place}", flush=True)
+
+
 def bench_lockstep(observations: list[list], sizes: list[int], device: torch.device, config: dict,
                    timed_from: int, truths: list[Path] | None = None) -> None:
     """Track the first B of ``observations``' sequences in lockstep (:class:`Lockstep`) for each B in ``sizes``
@@ -273,6 +322,9 @@ def main() -> None:
     ap.add_argument("--start", choices=("search", "truth"), default="search",
                     help="with --lockstep: the trackers' start, their own (default) or the generator's true first "
                          "pose and body (a GPU's quick figure: 16 starts of small operations take minutes there)")
+    ap.add_argument("--ops", action="store_true",
+                    help="with --lockstep: count instead the torch operations (not views) a frame of the step makes, "
+                         "by place: about a GPU's kernel launches")
     ap.add_argument("--config", nargs="+", default=["markerless.yaml", "markerless_fast.yaml"],
                     help="tracking configs to time")
     ap.add_argument("--demo", action="store_true",
@@ -302,6 +354,9 @@ def main() -> None:
               f"sequences in lockstep (observations made beforehand)", flush=True)
         config = load_config("markerless.yaml")
         seqs, observations = lockstep_observations(args.work, min(max(sizes), 16), device, config)
+        if args.ops:
+            count_ops(observations, seqs, sizes, device, config, timed_from=45)
+            return
         bench_lockstep(observations, sizes, device, config, timed_from=45,
                        truths=seqs if args.start == "truth" else None)
         return

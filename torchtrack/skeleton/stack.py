@@ -13,7 +13,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
@@ -27,6 +26,14 @@ def _local_offsets(skeleton: Skeleton, parent: torch.Tensor) -> torch.Tensor:
     up = world[parent.clamp(min=0)]
     up[parent < 0] = torch.eye(4, dtype=torch.float64)
     return torch.linalg.solve(up, world)
+
+
+def _run(index: list[int]) -> slice | None:
+    """``index`` as a slice where it runs one by one, or as a one-long slice where all of it is one value (which
+    broadcasts against a level of several frames); else None."""
+    if index == list(range(index[0], index[0] + len(index))):
+        return slice(index[0], index[0] + len(index))
+    return slice(index[0], index[0] + 1) if len(set(index)) == 1 else None
 
 
 class SkeletonStack(nn.Module):
@@ -56,8 +63,20 @@ class SkeletonStack(nn.Module):
                 raise InputError(f"{first.source}: frame {names[i]!r} is indexed before its parent")
             depth[i] = 0 if p < 0 else depth[p] + 1
         levels = [[i for i, d in enumerate(depth) if d == k] for k in range(max(depth) + 1)]
-        self.level_sizes = [len(lv) for lv in levels]  # the levels as one buffer on the stack's device, split
-        self.register_buffer("level_frames", torch.tensor([i for lv in levels for i in lv]), persistent=False)
+        # each level's frames and their parents as slices where they run one by one (or share one parent, which
+        # broadcasts): views, where an index costs a gather (a small batch's FK is mostly such per-level
+        # operations); the others as index buffers on the stack's device
+        self._plan: list[tuple[slice | str, slice | str | None]] = []
+        for k, lv in enumerate(levels):
+            up = parent[lv].tolist()
+            here, there = _run(lv), (None if k == 0 else _run(up))
+            if here is None:
+                here = f"level_{k}"
+                self.register_buffer(here, torch.tensor(lv), persistent=False)
+            if k and there is None:
+                there = f"level_{k}_parents"
+                self.register_buffer(there, torch.tensor(up), persistent=False)
+            self._plan.append((here, there))
         dof_of = {d: i for i, d in enumerate(first.dof_names)}
         kinds = [joints[f].kind if f in joints else "fixed" for f in names]
         dof = [dof_of.get(joints[f].name, -1) if f in joints else -1 for f in names]
@@ -65,9 +84,19 @@ class SkeletonStack(nn.Module):
             raise InputError(f"{first.source}: a moving joint is not among the DOFs")
         self.register_buffer("parent", parent, persistent=False)
         self.register_buffer("frame_dof", torch.tensor(dof), persistent=False)  # (F,) -1: fixed
-        self.register_buffer("revolute", torch.tensor([k in ("revolute", "continuous") for k in kinds]),
-                             persistent=False)
-        self.register_buffer("prismatic", torch.tensor([k == "prismatic" for k in kinds]), persistent=False)
+        self.register_buffer("frame_moves", torch.tensor(dof) >= 0, persistent=False)
+        # each frame's joint as Rodrigues' terms about its fixed unit axis: the cross-product matrix K and K^2 of a
+        # revolute joint (zeros elsewhere: the identity), the axis of a prismatic one (zeros elsewhere)
+        axis = first.axes_local[torch.tensor(dof).clamp(min=0)].double()  # (F, 3)
+        axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+        revolute = torch.tensor([k in ("revolute", "continuous") for k in kinds])
+        zero = torch.zeros_like(axis[:, 0])
+        K = torch.stack([zero, -axis[:, 2], axis[:, 1], axis[:, 2], zero, -axis[:, 0],
+                         -axis[:, 1], axis[:, 0], zero], -1).view(-1, 3, 3) * revolute[:, None, None]
+        self.register_buffer("frame_k", K, persistent=False)
+        self.register_buffer("frame_k2", K @ K, persistent=False)
+        prismatic = torch.tensor([k == "prismatic" for k in kinds])
+        self.register_buffer("frame_shift", axis * prismatic[:, None], persistent=False)
         offsets = torch.stack([_local_offsets(s, parent) for s in skeletons])  # (B, F, 4, 4) float64
         self.register_buffer("offsets", offsets, persistent=False)
         self.to(first.lower.device)
@@ -79,7 +108,7 @@ class SkeletonStack(nn.Module):
         """The bodies at ``rows`` (a new stack sharing the chain's buffers)."""
         out = object.__new__(type(self))
         nn.Module.__init__(out)
-        out.skeleton, out.level_sizes = self.skeleton, self.level_sizes
+        out.skeleton, out._plan = self.skeleton, self._plan
         for name, buf in self._buffers.items():
             out.register_buffer(name, buf, persistent=False)
         out.offsets = self.offsets[torch.as_tensor(rows, device=self.offsets.device)]
@@ -92,18 +121,24 @@ class SkeletonStack(nn.Module):
         check_shape(angles, (len(self) if len(self) > 1 else B, self.skeleton.num_dofs), "angles")
         dt, dev = angles.dtype, angles.device
         F = self.frame_dof.shape[0]
-        theta = torch.where(self.frame_dof >= 0, angles[:, self.frame_dof.clamp(min=0)], 0.0)  # (B, F)
-        axis = self.skeleton.axes_local.to(dev, dt)[self.frame_dof.clamp(min=0)]  # (F, 3)
-        # the joint's motion: a rotation about its axis or a shift along it
-        rot = axis_angle_to_rotation_matrix((theta[..., None] * axis).reshape(-1, 3)).view(B, F, 3, 3)
-        R = torch.where(self.revolute[:, None, None], rot, torch.eye(3, dtype=dt, device=dev))  # (B, F, 3, 3)
-        t = torch.where(self.prismatic[:, None], theta[..., None] * axis, 0.0)  # (B, F, 3)
+        theta = torch.where(self.frame_moves, angles[:, self.frame_dof.clamp(min=0)], 0.0)  # (B, F)
+        # the joint's motion: a rotation about its unit axis, I + sin K + (1 - cos) K^2 (Rodrigues; the axes are
+        # fixed, so this takes a tenth of the operations of kornia's general axis-angle conversion), or a shift
+        # along it
+        sin, cos = theta.sin()[..., None, None], theta.cos()[..., None, None]
+        R = torch.eye(3, dtype=dt, device=dev) + sin * self.frame_k.to(dt) + (1 - cos) * self.frame_k2.to(dt)
+        t = theta[..., None] * self.frame_shift.to(dt)  # (B, F, 3)
         motion = torch.zeros(B, F, 4, 4, dtype=dt, device=dev)
         motion[..., :3, :3], motion[..., :3, 3], motion[..., 3, 3] = R, t, 1.0
         local = self.offsets.to(dt) @ motion  # (B, F, 4, 4)
         world = torch.empty_like(local)
-        for k, level in enumerate(self.level_frames.split(self.level_sizes)):  # a level hangs from the one above
-            world[:, level] = local[:, level] if k == 0 else world[:, self.parent[level]] @ local[:, level]
+        for k, (here, there) in enumerate(self._plan):  # a level hangs from the one above
+            here = getattr(self, here) if isinstance(here, str) else here
+            if k == 0:
+                world[:, here] = local[:, here]
+            else:
+                there = getattr(self, there) if isinstance(there, str) else there
+                world[:, here] = world[:, there] @ local[:, here]
         return world
 
     def forward(self, angles: torch.Tensor) -> FKResult:
