@@ -161,6 +161,14 @@ def lockstep_observations(work: Path, count: int, device: torch.device, config: 
     return seqs, out
 
 
+def _place(depth: int, what) -> str:  # noqa: ANN001 (what: frame summary -> its label)
+    """The caller's innermost ``depth`` frames in torchtrack, innermost first, as "file:label < file:label"."""
+    import traceback
+
+    ours = [f for f in traceback.extract_stack()[:-2] if f"{os.sep}torchtrack{os.sep}" in f.filename]
+    return " < ".join(f"{Path(f.filename).name}:{what(f)}" for f in ours[::-1][:depth])
+
+
 def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], device: torch.device, config: dict,
               timed_from: int, frames: int = 5) -> None:
     """``--ops``: the torch operations other than views that a frame of the lockstep step makes for each B, counted
@@ -169,7 +177,6 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
     on a machine without one. The trackers start from the generator's pose at frame ``timed_from``, whose step
     builds the subject stacks; the ``frames`` after it are counted."""
     import collections
-    import traceback
 
     from torch.utils._python_dispatch import TorchDispatchMode
 
@@ -183,8 +190,7 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
         def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001
             if func.is_view:
                 return func(*args, **(kwargs or {}))
-            ours = [f for f in traceback.extract_stack()[:-1] if f"{os.sep}torchtrack{os.sep}" in f.filename]
-            self.places[" < ".join(f"{Path(f.filename).name}:{f.name}" for f in ours[::-1][:2]) or "?"] += 1
+            self.places[_place(2, lambda f: f.name) or "?"] += 1
             return func(*args, **(kwargs or {}))
 
     for B in sizes:
@@ -224,7 +230,6 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
     body.urdf), without the start search."""
     import collections
     import copy
-    import traceback
     import warnings
 
     from torchtrack.tracking.lockstep import Lockstep
@@ -235,8 +240,7 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
         """A sync debug warning: counted under its innermost three frames in torchtrack (others are dropped)."""
         if "synchroniz" not in str(message):
             return
-        ours = [f for f in traceback.extract_stack()[:-1] if f"{os.sep}torchtrack{os.sep}" in f.filename]
-        places[" < ".join(f"{Path(f.filename).name}:{f.lineno}" for f in ours[::-1][:3]) or f"{filename}:{lineno}"] += 1
+        places[_place(3, lambda f: f.lineno) or f"{filename}:{lineno}"] += 1
 
     def step(lockstep: Lockstep, frames: dict) -> None:
         _, errors = lockstep.step(frames)

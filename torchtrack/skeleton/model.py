@@ -368,14 +368,18 @@ class Skeleton(nn.Module):
 LEAN_MANY_STATES = 512
 
 
+def run_slice(index: Sequence[int]) -> slice | None:
+    """Host indices that run one by one (``[4, 5, 6]``) as a slice, which takes a view where an index would gather
+    (and, from a host list into a device tensor, copy and synchronise); else None."""
+    index = list(index)
+    return slice(index[0], index[0] + len(index)) if index == list(range(index[0], index[0] + len(index))) else None
+
+
 def _as_slice(index: torch.Tensor) -> slice | torch.Tensor:
-    """Indices that run one by one (``[4, 5, 6]``) as a slice, a view where an index would copy; others as they are.
-    The chain's levels and most of their parents run so: a small batch's forward kinematics is mostly such
-    per-level operations."""
-    first = int(index[0])
-    if torch.equal(index.cpu(), torch.arange(first, first + len(index))):
-        return slice(first, first + len(index))
-    return index
+    """:func:`run_slice` of an index tensor, or the tensor as it is. The chain's levels and most of their parents
+    run so: a small batch's forward kinematics is mostly such per-level operations."""
+    run = run_slice(index.tolist())
+    return index if run is None else run
 
 
 class _LeanChain:

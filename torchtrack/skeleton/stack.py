@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
-from torchtrack.skeleton.model import FKResult, Skeleton
+from torchtrack.skeleton.model import FKResult, Skeleton, run_slice
 
 
 def _local_offsets(skeleton: Skeleton, parent: torch.Tensor) -> torch.Tensor:
@@ -29,11 +29,12 @@ def _local_offsets(skeleton: Skeleton, parent: torch.Tensor) -> torch.Tensor:
 
 
 def _run(index: list[int]) -> slice | None:
-    """``index`` as a slice where it runs one by one, or as a one-long slice where all of it is one value (which
-    broadcasts against a level of several frames); else None."""
-    if index == list(range(index[0], index[0] + len(index))):
-        return slice(index[0], index[0] + len(index))
-    return slice(index[0], index[0] + 1) if len(set(index)) == 1 else None
+    """``index`` as a slice where it runs one by one (:func:`run_slice`), or as a one-long slice where all of it is
+    one value (which broadcasts against a level of several frames); else None."""
+    run = run_slice(index)
+    if run is None and len(set(index)) == 1:
+        run = slice(index[0], index[0] + 1)
+    return run
 
 
 class SkeletonStack(nn.Module):

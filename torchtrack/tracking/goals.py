@@ -27,7 +27,8 @@ from torch import nn
 
 from torchtrack.blobs.model import BlobModel
 from torchtrack.checks import InputError, check_shape
-from torchtrack.skeleton.model import JOINT_FRAMES, Skeleton, root_rotation_angles, root_rotation_matrix
+from torchtrack.skeleton.model import (JOINT_FRAMES, Skeleton, root_rotation_angles, root_rotation_matrix,
+                                       run_slice)
 
 #: Joints whose goals fit the root (hips, trunk and shoulders).
 TRUNK_JOINTS: tuple[str, ...] = ("pelvis", "l_thigh", "r_thigh", "torso", "thorax", "l_upperarm", "r_upperarm")
@@ -80,10 +81,11 @@ def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
 
 
 def _dof_slice(skeleton, names: tuple[str, ...]) -> slice | list[int]:  # noqa: ANN001 (a Skeleton or stack)
-    """The state-vector positions of ``names`` as a slice where they run one by one (a view: indexing a device
-    tensor with a host list would copy it there, a host synchronisation per call), else as a list."""
+    """The state-vector positions of ``names`` as a slice where they run one by one (:func:`run_slice`: indexing a
+    device tensor with a host list would copy it there, a host synchronisation per call), else as a list."""
     i = [skeleton.dof_names.index(n) for n in names]
-    return slice(i[0], i[-1] + 1) if i == list(range(i[0], i[-1] + 1)) else i
+    run = run_slice(i)
+    return i if run is None else run
 
 
 class GoalModel(nn.Module):
