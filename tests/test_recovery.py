@@ -306,19 +306,18 @@ def test_the_frames_before_a_walker_is_reacquired_are_held_back_in_the_images(sk
         assert r.valid and err < 0.1 and torch.all(r.confidence == 0.5), (j, r.valid, err)
 
 
-@pytest.mark.parametrize("where", ["middle", "cut", "clutter"])
-def test_the_images_hold_a_body_the_volume_cuts_not_one_beside_clutter_at_its_side(skel, where):
-    """The image hold's trigger on voxelised bodies in a volume whose side is x = 2.4 m: a body in the middle, no;
-    a body at x = 2.35 m whose voxels the side cuts (those beyond it removed), yes; the body in the middle with a
-    slab of clutter voxels along the side 2 m from it (a door, a ghost), no."""
+def _hold_case(skel: Skeleton, where: str, height: float = 1.75) -> tuple[MarkerlessTracker, VoxelObservation]:
+    """A tracker started on a voxelised body and its next frame, in a volume whose side is x = 2.4 m: the body in
+    the middle; at x = 2.35 m, its voxels beyond the side removed ("cut"); or in the middle with a slab of clutter
+    voxels along the side 2 m from it (a door, a ghost)."""
     from torchtrack.synth.sequence import RigConfig, make_ring_rig
     from torchtrack.tracking.voxels import ViewSilhouettes
 
     tracker = MarkerlessTracker(skel, TrackerConfig(image_hold_s=1.0))
-    angles = skel.scaled_to_height(1.75).rest_angles().double()
+    angles = skel.scaled_to_height(height).rest_angles().double()
     names = list(skel.dof_names)
     angles[names.index("root_tx")] = 2.35 if where == "cut" else 0.0
-    tracker.initialize_from_pose(angles, 1.75)
+    tracker.initialize_from_pose(angles, height)
     sub = tracker.subject
     obs = _observation(sub.skeleton, sub.blobs, angles, cameras=8)
     if where == "clutter":
@@ -334,4 +333,35 @@ def test_the_images_hold_a_body_the_volume_cuts_not_one_beside_clutter_at_its_si
     obs = dataclasses.replace(obs, points=obs.points[keep], sizes=obs.sizes[keep], weights=obs.weights[keep],
                               colours=obs.colours[keep], volume_m=((-2.4, -2.4, 0.0), (2.4, 2.4, 2.1)),
                               silhouettes=ViewSilhouettes.from_evidence(torch.ones(8, 48, 64), rig))
+    return tracker, obs
+
+
+@pytest.mark.parametrize("where", ["middle", "cut", "clutter"])
+def test_the_images_hold_a_body_the_volume_cuts_not_one_beside_clutter_at_its_side(skel, where):
+    """The image hold's trigger on voxelised bodies in a volume whose side is x = 2.4 m: a body in the middle, no;
+    a body at x = 2.35 m whose voxels the side cuts (those beyond it removed), yes; the body in the middle with a
+    slab of clutter voxels along the side 2 m from it (a door, a ghost), no."""
+    tracker, obs = _hold_case(skel, where)
     assert (tracker._hold_prediction(obs) is not None) == (where == "cut")
+
+
+def test_the_image_hold_tests_many_trackers_at_once_as_each_alone(skel):
+    """``hold_tests`` of four trackers at once (bodies of 1.6-1.9 m; voxel sets of different sizes, padded; one frame
+    with no voxels at all, whose body is out of the volume): the predictions and answers each tracker's own test
+    gives, and the right answers (the cut body and the body out of the volume held, the others not)."""
+    from torchtrack.tracking.recovery import hold_tests
+    from torchtrack.tracking.step import SubjectStack
+
+    cases = [_hold_case(skel, w, h) for w, h in (("middle", 1.6), ("cut", 1.75), ("clutter", 1.9), ("cut", 1.7))]
+    tracker, obs = cases[3]  # walked out of the volume: no voxels left
+    tracker.angles[list(skel.dof_names).index("root_tx")] = 2.9
+    tracker.previous = tracker.angles.clone()
+    cases[3] = tracker, dataclasses.replace(obs, points=obs.points[:0], sizes=obs.sizes[:0],
+                                            weights=obs.weights[:0], colours=obs.colours[:0])
+    trackers, observations = zip(*cases)
+    predicted, hold = hold_tests(trackers, observations, SubjectStack([t.subject for t in trackers]))
+    assert hold.tolist() == [False, True, False, True]
+    for k, (tracker, obs) in enumerate(cases):
+        alone = tracker._hold_test(obs)
+        torch.testing.assert_close(predicted[k], alone[0], rtol=0, atol=1e-12)
+        assert bool(alone[1]) == bool(hold[k]), k

@@ -14,12 +14,10 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
-import torch
-
 from torchtrack.checks import InputError
-from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker
+from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker, routine_tests
 from torchtrack.tracking.voxels import VoxelObservation
-from torchtrack.tracking.step import StepState, SubjectStack, VoxelBatch, track_step
+from torchtrack.tracking.step import SubjectStack, VoxelBatch, track_step
 
 #: Subject stacks kept for the sets of subjects recently stepped together (a set changes when a sequence starts,
 #: is lost, races or ends).
@@ -57,31 +55,35 @@ class Lockstep:
         the batched step itself is raised)."""
         out: dict[int, FrameResult] = {}
         errors: dict[int, Exception] = {}
-        plain: list[tuple[int, VoxelObservation]] = []
-        tests: dict[int, tuple[VoxelObservation, torch.Tensor] | None] = {}
+        ready: list[int] = []  # the trackers whose own state lets the plain step take their frame
         for i, obs in frames.items():
             try:
-                tests[i] = None if obs is None else self.trackers[i].routine_test(obs)
+                if obs is not None and self.trackers[i].routine_ready(obs):
+                    ready.append(i)
             except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
                 errors[i] = exc
-        # the trackers' routine tests read at once (one device, as the batched step's): one host synchronisation
-        pending = [i for i, t in tests.items() if t is not None]
-        passed = dict(zip(pending, torch.stack([tests[i][1] for i in pending]).tolist())) if pending else {}
-        for i, test in tests.items():
-            if passed.get(i, False):
-                plain.append((i, test[0]))
+        passed: set[int] = set()
+        if ready:  # all of them tested at once and read in one host synchronisation
+            trackers = [self.trackers[i] for i in ready]
+            tests = routine_tests(trackers, [frames[i] for i in ready], self._stack(trackers)).tolist()
+            passed = {i for i, ok in zip(ready, tests) if ok}
+        plain: list[tuple[int, VoxelObservation]] = []
+        for i, obs in frames.items():
+            if i in errors:
                 continue
-            obs, tracker = frames[i], self.trackers[i]
+            tracker = self.trackers[i]
             try:
-                out[i] = tracker.skip() if obs is None else tracker.step(obs)
+                if i in passed:
+                    plain.append((i, tracker.routine_obs(obs)))
+                else:
+                    out[i] = tracker.skip() if obs is None else tracker.step(obs)
             except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
                 errors[i] = exc
         self.batched = len(plain)
         if plain:
             trackers = [self.trackers[i] for i, _ in plain]
             first = trackers[0]
-            states = [t._step_state(t.angles[None], t.previous[None], t.prediction_velocity) for t in trackers]
-            state = StepState(*(torch.cat([getattr(s, f) for s in states]) for f in StepState.__dataclass_fields__))
+            state = MarkerlessTracker.step_states(trackers)
             batch = VoxelBatch.of([obs for _, obs in plain], first.config.ghost_max_cameras)
             stepped = track_step(self._stack(trackers), batch, state, first._step_config, True,
                                  math.radians(first.config.max_root_rotation_deg))

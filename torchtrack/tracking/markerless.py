@@ -44,6 +44,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import torch
@@ -58,14 +59,14 @@ from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.hips import HipsMixin, with_hips_raised
-from torchtrack.tracking.recovery import RecoveryMixin
+from torchtrack.tracking.recovery import RecoveryMixin, hold_tests
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.race import RaceMixin, _Race
 from torchtrack.tracking.settle import SettleMixin
 from torchtrack.tracking.start import (HEADING_MARGIN_M, STARFISH_MAX_VOLUME_RATIO, STARFISH_MIN_ARM_RAISE_DEG,
                                        StartCheck, StartMixin)
-from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, VoxelBatch,
-                                      prior_state, track_step)
+from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, SubjectStack,
+                                      VoxelBatch, host_tensor, pad_rows, prior_state, track_step)
 
 #: What this module gives its users; the tracker's parts live in config, start, race, recovery, bone_fit, hips, step.
 __all__ = ["BONE_FIT_VOXEL_M", "HEADING_MARGIN_M", "STARFISH_MAX_VOLUME_RATIO", "STARFISH_MIN_ARM_RAISE_DEG",
@@ -416,23 +417,46 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         more of this tracker: it is started, not lost, not racing a start, someone is there and the images do not
         hold the body. Else None: the frame goes through :meth:`step`. A driver that runs the plain step itself
         (several sequences in lockstep, :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to
-        :meth:`accept`."""
-        test = self.routine_test(obs)
-        return test[0] if test is not None and bool(test[1]) else None
-
-    def routine_test(self, obs: VoxelObservation) -> tuple[VoxelObservation, torch.Tensor] | None:
-        """:meth:`routine` without reading the device, for a driver that reads many trackers' tests at once: None
-        where the tracker's own state rules the plain step out, else the frame as it would take it and a 0-d bool
-        tensor, true where it does."""
-        if (self._race is not None or self.subject is None or self.angles is None
-                or self.lost >= self.config.lost_frames or obs.num_observed < self.config.min_voxels):
+        :meth:`accept`; it tests many trackers at once by :meth:`routine_ready` and :func:`routine_tests`."""
+        if not self.routine_ready(obs) or not bool(routine_tests([self], [obs], self.subject.stack)[0]):
             return None
-        ok = (obs.sizes.double() ** 3).sum() >= self.config.min_volume_m3  # as _has_person
-        hold = self._hold_test(obs)
-        if hold is not None:
-            ok = ok & ~hold[1]
-        obs = self._without_floor_band(obs)
-        return (obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs), ok
+        return self.routine_obs(obs)
+
+    def routine_ready(self, obs: VoxelObservation) -> bool:
+        """The host's part of :meth:`routine`: False where the tracker's own state (or the voxels' count) rules the
+        plain step out; else :func:`routine_tests` decides."""
+        return not (self._race is not None or self.subject is None or self.angles is None
+                    or self.lost >= self.config.lost_frames or obs.num_observed < self.config.min_voxels)
+
+    def routine_obs(self, obs: VoxelObservation) -> VoxelObservation:
+        """``obs`` as the plain step takes it (as :meth:`_step` makes it: merged per ``em_cell_m``, then the floor
+        band)."""
+        return self._without_floor_band(obs.pooled(self.config.em_cell_m) if self.config.em_cell_m > 0 else obs)
+
+    @staticmethod
+    def step_states(trackers: Sequence[MarkerlessTracker]) -> StepState:
+        """The batched step's start for several started trackers, row ``b`` tracker ``b``'s (its
+        :meth:`_step_state` of its pose): a field's rows stacked at once, not a state built per tracker."""
+        if len(trackers) == 1:
+            t = trackers[0]
+            return t._step_state(t.angles[None], t.previous[None], t.prediction_velocity)
+        like = trackers[0].angles
+        prior = {k: v[0] for k, v in prior_state(like[None], trackers[0].subject.blobs.num_blobs).items()}
+
+        def rows(field: str, of: Callable[[MarkerlessTracker], torch.Tensor | None]) -> torch.Tensor:
+            return torch.stack([prior[field] if (v := of(t)) is None else v for t in trackers])
+
+        def colour(field: str) -> Callable[[MarkerlessTracker], torch.Tensor | None]:
+            return lambda t: None if t.colour is None else getattr(t.colour, field)
+
+        return StepState(
+            torch.stack([t.angles for t in trackers]), torch.stack([t.previous for t in trackers]),
+            host_tensor([t.prediction_velocity for t in trackers], like),
+            colour_mean=rows("colour_mean", colour("colour_mean")), colour_cov=rows("colour_cov", colour("colour_cov")),
+            colour_known=rows("colour_known", colour("colour_known")), covers=rows("covers", colour("active")),
+            feet_seen=rows("feet_seen", lambda t: t.feet_seen),
+            feet_still=rows("feet_still", lambda t: None if t.feet_seen is None else t.feet_still),
+            floor_z=host_tensor([math.nan if t.floor_z is None else t.floor_z for t in trackers], like))
 
     def accept(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
         """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine` gave it): a diverging frame counts
@@ -463,3 +487,22 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
     def _diverging(self, res: FrameResult) -> bool:
         return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
+
+
+def routine_tests(trackers: Sequence[MarkerlessTracker], observations: Sequence[VoxelObservation],
+                  stack: SubjectStack) -> torch.Tensor:
+    """The device's part of :meth:`MarkerlessTracker.routine` for trackers that passed
+    :meth:`~MarkerlessTracker.routine_ready` on their frames: (R,) bool, true where someone is there (the voxels'
+    volume, as ``_has_person``) and the images do not hold the body (:func:`~torchtrack.tracking.recovery.hold_tests`).
+    ``stack``: the trackers' subjects stacked (a stack of one for one tracker). All trackers at once and nothing read
+    back: a driver of many reads the answers in one synchronisation."""
+    cfg = trackers[0].config
+    sizes = pad_rows([o.sizes.to(observations[0].sizes.dtype) for o in observations], 0.0)
+    ok = (sizes.double() ** 3).sum(-1) >= cfg.min_volume_m3
+    applies = [t._hold_applies(o) for t, o in zip(trackers, observations)]
+    if any(applies):
+        hold = hold_tests(trackers, observations, stack)[1]
+        if not all(applies):
+            hold = hold & host_tensor(applies, hold)
+        ok = ok & ~hold
+    return ok

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import replace
 
 import torch
 
 from torchtrack.tracking.start import START_MAX_OUTSIDE
-from torchtrack.tracking.step import FrameResult, host_tensor
+from torchtrack.tracking.step import FrameResult, SubjectStack, host_tensor, pad_rows
 from torchtrack.tracking.voxels import VoxelObservation
 
 log = logging.getLogger(__name__)
@@ -108,28 +109,18 @@ class RecoveryMixin:
     def _hold_test(self, obs: VoxelObservation) -> tuple[torch.Tensor, torch.Tensor] | None:
         """:meth:`_hold_prediction` without reading the device: None where the tracker's state rules the hold out,
         else the predicted state ``(D,)`` and a 0-d bool tensor, true where the images are to track the frame."""
-        cfg, sub = self.config, self.subject
-        hold_frames = self._hold_frames()
-        if (hold_frames < 1 or obs.silhouettes is None or obs.volume_m is None or sub is None or self.angles is None
-                or self._race is not None or self._twin or self.held >= hold_frames
-                or self.lost >= cfg.lost_frames):
+        if not self._hold_applies(obs):
             return None
-        skel = sub.skeleton
-        predicted = skel.clamp((self.angles + self.prediction_velocity * (self.angles - self.previous))[None])[0]
-        c, _ = sub.blobs.ellipsoids(sub.stack.skeleton.forward(predicted[None]).bone_frames)  # no finite check
-        lower, upper = (host_tensor(v[:2], c) for v in obs.volume_m)
-        out = ((c[0, :, :2] < lower) | (c[0, :, :2] > upper)).any(-1)  # (K,)
-        vol = sub.blobs.semi_axes.to(c).prod(-1)
-        hold = (vol * out).sum() / vol.sum() >= IMAGE_HOLD_OUTSIDE
-        if obs.num_voxels == 0:
-            return predicted, hold
-        p, w = obs.points[:, :2].to(c), obs.weights.to(c)
-        body = torch.cdist(p, c[0, :, :2]).amin(1) < IMAGE_HOLD_NEAR_M  # the body's voxels, not a ghost's or clutter's
-        edge = 2 * obs.sizes.max().to(c)
-        cut = ((p - lower < edge) | (upper - p < edge)).any(-1)
-        w = w * body
-        # no body voxels: 0 / 0, NaN, which no threshold passes
-        return predicted, hold | ((w * cut).sum() / w.sum() >= IMAGE_HOLD_CUT)
+        predicted, hold = hold_tests([self], [obs], self.subject.stack)
+        return predicted[0], hold[0]
+
+    def _hold_applies(self, obs: VoxelObservation) -> bool:
+        """Whether the image hold may take this frame: on, the cameras' foreground kept, the volume known, the
+        track started and not yet lost or racing, held for fewer than ``image_hold_s`` in a row."""
+        hold_frames = self._hold_frames()
+        return not (hold_frames < 1 or obs.silhouettes is None or obs.volume_m is None or self.subject is None
+                    or self.angles is None or self._race is not None or self._twin or self.held >= hold_frames
+                    or self.lost >= self.config.lost_frames)
 
     def _hold_frames(self) -> int:
         """``image_hold_s`` in frames of the sequence."""
@@ -238,3 +229,36 @@ class RecoveryMixin:
                 and not self._twin):
             self._start_race(obs, best)
         return best
+
+
+def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelObservation], stack: SubjectStack
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The image hold's test (:meth:`RecoveryMixin._hold_prediction`) of several started trackers of one chain on
+    their frames at once, ``stack`` their subjects stacked (a stack of one for one tracker): each one's predicted
+    state ``(R, D)`` and ``(R,)`` bool, true where the volume's sides cut the body's voxels (IMAGE_HOLD_CUT) or its
+    prediction lies out of them (IMAGE_HOLD_OUTSIDE). Whether the hold may take a frame at all is each tracker's
+    :meth:`~RecoveryMixin._hold_applies`; a frame whose volume is unknown is tested against an unbounded one."""
+    one = len(trackers) == 1
+    angles = trackers[0].angles[None] if one else torch.stack([t.angles for t in trackers])
+    previous = trackers[0].previous[None] if one else torch.stack([t.previous for t in trackers])
+    velocity = {t.prediction_velocity for t in trackers}
+    v = velocity.pop() if len(velocity) == 1 else host_tensor([t.prediction_velocity for t in trackers], angles)[:, None]
+    predicted = stack.clamp(angles + v * (angles - previous))
+    c, _ = stack.blobs.ellipsoids(stack.skeleton.forward(predicted).bone_frames)  # (R, K, 3); no finite check
+    box = host_tensor([[(-math.inf,) * 2, (math.inf,) * 2] if o.volume_m is None else [corner[:2] for corner in o.volume_m]
+                       for o in observations], c)  # (R, 2, 2): each volume's lower and upper corner along the floor
+    lower, upper = box[:, None, 0], box[:, None, 1]  # (R, 1, 2)
+    out = ((c[..., :2] < lower) | (c[..., :2] > upper)).any(-1)  # (R, K)
+    vol = stack.blobs.semi_axes.to(c).prod(-1)
+    hold = (vol * out).sum(-1) / vol.sum(-1) >= IMAGE_HOLD_OUTSIDE
+    if max(o.num_voxels for o in observations) == 0:
+        return predicted, hold
+    # the voxels padded (NaN points, no weight): a padded voxel is no body's
+    p = pad_rows([o.points for o in observations], math.nan)[..., :2].to(c)
+    w = pad_rows([o.weights for o in observations], 0.0).to(c)
+    edge = 2 * pad_rows([o.sizes for o in observations], 0.0).amax(-1).to(c)[:, None, None]
+    body = torch.cdist(p, c[..., :2]).amin(-1) < IMAGE_HOLD_NEAR_M  # the body's voxels, not a ghost's or clutter's
+    cut = ((p - lower < edge) | (upper - p < edge)).any(-1)
+    w = w * body
+    # no body voxels: 0 / 0, NaN, which no threshold passes
+    return predicted, hold | ((w * cut).sum(-1) / w.sum(-1) >= IMAGE_HOLD_CUT)

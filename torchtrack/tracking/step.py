@@ -27,9 +27,9 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
-from torch.nn.utils.rnn import pad_sequence
 
 from torchtrack.blobs.em import Blobs, EMConfig, fit_blobs
 from torchtrack.blobs.model import BlobModel, blob_volumes
@@ -164,18 +164,15 @@ class VoxelBatch:
         """Pad ``observations`` (one frame each) into a batch."""
         ref = observations[0].points
         C = max(o.colours.shape[1] for o in observations)
-
-        def pad(rows: list[torch.Tensor], value: float) -> torch.Tensor:
-            return pad_sequence(rows, batch_first=True, padding_value=value)
-
-        points = pad([o.points for o in observations], math.nan)
-        sizes = pad([o.sizes.to(ref) for o in observations], 0.0)
-        weights = pad([o.weights for o in observations], 0.0)
-        colours = pad([F.pad(o.colours, (0, 0, 0, C - o.colours.shape[1]), value=math.nan) for o in observations],
-                      math.nan)  # cameras, then voxels
-        valid = pad([o.cameras_valid.to(ref.device) for o in observations], False)
-        centres = pad([ref.new_zeros(o.colours.shape[1], 3) if o.camera_centres is None else o.camera_centres.to(ref)
-                       for o in observations], 0.0)
+        points = pad_rows([o.points for o in observations], math.nan)
+        sizes = pad_rows([o.sizes.to(ref) for o in observations], 0.0)
+        weights = pad_rows([o.weights for o in observations], 0.0)
+        colours = pad_rows([o.colours if o.colours.shape[1] == C else
+                            F.pad(o.colours, (0, 0, 0, C - o.colours.shape[1]), value=math.nan) for o in observations],
+                           math.nan)  # cameras, then voxels
+        valid = pad_rows([o.cameras_valid.to(ref.device) for o in observations], False)
+        centres = pad_rows([ref.new_zeros(o.colours.shape[1], 3) if o.camera_centres is None else
+                            o.camera_centres.to(ref) for o in observations], 0.0)
         box = [((-math.inf,) * 3, (math.inf,) * 3) if o.volume_m is None else o.volume_m for o in observations]
         lower, upper = host_tensor([b[0] for b in box], ref), host_tensor([b[1] for b in box], ref)
         ghosts = tuple(o.camera_centres is not None and o.camera_centres.shape[0] <= ghost_max_cameras
@@ -240,6 +237,22 @@ def host_tensor(values: Sequence, like: torch.Tensor, dtype: torch.dtype | None 
     if like.device.type != "cuda":
         return torch.tensor(values, dtype=dtype, device=like.device)
     return torch.tensor(values, dtype=dtype, pin_memory=True).to(like.device, non_blocking=True)
+
+
+def pad_rows(rows: Sequence[torch.Tensor], value: float | bool) -> torch.Tensor:
+    """``rows`` (n_b, ...) as one (B, max n_b, ...) tensor, padded with ``value``: all rows copied in one operation
+    (``pad_sequence`` copies them one by one, which a GPU pays a kernel launch each for); a batch of one is a view."""
+    lengths = [int(r.shape[0]) for r in rows]
+    N, first = max(lengths), rows[0]
+    if len(rows) == 1:
+        return first[None]
+    if min(lengths) == N:
+        return torch.stack(list(rows))
+    # each row's elements go to rows b * N .. b * N + n_b - 1 of the flattened batch
+    starts = np.arange(len(rows)) * N - np.cumsum([0] + lengths[:-1])
+    index = host_tensor(np.arange(sum(lengths)) + np.repeat(starts, lengths), first, torch.int64)
+    out = first.new_full((len(rows) * N, *first.shape[1:]), value)
+    return out.index_copy_(0, index, torch.cat(list(rows))).view(len(rows), N, *first.shape[1:])
 
 
 def prior_state(angles: torch.Tensor, num_blobs: int, colour_std: float = 0.2) -> dict[str, torch.Tensor]:
