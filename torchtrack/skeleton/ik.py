@@ -209,6 +209,11 @@ class CCDSolver(nn.Module):
                 scratch += width - len(m)
             pad = max(pad, scratch - (2 * G + 2 * A))
             level["rows"] = rows
+            # what a level step reads at once, per DOF: its base and axis tip, the level's goal joints and goals,
+            # then the points it moves
+            level["gather"] = [i for s, (b, t) in enumerate(zip(level["base_tip"][:len(moved)],
+                                                               level["base_tip"][len(moved):]))
+                               for i in [b, t] + level["pairs"] + rows[s * width:(s + 1) * width]]
             names = {}
             for key, value in level.items():
                 names[key] = f"_level{h}_{key}"
@@ -308,33 +313,44 @@ class CCDSolver(nn.Module):
                     ) -> tuple[torch.Tensor, torch.Tensor]:
         """One CCD step (eq. 14-16) of the S DOFs of a level, then their subtrees rotated (X in place).
 
+        A sweep is mostly such steps, each a few operations over all B problems and S DOFs: the level's points read
+        in one gather, the products of eq. 14 in one multiply and sum, the subtrees turned by Rodrigues' formula in
+        two multiply-adds (on a GPU each operation is a kernel launch).
+
         Args:
             X: (3, B, N) the solve's points (see :meth:`_build_levels`), updated in place.
             lv: the level's buffers: ``lam (S, Gl) or (B, S, Gl)`` lambda (times the goal weights),
-                ``pairs (2 Gl,)`` the columns of its goal joints then of their goals, ``base_tip (2 S,)``,
-                ``lower, upper (S,)``, ``rows (S * M,)`` the points each DOF moves (M per DOF, padded).
+                ``gather (S * (2 + 2 Gl + M),)`` the columns each DOF reads (its base and axis tip, the level's goal
+                joints and goals, then the M points it moves, padded), ``rows (S * M,)`` those M points,
+                ``lower, upper (S,)``.
             theta: (B, S) the level's angles.
 
         Returns:
             The new angles (B, S) and the applied change (B, S).
         """
-        S = theta.shape[1]
-        base_tip = X.index_select(2, lv["base_tip"])  # (3, B, 2 S)
-        base = base_tip[:, :, :S, None]  # (3, B, S, 1)
-        w = base_tip[:, :, S:, None] - base  # (3, B, S, 1) unit axes
-        pg = X.index_select(2, lv["pairs"])[:, :, None] - base  # (3, B, S, 2 Gl): [joints | goals] - base
-        Gl = pg.shape[-1] // 2
+        B, S = theta.shape
+        Gl = lv["goals"].shape[0]
+        Y = X.index_select(2, lv["gather"]).view(3, B, S, -1)
+        D = Y[..., 1:] - Y[..., :1]  # (3, B, S, 1 + 2 Gl + M): from each DOF's base
+        w, pg, v = D[..., :1], D[..., 1:1 + 2 * Gl], D[..., 1 + 2 * Gl:]  # unit axes, [joints | goals], moved points
         p, g = pg[..., :Gl], pg[..., Gl:]  # (3, B, S, Gl) each
-        along, sq = (pg * w).sum(0), (pg * pg).sum(0)  # (B, S, 2 Gl): p . w | g . w and |p|^2 | |g|^2
-        num = (torch.linalg.cross(p, g, dim=0) * w).sum(0)  # (B, S, Gl) w . (p x g)
-        den = (p * g).sum(0) - along[..., :Gl] * along[..., Gl:]  # the in-plane dot product p_perp . g_perp
+        pxg = torch.linalg.cross(p, g, dim=0)
+        # p . w, g . w, |p|^2, |g|^2, p . g and w . (p x g) in one product, (B, S, 6 Gl)
+        dots = (torch.cat([pg, pg, p, pxg], -1) * torch.cat([w.expand_as(pg), pg, g, w.expand_as(pxg)], -1)).sum(0)
+        pw, gw, pp, gg, pdg, num = dots.split(Gl, -1)
+        den = torch.addcmul(pdg, pw, gw, value=-1.0)  # the in-plane dot product p_perp . g_perp
         # |p_perp| |g_perp| = hypot(num, den): the sine of p's and g's angles to the axis scales lambda
-        sines = torch.hypot(num, den) * torch.rsqrt((sq[..., :Gl] * sq[..., Gl:]).clamp(min=1e-24))
+        sines = torch.hypot(num, den) * torch.rsqrt((pp * gg).clamp(min=1e-24))
         lam = (lv["lam"] * sines).masked_fill_(sines <= _MIN_SINE, 0.0)  # (B, S, Gl)
         step = (lam * torch.atan2(num, den)).sum(-1) / lam.sum(-1).clamp(min=1e-12)  # eq. 15; 0 if no goal votes
         new = torch.clamp(torch.add(theta, step, alpha=self.config.damping), lv["lower"], lv["upper"])  # eq. 16
         applied = new - theta  # (B, S)
-        self._rotate_subtrees(X, lv, base, w, applied)
+        # v + sin (w x v) + (1 - cos) w x (w x v), about the base: the moved points as read plus the turn
+        angle = applied[..., None]
+        wv = torch.linalg.cross(w.expand_as(v), v, dim=0)
+        turned = torch.addcmul(Y[..., 2 + 2 * Gl:], angle.sin(), wv).addcmul_(
+            1.0 - angle.cos(), torch.linalg.cross(w.expand_as(v), wv, dim=0))
+        X.index_copy_(2, lv["rows"], turned.view(3, B, -1))
         return new, applied
 
     @staticmethod
