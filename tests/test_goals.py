@@ -49,6 +49,10 @@ def test_least_rotation_takes_a_onto_b_with_the_least_angle():
     np.testing.assert_allclose(np.einsum("nij,nj->ni", R, a), b, atol=1e-12)
     angle = Rotation.from_matrix(R).magnitude()
     np.testing.assert_allclose(angle, np.arccos(np.clip((a * b).sum(1), -1, 1)), atol=1e-9)
+    # about the axis a x b: the rotation vector along it
+    axis = np.cross(a, b)
+    np.testing.assert_allclose(Rotation.from_matrix(R).as_rotvec(), axis / np.linalg.norm(axis, axis=1,
+                               keepdims=True) * angle[:, None], atol=1e-9)
 
 
 def test_weighted_kabsch_recovers_a_rigid_motion_and_matches_scipy():
@@ -77,6 +81,23 @@ def test_bound_rotation_clips_the_angle_about_the_same_axis():
     out = Rotation.from_matrix(R).as_rotvec()
     np.testing.assert_allclose(out[0], [0, 0, 0.5], atol=1e-9)
     np.testing.assert_allclose(out[1], rv[1], atol=1e-9)  # under the bound: unchanged
+
+
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-9), (torch.float32, 2e-5)])
+def test_bound_rotation_matches_scipy_at_every_angle(dtype, atol):
+    """Random axes at angles from 0 to a half turn (near it, where the skew part vanishes, and at it): scipy's
+    rotation vector clipped to the bound, or the rotation unchanged under it."""
+    rng = np.random.default_rng(4)
+    axis = rng.normal(size=(60, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.concatenate([rng.uniform(0, np.pi, 50), np.pi - np.logspace(-8, -2, 5), [np.pi] * 5])
+    rv = axis * angle[:, None]
+    R = bound_rotation(torch.tensor(Rotation.from_rotvec(rv).as_matrix(), dtype=dtype), 0.4).double().numpy()
+    expected = rv * np.minimum(1.0, 0.4 / angle)[:, None]
+    got = Rotation.from_matrix(R).as_rotvec()
+    half = angle == np.pi  # a half turn about a is one about -a: either clipped rotation is right
+    np.testing.assert_allclose(got[~half], expected[~half], atol=atol)
+    np.testing.assert_allclose(np.abs((got[half] * expected[half]).sum(1)), 0.16, atol=atol)
 
 
 def test_goals_from_exact_blobs_are_the_true_joints(skel):

@@ -22,7 +22,6 @@ import copy
 import math
 
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 from torch import nn
 
 from torchtrack.blobs.model import BlobModel
@@ -34,13 +33,26 @@ from torchtrack.skeleton.model import (JOINT_FRAMES, Skeleton, root_rotation_ang
 TRUNK_JOINTS: tuple[str, ...] = ("pelvis", "l_thigh", "r_thigh", "torso", "thorax", "l_upperarm", "r_upperarm")
 
 
+def axis_rotation(axis: torch.Tensor, sin: torch.Tensor, cos: torch.Tensor) -> torch.Tensor:
+    """(..., 3) unit axes and the (...) sine and cosine of the angles -> (..., 3, 3) rotations,
+    ``I + sin K + (1 - cos) K^2`` with K the axis's cross-product matrix (Rodrigues; a zero axis gives I).
+
+    Hand-written rather than kornia's ``axis_angle_to_rotation_matrix``, which takes a rotation vector and
+    evaluates both its branches (small and large angles) at every call: about a hundred tensor operations, where
+    the tracker's step, bound by kernel launches on a GPU, needs a dozen."""
+    zero, k, nk = torch.zeros_like(axis[..., 0]), axis.unbind(-1), (-axis).unbind(-1)
+    K = torch.stack([zero, nk[2], k[1], k[2], zero, nk[0], nk[1], k[0], zero], -1).unflatten(-1, (3, 3))
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
+    return torch.addcmul(eye, sin[..., None, None], K).addcmul_((1 - cos)[..., None, None], K @ K)
+
+
 def least_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(..., 3) unit vectors a, b -> (..., 3, 3) the rotation of least angle taking a onto b."""
-    v = torch.cross(a, b, dim=-1)
-    angle = torch.atan2(v.norm(dim=-1), (a * b).sum(-1))  # (...,) in [0, pi]
-    axis = v / v.norm(dim=-1, keepdim=True).clamp(min=1e-12)
-    shape = a.shape[:-1]
-    return axis_angle_to_rotation_matrix((axis * angle[..., None]).reshape(-1, 3)).reshape(*shape, 3, 3)
+    """(..., 3) unit vectors a, b -> (..., 3, 3) the rotation of least angle taking a onto b (the identity where
+    they are opposite: no axis is least there)."""
+    v = torch.linalg.cross(a, b, dim=-1)
+    sin = v.norm(dim=-1)
+    angle = torch.atan2(sin, (a * b).sum(-1))  # (...,) in [0, pi]
+    return axis_rotation(v / sin[..., None].clamp(min=1e-12), angle.sin(), angle.cos())
 
 
 def main_axis(cov: torch.Tensor, start: torch.Tensor, iterations: int = 4) -> torch.Tensor:
@@ -74,10 +86,22 @@ def weighted_kabsch(src: torch.Tensor, dst: torch.Tensor, w: torch.Tensor
 
 
 def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
-    """(B, 3, 3) rotations with their angle clipped to ``max_angle`` (rad) about the same axis."""
-    v = rotation_matrix_to_axis_angle(R)  # (B, 3)
-    angle = v.norm(dim=-1, keepdim=True)
-    return axis_angle_to_rotation_matrix(v * (angle.clamp(max=max_angle) / angle.clamp(min=1e-12)))
+    """(B, 3, 3) rotations with their angle clipped to ``max_angle`` (rad) about the same axis.
+
+    In closed form (a few dozen operations; kornia's matrix to axis-angle conversion takes two hundred): the angle
+    from the trace and the skew part, and where it is clipped the axis from the symmetric part, ``(R + R^T) / 2 -
+    cos I = (1 - cos) a a^T``, its largest column (well defined for any angle over the bound, up to a half turn,
+    where the skew part vanishes), turned to the skew part's side."""
+    skew = (R - R.mT)[..., [2, 0, 1], [1, 2, 0]]  # (B, 3): 2 sin(angle) a
+    cos = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
+    angle = torch.atan2(0.5 * skew.norm(dim=-1), cos)
+    sym = 0.5 * (R + R.mT) - cos[..., None, None] * torch.eye(3, dtype=R.dtype, device=R.device)
+    col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)  # (B,)
+    axis = torch.take_along_dim(sym, col[:, None, None], dim=-1)[..., 0]  # (B, 3), along a
+    axis = torch.where(((axis * skew).sum(-1) < 0)[:, None], -axis, axis)
+    axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    bound = torch.full_like(angle, max_angle)
+    return torch.where((angle > max_angle)[:, None, None], axis_rotation(axis, bound.sin(), bound.cos()), R)
 
 
 def _dof_slice(skeleton, names: tuple[str, ...]) -> slice | list[int]:  # noqa: ANN001 (a Skeleton or stack)
