@@ -15,7 +15,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 from torchtrack.checks import InputError
-from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker, routine_tests
+from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker, moved_feet, routine_tests
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.step import SubjectStack, VoxelBatch, track_step
 
@@ -87,10 +87,13 @@ class Lockstep:
             batch = VoxelBatch.of([obs for _, obs in plain], first.config.ghost_max_cameras)
             stepped = track_step(self._stack(trackers), batch, state, first._step_config, True,
                                  math.radians(first.config.max_root_rotation_deg))
-            for (i, obs), tracker, res in zip(plain, trackers, first._results(stepped)):
+            # the held feet's update of every row at once (a tracker with none yet leaves its row unused)
+            seen, still = moved_feet(stepped.feet, stepped.feet_observed, state.feet_seen, state.feet_still,
+                                     first.config.hold_max_step_m)
+            for b, ((i, obs), tracker, res) in enumerate(zip(plain, trackers, first._results(stepped))):
                 try:
                     version = tracker.body_version
-                    out[i] = tracker.accept(obs, res)
+                    out[i] = tracker.accept(obs, res, (seen[b], still[b]))
                     tracker._hold_back(obs, out[i], True)  # as step() does
                     tracker._settle_step(obs, out[i], version)
                 except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error

@@ -207,16 +207,16 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.feet_seen = sub.skeleton.forward(self.angles[None]).joints[0, sub.feet]  # (2, 2, 3)
         self.feet_still = torch.ones(self.feet_seen.shape[:2], dtype=torch.bool, device=self.feet_seen.device)
 
-    def _update_feet(self, res: FrameResult) -> None:
+    def _update_feet(self, res: FrameResult, feet: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
         """After an accepted frame: each foot joint the observation gave a goal is remembered where the solved
         pose put it, and counts as still when it moved under ``hold_max_step_m`` since it was last seen, however
-        many frames ago (a foot that comes back elsewhere after a gap is not held until it is seen still)."""
+        many frames ago (a foot that comes back elsewhere after a gap is not held until it is seen still).
+        ``feet``: that update already made for this result (:func:`moved_feet` of many trackers at once)."""
         if self.feet_seen is None or res.feet is None:
             return
-        pos, seen = res.feet
-        step = (pos - self.feet_seen).norm(dim=-1)  # (2, 2) m since it was last seen, however long ago
-        self.feet_still = torch.where(seen, step < self.config.hold_max_step_m, self.feet_still)
-        self.feet_seen = torch.where(seen[..., None], pos, self.feet_seen)
+        if feet is None:
+            feet = moved_feet(*res.feet, self.feet_seen, self.feet_still, self.config.hold_max_step_m)
+        self.feet_seen, self.feet_still = feet
 
     def _regenerate(self, angles: torch.Tensor) -> tuple[FKResult, Blobs]:
         """The prior blobs at ``angles (D,)`` with the colour model, and the forward kinematics they came from."""
@@ -458,10 +458,12 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
             feet_still=rows("feet_still", lambda t: None if t.feet_seen is None else t.feet_still),
             floor_z=host_tensor([math.nan if t.floor_z is None else t.floor_z for t in trackers], like))
 
-    def accept(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
+    def accept(self, obs: VoxelObservation, res: FrameResult,
+               feet: tuple[torch.Tensor, torch.Tensor] | None = None) -> FrameResult:
         """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine` gave it): a diverging frame counts
         towards re-acquisition (which it starts after ``lost_frames``), an accepted one moves the pose, the colour
-        model, the held feet and the functional hips on (and may search for a lost arm)."""
+        model, the held feet and the functional hips on (and may search for a lost arm). ``feet``: the held feet's
+        update for ``res`` where the driver made it for many trackers at once (:func:`moved_feet`)."""
         if self._diverging(res):
             self.lost += 1
             if self.lost >= self.config.lost_frames:
@@ -474,7 +476,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         for arm in found:  # no velocity across the search's jump (it ran off again the way it came)
             self.previous[arm] = res.angles[arm]
         self.colour = res.blobs  # the colour model follows accepted frames only
-        self._update_feet(res)
+        self._update_feet(res, None if found else feet)  # a lost arm found: another result
         if self.hips is not None and int(obs.cameras_valid.sum()) >= self.config.functional_hips_min_cameras:
             self._learn_hips(res)
         return res
@@ -506,3 +508,13 @@ def routine_tests(trackers: Sequence[MarkerlessTracker], observations: Sequence[
             hold = hold & host_tensor(applies, hold)
         ok = ok & ~hold
     return ok
+
+
+def moved_feet(position: torch.Tensor, observed: torch.Tensor, seen: torch.Tensor, still: torch.Tensor,
+               max_step_m: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The held feet after an accepted frame (:meth:`MarkerlessTracker._update_feet`), for one tracker or many at
+    once (a leading batch): the solved ankles and toes ``position (..., 2, 2, 3)``, which of them the observation
+    gave goals ``observed (..., 2, 2)``, and where each was last seen ``seen (..., 2, 2, 3)`` and whether still
+    there ``still (..., 2, 2)`` -> the new ``seen`` and ``still``."""
+    step = (position - seen).norm(dim=-1)  # m since it was last seen, however long ago
+    return torch.where(observed[..., None], position, seen), torch.where(observed, step < max_step_m, still)
