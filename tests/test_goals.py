@@ -83,21 +83,22 @@ def test_bound_rotation_clips_the_angle_about_the_same_axis():
     np.testing.assert_allclose(out[1], rv[1], atol=1e-9)  # under the bound: unchanged
 
 
-@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-9), (torch.float32, 2e-5)])
-def test_bound_rotation_matches_scipy_at_every_angle(dtype, atol):
-    """Random axes at angles from 0 to a half turn (near it, where the skew part vanishes, and at it): scipy's
-    rotation vector clipped to the bound, or the rotation unchanged under it."""
+@pytest.mark.parametrize("bound", [0.4, 0.01, 2.0])
+@pytest.mark.parametrize("dtype, atol", [(torch.float64, 1e-9), (torch.float32, 2e-6)])
+def test_bound_rotation_matches_scipy_at_every_angle(dtype, atol, bound):
+    """Random axes at angles from 0 to a half turn (near it, where the skew part vanishes, and at it), bounds from
+    small to over a quarter turn: scipy's rotation vector clipped to the bound, or the rotation unchanged under it."""
     rng = np.random.default_rng(4)
     axis = rng.normal(size=(60, 3))
     axis /= np.linalg.norm(axis, axis=1, keepdims=True)
     angle = np.concatenate([rng.uniform(0, np.pi, 50), np.pi - np.logspace(-8, -2, 5), [np.pi] * 5])
     rv = axis * angle[:, None]
-    R = bound_rotation(torch.tensor(Rotation.from_rotvec(rv).as_matrix(), dtype=dtype), 0.4).double().numpy()
-    expected = rv * np.minimum(1.0, 0.4 / angle)[:, None]
+    R = bound_rotation(torch.tensor(Rotation.from_rotvec(rv).as_matrix(), dtype=dtype), bound).double().numpy()
+    expected = rv * np.minimum(1.0, bound / angle)[:, None]
     got = Rotation.from_matrix(R).as_rotvec()
     half = angle == np.pi  # a half turn about a is one about -a: either clipped rotation is right
     np.testing.assert_allclose(got[~half], expected[~half], atol=atol)
-    np.testing.assert_allclose(np.abs((got[half] * expected[half]).sum(1)), 0.16, atol=atol)
+    np.testing.assert_allclose(np.abs((got[half] * expected[half]).sum(1)), bound ** 2, atol=atol)
 
 
 def test_goals_from_exact_blobs_are_the_true_joints(skel):

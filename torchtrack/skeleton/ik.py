@@ -322,7 +322,7 @@ class CCDSolver(nn.Module):
             lv: the level's buffers: ``lam (S, Gl) or (B, S, Gl)`` lambda (times the goal weights),
                 ``gather (S * (2 + 2 Gl + M),)`` the columns each DOF reads (its base and axis tip, the level's goal
                 joints and goals, then the M points it moves, padded), ``rows (S * M,)`` those M points,
-                ``lower, upper (S,)``.
+                ``goals (Gl,)`` the level's goal joints, ``lower, upper (S,)``.
             theta: (B, S) the level's angles.
 
         Returns:

@@ -48,11 +48,12 @@ def axis_rotation(axis: torch.Tensor, sin: torch.Tensor, cos: torch.Tensor) -> t
 
 def least_rotation(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """(..., 3) unit vectors a, b -> (..., 3, 3) the rotation of least angle taking a onto b (the identity where
-    they are opposite: no axis is least there)."""
+    their cross product is under 1e-12: equal, or opposite, where no axis is least)."""
     v = torch.linalg.cross(a, b, dim=-1)
-    sin = v.norm(dim=-1)
-    angle = torch.atan2(sin, (a * b).sum(-1))  # (...,) in [0, pi]
-    return axis_rotation(v / sin[..., None].clamp(min=1e-12), angle.sin(), angle.cos())
+    sin = v.norm(dim=-1, keepdim=True)
+    angle = torch.atan2(sin[..., 0], (a * b).sum(-1))  # (...,) in [0, pi]
+    axis = torch.where(sin > 1e-12, v / sin.clamp(min=1e-30), 0.0)
+    return axis_rotation(axis, angle.sin(), angle.cos())
 
 
 def main_axis(cov: torch.Tensor, start: torch.Tensor, iterations: int = 4) -> torch.Tensor:
@@ -89,17 +90,19 @@ def bound_rotation(R: torch.Tensor, max_angle: float) -> torch.Tensor:
     """(B, 3, 3) rotations with their angle clipped to ``max_angle`` (rad) about the same axis.
 
     In closed form (a few dozen operations; kornia's matrix to axis-angle conversion takes two hundred): the angle
-    from the trace and the skew part, and where it is clipped the axis from the symmetric part, ``(R + R^T) / 2 -
-    cos I = (1 - cos) a a^T``, its largest column (well defined for any angle over the bound, up to a half turn,
-    where the skew part vanishes), turned to the skew part's side."""
+    from the trace and the skew part, ``(R - R^T) / 2 = sin K``; where it is clipped, the axis from the skew part
+    under a quarter turn, else from the symmetric part, ``(R + R^T) / 2 - cos I = (1 - cos) a a^T``, its largest
+    column turned to the skew part's side (the skew part vanishes at a half turn, the symmetric part at none)."""
     skew = (R - R.mT)[..., [2, 0, 1], [1, 2, 0]]  # (B, 3): 2 sin(angle) a
     cos = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
-    angle = torch.atan2(0.5 * skew.norm(dim=-1), cos)
+    sin2 = skew.norm(dim=-1, keepdim=True)
+    angle = torch.atan2(0.5 * sin2[:, 0], cos)
     sym = 0.5 * (R + R.mT) - cos[..., None, None] * torch.eye(3, dtype=R.dtype, device=R.device)
     col = sym.diagonal(dim1=-2, dim2=-1).argmax(-1)  # (B,)
-    axis = torch.take_along_dim(sym, col[:, None, None], dim=-1)[..., 0]  # (B, 3), along a
-    axis = torch.where(((axis * skew).sum(-1) < 0)[:, None], -axis, axis)
-    axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
+    wide = torch.take_along_dim(sym, col[:, None, None], dim=-1)[..., 0]  # (B, 3), along a
+    wide = torch.where(((wide * skew).sum(-1) < 0)[:, None], -wide, wide)
+    axis = torch.where((cos > 0)[:, None], skew / sin2.clamp(min=1e-30),
+                       wide / wide.norm(dim=-1, keepdim=True).clamp(min=1e-30))
     bound = torch.full_like(angle, max_angle)
     return torch.where((angle > max_angle)[:, None, None], axis_rotation(axis, bound.sin(), bound.cos()), R)
 

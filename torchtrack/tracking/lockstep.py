@@ -2,22 +2,29 @@
 
 Each sequence keeps its own :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its subject, pose, colour
 model, held feet, counters). Per frame, the trackers whose frame needs only the plain step
-(:meth:`~MarkerlessTracker.routine`: started, not lost, not racing a start, someone there) advance together in one
-:func:`~torchtrack.tracking.step.track_step` over their stacked subjects and padded voxels, and each takes in its
-row (:meth:`~MarkerlessTracker.accept`); the others (a start, a re-acquisition, a start race, nobody there, an
-unreadable frame) take their own :meth:`~MarkerlessTracker.step`, as alone. Each sequence's track is the one it
-gets alone, up to floating-point rounding (tests/test_lockstep.py).
+(:meth:`~MarkerlessTracker.routine`: started, not lost, not racing a start, someone there, the images not holding
+the body) advance together in one :func:`~torchtrack.tracking.step.track_step` over their stacked subjects and
+padded voxels, and each takes in its row (:meth:`~MarkerlessTracker.accept`); the others (a start, a
+re-acquisition, a start race, nobody there, a body the images hold, an unreadable frame) take their own
+:meth:`~MarkerlessTracker.step`, as alone. The tests that need the device run on the batched step's own prediction
+and are read with its results, one host synchronisation a frame. Each sequence's track is the one it gets alone, up
+to floating-point rounding (tests/test_lockstep.py).
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping, Sequence
+
+import torch
 
 from torchtrack.checks import InputError
 from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker, moved_feet, routine_tests
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.step import SubjectStack, VoxelBatch, track_step
+
+log = logging.getLogger(__name__)
 
 #: Subject stacks kept for the sets of subjects recently stepped together (a set changes when a sequence starts,
 #: is lost, races or ends).
@@ -51,51 +58,65 @@ class Lockstep:
              ) -> tuple[dict[int, FrameResult], dict[int, Exception]]:
         """One frame of the sequences in ``frames``: tracker ``i``'s observation, or None for a frame it cannot
         observe (:meth:`~MarkerlessTracker.skip`); sequences not in ``frames`` (ended) are left as they are.
-        Returns each one's result, and the errors of those whose own step failed (the others go on; an error of
-        the batched step itself is raised)."""
+        Returns each one's result, and the errors of those whose own step failed (the others go on; where the
+        batched step fails, each of its sequences steps on its own that frame, with a warning)."""
         out: dict[int, FrameResult] = {}
         errors: dict[int, Exception] = {}
-        ready: list[int] = []  # the trackers whose own state lets the plain step take their frame
+        ready: list[tuple[int, VoxelObservation]] = []  # the frames the trackers' own state lets the plain step take
+        own: list[int] = []  # the frames each tracker steps on its own
         for i, obs in frames.items():
             try:
                 if obs is not None and self.trackers[i].routine_ready(obs):
-                    ready.append(i)
+                    ready.append((i, self.trackers[i].routine_obs(obs)))
+                else:
+                    own.append(i)
             except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
                 errors[i] = exc
-        passed: set[int] = set()
-        if ready:  # all of them tested at once and read in one host synchronisation
-            trackers = [self.trackers[i] for i in ready]
-            tests = routine_tests(trackers, [frames[i] for i in ready], self._stack(trackers)).tolist()
-            passed = {i for i, ok in zip(ready, tests) if ok}
-        plain: list[tuple[int, VoxelObservation]] = []
-        for i, obs in frames.items():
-            if i in errors:
-                continue
+        passed: list[tuple[int, VoxelObservation, FrameResult, tuple[torch.Tensor, torch.Tensor]]] = []
+        if ready:
+            try:
+                passed = self._batched(ready, frames)
+            except Exception:  # noqa: BLE001 - each then steps on its own, where its own error is its own
+                log.warning("lockstep: the batched step failed; its %d sequences step on their own this frame",
+                            len(ready), exc_info=True)
+            done = {i for i, *_ in passed}
+            own += [i for i, _ in ready if i not in done]
+        self.batched = len(passed)
+        for i in sorted(own):
+            obs, tracker = frames[i], self.trackers[i]
+            try:
+                out[i] = tracker.skip() if obs is None else tracker.step(obs)
+            except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
+                errors[i] = exc
+        for i, obs, res, feet in passed:
             tracker = self.trackers[i]
             try:
-                if i in passed:
-                    plain.append((i, tracker.routine_obs(obs)))
-                else:
-                    out[i] = tracker.skip() if obs is None else tracker.step(obs)
-            except Exception as exc:  # noqa: BLE001 - this sequence's error, for the caller to report
+                version = tracker.body_version
+                out[i] = tracker.accept(obs, res, feet)
+                tracker._hold_back(obs, out[i], True)  # as step() does
+                tracker._settle_step(obs, out[i], version)
+            except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
                 errors[i] = exc
-        self.batched = len(plain)
-        if plain:
-            trackers = [self.trackers[i] for i, _ in plain]
-            first = trackers[0]
-            state = MarkerlessTracker.step_states(trackers)
-            batch = VoxelBatch.of([obs for _, obs in plain], first.config.ghost_max_cameras)
-            stepped = track_step(self._stack(trackers), batch, state, first._step_config, True,
-                                 math.radians(first.config.max_root_rotation_deg))
-            # the held feet's update of every row at once (a tracker with none yet leaves its row unused)
-            seen, still = moved_feet(stepped.feet, stepped.feet_observed, state.feet_seen, state.feet_still,
-                                     first.config.hold_max_step_m)
-            for b, ((i, obs), tracker, res) in enumerate(zip(plain, trackers, first._results(stepped))):
-                try:
-                    version = tracker.body_version
-                    out[i] = tracker.accept(obs, res, (seen[b], still[b]))
-                    tracker._hold_back(obs, out[i], True)  # as step() does
-                    tracker._settle_step(obs, out[i], version)
-                except Exception as exc:  # noqa: BLE001 - e.g. a re-acquisition's own error
-                    errors[i] = exc
         return dict(sorted(out.items())), errors
+
+    def _batched(self, ready: list[tuple[int, VoxelObservation]], frames: Mapping[int, VoxelObservation | None]
+                 ) -> list[tuple[int, VoxelObservation, FrameResult, tuple[torch.Tensor, torch.Tensor]]]:
+        """The batched step on every ready frame (``(i, obs)``: tracker i's frame as the plain step takes it), and the
+        routine tests (someone there, not held in the images) on its prediction, read with its results in one host
+        synchronisation. Returns the rows that pass, each with its result and held feet; a frame that fails the
+        tests (rare) is then stepped on its own, its row dropped."""
+        trackers = [self.trackers[i] for i, _ in ready]
+        first, stack = trackers[0], self._stack(trackers)
+        state = MarkerlessTracker.step_states(trackers)
+        batch = VoxelBatch.of([obs for _, obs in ready], first.config.ghost_max_cameras)
+        stepped = track_step(stack, batch, state, first._step_config, True,
+                             math.radians(first.config.max_root_rotation_deg))
+        tests = routine_tests(trackers, [frames[i] for i, _ in ready], stack,
+                              (stepped.prediction, stepped.prediction_bones))
+        residual, explained, ok = torch.stack([stepped.residual_m.double(), stepped.explained.double(),
+                                               tests.double()]).tolist()
+        # the held feet's update of every row at once (a tracker with none yet leaves its row unused)
+        seen, still = moved_feet(stepped.feet, stepped.feet_observed, state.feet_seen, state.feet_still,
+                                 first.config.hold_max_step_m)
+        results = first._results(stepped, (residual, explained))
+        return [(i, obs, results[b], (seen[b], still[b])) for b, (i, obs) in enumerate(ready) if ok[b]]

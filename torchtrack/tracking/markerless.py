@@ -270,9 +270,10 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         return StepState(angles, previous, angles.new_full((H,), velocity), floor_z=angles.new_full((H,), floor),
                          **kw)
 
-    def _results(self, st: Stepped) -> list[FrameResult]:
-        """The step's batch as one :class:`FrameResult` per row (one wait for the host)."""
-        residual, explained = torch.stack([st.residual_m.double(), st.explained.double()]).tolist()  # exact
+    def _results(self, st: Stepped, host: Sequence[Sequence[float]] | None = None) -> list[FrameResult]:
+        """The step's batch as one :class:`FrameResult` per row (one wait for the host, or none where ``host`` gives
+        its residuals and explained shares, read already by a caller that read more in the same wait)."""
+        residual, explained = host or torch.stack([st.residual_m.double(), st.explained.double()]).tolist()  # exact
         blobs = [Blobs(*v) for v in zip(*(getattr(st.blobs, f.name).unbind(0) for f in dataclasses.fields(Blobs)))]
         return [FrameResult(st.angles[h], st.output_points[h], st.confidence[h], True, residual[h], explained[h],
                             False, blobs[h], st.bone_frames[h], (st.feet[h], st.feet_observed[h]))
@@ -413,7 +414,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
                                             max_rot=math.radians(self.config.max_root_rotation_deg)))
 
     def routine(self, obs: VoxelObservation) -> VoxelObservation | None:
-        """``obs`` as the plain per-frame step takes it (merged per ``em_cell_m``) where this frame needs nothing
+        """``obs`` as the plain per-frame step takes it (:meth:`routine_obs`) where this frame needs nothing
         more of this tracker: it is started, not lost, not racing a start, someone is there and the images do not
         hold the body. Else None: the frame goes through :meth:`step`. A driver that runs the plain step itself
         (several sequences in lockstep, :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to
@@ -460,10 +461,10 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
     def accept(self, obs: VoxelObservation, res: FrameResult,
                feet: tuple[torch.Tensor, torch.Tensor] | None = None) -> FrameResult:
-        """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine` gave it): a diverging frame counts
-        towards re-acquisition (which it starts after ``lost_frames``), an accepted one moves the pose, the colour
-        model, the held feet and the functional hips on (and may search for a lost arm). ``feet``: the held feet's
-        update for ``res`` where the driver made it for many trackers at once (:func:`moved_feet`)."""
+        """Take in the plain step's result ``res`` on ``obs`` (as :meth:`routine_obs` makes it): a diverging frame
+        counts towards re-acquisition (which it starts after ``lost_frames``), an accepted one moves the pose, the
+        colour model, the held feet and the functional hips on (and may search for a lost arm). ``feet``: the held
+        feet's update for ``res`` where the driver made it for many trackers at once (:func:`moved_feet`)."""
         if self._diverging(res):
             self.lost += 1
             if self.lost >= self.config.lost_frames:
@@ -492,18 +493,19 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
 
 def routine_tests(trackers: Sequence[MarkerlessTracker], observations: Sequence[VoxelObservation],
-                  stack: SubjectStack) -> torch.Tensor:
+                  stack: SubjectStack, prediction: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """The device's part of :meth:`MarkerlessTracker.routine` for trackers that passed
     :meth:`~MarkerlessTracker.routine_ready` on their frames: (R,) bool, true where someone is there (the voxels'
     volume, as ``_has_person``) and the images do not hold the body (:func:`~torchtrack.tracking.recovery.hold_tests`).
-    ``stack``: the trackers' subjects stacked (a stack of one for one tracker). All trackers at once and nothing read
-    back: a driver of many reads the answers in one synchronisation."""
+    ``stack``: the trackers' subjects stacked (a stack of one for one tracker); ``prediction``: their predicted states
+    and bone frames where the caller has them. All trackers at once and nothing read back: a driver of many reads
+    the answers with the step's results, in one synchronisation."""
     cfg = trackers[0].config
-    sizes = pad_rows([o.sizes.to(observations[0].sizes.dtype) for o in observations], 0.0)
-    ok = (sizes.double() ** 3).sum(-1) >= cfg.min_volume_m3
+    sizes = pad_rows([o.sizes.to(o.points.device) for o in observations], 0.0).double()
+    ok = (sizes ** 3).sum(-1) >= cfg.min_volume_m3
     applies = [t._hold_applies(o) for t, o in zip(trackers, observations)]
     if any(applies):
-        hold = hold_tests(trackers, observations, stack)[1]
+        hold = hold_tests(trackers, observations, stack, prediction)[1]
         if not all(applies):
             hold = hold & host_tensor(applies, hold)
         ok = ok & ~hold

@@ -231,22 +231,30 @@ class RecoveryMixin:
         return best
 
 
-def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelObservation], stack: SubjectStack
-               ) -> tuple[torch.Tensor, torch.Tensor]:
+def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelObservation], stack: SubjectStack,
+               prediction: tuple[torch.Tensor, torch.Tensor] | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The image hold's test (:meth:`RecoveryMixin._hold_prediction`) of several started trackers of one chain on
     their frames at once, ``stack`` their subjects stacked (a stack of one for one tracker): each one's predicted
     state ``(R, D)`` and ``(R,)`` bool, true where the volume's sides cut the body's voxels (IMAGE_HOLD_CUT) or its
     prediction lies out of them (IMAGE_HOLD_OUTSIDE). Whether the hold may take a frame at all is each tracker's
-    :meth:`~RecoveryMixin._hold_applies`; a frame whose volume is unknown is tested against an unbounded one."""
-    one = len(trackers) == 1
-    angles = trackers[0].angles[None] if one else torch.stack([t.angles for t in trackers])
-    previous = trackers[0].previous[None] if one else torch.stack([t.previous for t in trackers])
-    velocity = {t.prediction_velocity for t in trackers}
-    v = velocity.pop() if len(velocity) == 1 else host_tensor([t.prediction_velocity for t in trackers], angles)[:, None]
-    predicted = stack.clamp(angles + v * (angles - previous))
-    c, _ = stack.blobs.ellipsoids(stack.skeleton.forward(predicted).bone_frames)  # (R, K, 3); no finite check
-    box = host_tensor([[(-math.inf,) * 2, (math.inf,) * 2] if o.volume_m is None else [corner[:2] for corner in o.volume_m]
-                       for o in observations], c)  # (R, 2, 2): each volume's lower and upper corner along the floor
+    :meth:`~RecoveryMixin._hold_applies`; a frame whose volume is unknown is tested against an unbounded one.
+    ``prediction``: the predicted states and their bone frames where the caller has them (the batched step's,
+    :class:`~torchtrack.tracking.step.Stepped`)."""
+    if prediction is None:
+        one = len(trackers) == 1
+        angles = trackers[0].angles[None] if one else torch.stack([t.angles for t in trackers])
+        previous = trackers[0].previous[None] if one else torch.stack([t.previous for t in trackers])
+        velocity = {t.prediction_velocity for t in trackers}
+        v = (velocity.pop() if len(velocity) == 1 else
+             host_tensor([t.prediction_velocity for t in trackers], angles)[:, None])
+        predicted = stack.clamp(angles + v * (angles - previous))
+        bones = stack.skeleton.forward(predicted).bone_frames
+    else:
+        predicted, bones = prediction
+    c, _ = stack.blobs.ellipsoids(bones)  # (R, K, 3); no finite check
+    unbounded = [(-math.inf,) * 2, (math.inf,) * 2]
+    box = host_tensor([unbounded if o.volume_m is None else [corner[:2] for corner in o.volume_m] for o in observations],
+                      c)  # (R, 2, 2): each volume's lower and upper corner along the floor
     lower, upper = box[:, None, 0], box[:, None, 1]  # (R, 1, 2)
     out = ((c[..., :2] < lower) | (c[..., :2] > upper)).any(-1)  # (R, K)
     vol = stack.blobs.semi_axes.to(c).prod(-1)

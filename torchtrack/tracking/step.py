@@ -17,12 +17,14 @@ What to do with each result (accept it, count a divergence, re-acquire) is the d
 (:class:`~torchtrack.tracking.markerless.MarkerlessTracker`, :mod:`torchtrack.tracking.lockstep`). Nothing here
 reads files or logs, nor waits for a value from a GPU: EM and the ghost test mask rows rather than select them
 there (on the CPU, where a selection costs no wait, they select), and EM asks whether a colour is known only on
-the CPU. The driver then reads the results once a frame (:meth:`MarkerlessTracker._results`). On a GPU the root
-fit's SVD also waits (``torch.linalg.svd`` checks its convergence on the host): docs/results.md, Speed, counts them.
+the CPU. The driver then reads the results once a frame (:meth:`MarkerlessTracker._results`; the lockstep reads
+its trackers' tests with them). On a GPU the root fit's SVD also waits (``torch.linalg.svd`` checks its convergence
+on the host): docs/results.md, Speed, counts them.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -228,6 +230,8 @@ class Stepped:
     bone_frames: torch.Tensor
     feet: torch.Tensor
     feet_observed: torch.Tensor
+    prediction: torch.Tensor  #: (B, D) the predicted states the step started from
+    prediction_bones: torch.Tensor  #: (B, nb, 4, 4) their bone frames
 
 
 def host_tensor(values: Sequence, like: torch.Tensor, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -241,7 +245,10 @@ def host_tensor(values: Sequence, like: torch.Tensor, dtype: torch.dtype | None 
 
 def pad_rows(rows: Sequence[torch.Tensor], value: float | bool) -> torch.Tensor:
     """``rows`` (n_b, ...) as one (B, max n_b, ...) tensor, padded with ``value``: all rows copied in one operation
-    (``pad_sequence`` copies them one by one, which a GPU pays a kernel launch each for); a batch of one is a view."""
+    (``pad_sequence`` copies them one by one, which a GPU pays a kernel launch each for), in their promoted dtype
+    (as ``torch.cat``) on the first row's device; a batch of one is a view of its row."""
+    dtype = functools.reduce(torch.promote_types, [r.dtype for r in rows])
+    rows = [r.to(device=rows[0].device, dtype=dtype) for r in rows]  # no copy where they are already
     lengths = [int(r.shape[0]) for r in rows]
     N, first = max(lengths), rows[0]
     if len(rows) == 1:
@@ -289,7 +296,7 @@ def track_step(sub: SubjectStack, obs: VoxelBatch, state: StepState, config: Ste
     """
     cfg = config
     a = sub.clamp(state.angles + state.velocity[:, None] * (state.angles - state.previous))
-    fk = sub.skeleton.forward(a)
+    fk = predicted_fk = sub.skeleton.forward(a)
     mean, cov = sub.gaussians(fk)  # (B, K, 3), (B, K, 3, 3)
     B, K = mean.shape[:2]
     prior = Blobs(mean, cov, state.colour_mean.to(mean), state.colour_cov.to(mean), state.colour_known,
@@ -343,7 +350,7 @@ def track_step(sub: SubjectStack, obs: VoxelBatch, state: StepState, config: Ste
     conf = torch.where(oj >= 0, conf_joint[:, oj.clamp(min=0)], conf_joint.mean(-1, keepdim=True))
     observed = conf_joint[:, sub.feet] >= cfg.hold_min_confidence
     return Stepped(s, fk.output_points, conf, residual, explained, blobs, fk.bone_frames, fk.joints[:, sub.feet],
-                   observed)
+                   observed, a, predicted_fk.bone_frames)
 
 
 @dataclass(frozen=True)
