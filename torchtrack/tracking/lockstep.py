@@ -20,9 +20,10 @@ from collections.abc import Mapping, Sequence
 import torch
 
 from torchtrack.checks import InputError
-from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker, moved_feet, routine_tests
+from torchtrack.tracking.markerless import FrameResult, MarkerlessTracker
+from torchtrack.tracking.recovery import routine_tests
 from torchtrack.tracking.voxels import VoxelObservation
-from torchtrack.tracking.step import SubjectStack, VoxelBatch, track_step
+from torchtrack.tracking.step import SubjectStack, VoxelBatch, moved_feet, track_step
 
 log = logging.getLogger(__name__)
 

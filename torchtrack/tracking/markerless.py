@@ -59,14 +59,14 @@ from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.hips import HipsMixin, with_hips_raised
-from torchtrack.tracking.recovery import RecoveryMixin, hold_tests
+from torchtrack.tracking.recovery import RecoveryMixin, routine_tests
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.race import RaceMixin, _Race
 from torchtrack.tracking.settle import SettleMixin
 from torchtrack.tracking.start import (HEADING_MARGIN_M, STARFISH_MAX_VOLUME_RATIO, STARFISH_MIN_ARM_RAISE_DEG,
                                        StartCheck, StartMixin)
-from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, SubjectStack,
-                                      VoxelBatch, host_tensor, pad_rows, prior_state, track_step)
+from torchtrack.tracking.step import (MAX_OUTSIDE, FrameResult, StepConfig, StepState, Stepped, Subject, VoxelBatch,
+                                      host_tensor, moved_feet, prior_state, track_step)
 
 #: What this module gives its users; the tracker's parts live in config, start, race, recovery, bone_fit, hips, step.
 __all__ = ["BONE_FIT_VOXEL_M", "HEADING_MARGIN_M", "STARFISH_MAX_VOLUME_RATIO", "STARFISH_MIN_ARM_RAISE_DEG",
@@ -491,32 +491,3 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
     def _diverging(self, res: FrameResult) -> bool:
         return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
 
-
-def routine_tests(trackers: Sequence[MarkerlessTracker], observations: Sequence[VoxelObservation],
-                  stack: SubjectStack, prediction: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """The device's part of :meth:`MarkerlessTracker.routine` for trackers that passed
-    :meth:`~MarkerlessTracker.routine_ready` on their frames: (R,) bool, true where someone is there (the voxels'
-    volume, as ``_has_person``) and the images do not hold the body (:func:`~torchtrack.tracking.recovery.hold_tests`).
-    ``stack``: the trackers' subjects stacked (a stack of one for one tracker); ``prediction``: their predicted states
-    and bone frames where the caller has them. All trackers at once and nothing read back: a driver of many reads
-    the answers with the step's results, in one synchronisation."""
-    cfg = trackers[0].config
-    sizes = pad_rows([o.sizes.to(o.points.device) for o in observations], 0.0).double()
-    ok = (sizes ** 3).sum(-1) >= cfg.min_volume_m3
-    applies = [t._hold_applies(o) for t, o in zip(trackers, observations)]
-    if any(applies):
-        hold = hold_tests(trackers, observations, stack, prediction)[1]
-        if not all(applies):
-            hold = hold & host_tensor(applies, hold)
-        ok = ok & ~hold
-    return ok
-
-
-def moved_feet(position: torch.Tensor, observed: torch.Tensor, seen: torch.Tensor, still: torch.Tensor,
-               max_step_m: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The held feet after an accepted frame (:meth:`MarkerlessTracker._update_feet`), for one tracker or many at
-    once (a leading batch): the solved ankles and toes ``position (..., 2, 2, 3)``, which of them the observation
-    gave goals ``observed (..., 2, 2)``, and where each was last seen ``seen (..., 2, 2, 3)`` and whether still
-    there ``still (..., 2, 2)`` -> the new ``seen`` and ``still``."""
-    step = (position - seen).norm(dim=-1)  # m since it was last seen, however long ago
-    return torch.where(observed[..., None], position, seen), torch.where(observed, step < max_step_m, still)

@@ -253,8 +253,9 @@ def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelOb
         predicted, bones = prediction
     c, _ = stack.blobs.ellipsoids(bones)  # (R, K, 3); no finite check
     unbounded = [(-math.inf,) * 2, (math.inf,) * 2]
-    box = host_tensor([unbounded if o.volume_m is None else [corner[:2] for corner in o.volume_m] for o in observations],
-                      c)  # (R, 2, 2): each volume's lower and upper corner along the floor
+    # (R, 2, 2): each volume's lower and upper corner along the floor
+    box = host_tensor([unbounded if o.volume_m is None else [corner[:2] for corner in o.volume_m]
+                       for o in observations], c)
     lower, upper = box[:, None, 0], box[:, None, 1]  # (R, 1, 2)
     out = ((c[..., :2] < lower) | (c[..., :2] > upper)).any(-1)  # (R, K)
     vol = stack.blobs.semi_axes.to(c).prod(-1)
@@ -270,3 +271,22 @@ def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelOb
     w = w * body
     # no body voxels: 0 / 0, NaN, which no threshold passes
     return predicted, hold | ((w * cut).sum(-1) / w.sum(-1) >= IMAGE_HOLD_CUT)
+
+def routine_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelObservation],
+                  stack: SubjectStack, prediction: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """The device's part of :meth:`MarkerlessTracker.routine <torchtrack.tracking.markerless.MarkerlessTracker.routine>`
+    for trackers that passed its ``routine_ready`` on their frames: (R,) bool, true where someone is there (the
+    voxels' volume, as ``_has_person``) and the images do not hold the body (:func:`hold_tests`).
+    ``stack``: the trackers' subjects stacked (a stack of one for one tracker); ``prediction``: their predicted states
+    and bone frames where the caller has them. All trackers at once and nothing read back: a driver of many reads
+    the answers with the step's results, in one synchronisation."""
+    cfg = trackers[0].config
+    sizes = pad_rows([o.sizes.to(o.points.device) for o in observations], 0.0).double()
+    ok = (sizes ** 3).sum(-1) >= cfg.min_volume_m3
+    applies = [t._hold_applies(o) for t, o in zip(trackers, observations)]
+    if any(applies):
+        hold = hold_tests(trackers, observations, stack, prediction)[1]
+        if not all(applies):
+            hold = hold & host_tensor(applies, hold)
+        ok = ok & ~hold
+    return ok

@@ -378,3 +378,12 @@ class FrameResult:
     blobs: Blobs | None
     bone_frames: torch.Tensor
     feet: tuple[torch.Tensor, torch.Tensor] | None = None
+
+def moved_feet(position: torch.Tensor, observed: torch.Tensor, seen: torch.Tensor, still: torch.Tensor,
+               max_step_m: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The held feet after an accepted frame (the tracker's ``_update_feet``), for one tracker or many at once (a
+    leading batch): the solved ankles and toes ``position (..., 2, 2, 3)``, which of them the observation
+    gave goals ``observed (..., 2, 2)``, and where each was last seen ``seen (..., 2, 2, 3)`` and whether still
+    there ``still (..., 2, 2)`` -> the new ``seen`` and ``still``."""
+    step = (position - seen).norm(dim=-1)  # m since it was last seen, however long ago
+    return torch.where(observed[..., None], position, seen), torch.where(observed, step < max_step_m, still)
