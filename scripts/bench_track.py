@@ -193,6 +193,7 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
             self.places[_place(2, lambda f: f.name) or "?"] += 1
             return func(*args, **(kwargs or {}))
 
+    last = None  # the B and count before: what each further sequence costs
     for B in sizes:
         trackers = []
         for i in range(B):
@@ -210,8 +211,10 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
             for k in range(timed_from + 1, timed_from + 1 + frames):
                 lockstep.step({i: obs[i % len(obs)][k] for i in range(B)})
         total = sum(count.places.values()) / frames
-        print(f"B = {B:3d}: {total:.0f} operations a frame, views not counted ({total / B:.0f} a sequence)",
+        further = "" if last is None else f"; {(total - last[1]) / (B - last[0]):.0f} each sequence over B = {last[0]}"
+        print(f"B = {B:3d}: {total:.0f} operations a frame, views not counted ({total / B:.0f} a sequence{further})",
               flush=True)
+        last = B, total
         for place, n in count.places.most_common(8):
             print(f"    {n / frames:7.1f}  {place}", flush=True)
 

@@ -98,8 +98,15 @@ def axis_angle_rotate(v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) 
     Hand-written rather than kornia's ``axis_angle_to_rotation_matrix``: no 3 x 3 matrices and the
     coordinates-first layout of the solver (the tests check it against kornia).
     """
-    c, s = angle.cos(), angle.sin()
-    return v * c + torch.linalg.cross(axis, v, dim=0) * s + axis * ((axis * v).sum(0) * (1 - c))
+    return _turned(v, v, axis, angle)
+
+
+def _turned(points: torch.Tensor, v: torch.Tensor, axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """``points + sin (w x v) + (1 - cos) w x (w x v)``: points at ``v (3, ...)`` from a base, turned about the unit
+    ``axis`` w through it by ``angle`` (Rodrigues, in two multiply-adds; the shapes broadcast)."""
+    axis = axis.expand_as(v)
+    wv = torch.linalg.cross(axis, v, dim=0)
+    return torch.addcmul(points, angle.sin(), wv).addcmul_(1.0 - angle.cos(), torch.linalg.cross(axis, wv, dim=0))
 
 
 class CCDSolver(nn.Module):
@@ -345,11 +352,7 @@ class CCDSolver(nn.Module):
         step = (lam * torch.atan2(num, den)).sum(-1) / lam.sum(-1).clamp(min=1e-12)  # eq. 15; 0 if no goal votes
         new = torch.clamp(torch.add(theta, step, alpha=self.config.damping), lv["lower"], lv["upper"])  # eq. 16
         applied = new - theta  # (B, S)
-        # v + sin (w x v) + (1 - cos) w x (w x v), about the base: the moved points as read plus the turn
-        angle = applied[..., None]
-        wv = torch.linalg.cross(w.expand_as(v), v, dim=0)
-        turned = torch.addcmul(Y[..., 2 + 2 * Gl:], angle.sin(), wv).addcmul_(
-            1.0 - angle.cos(), torch.linalg.cross(w.expand_as(v), wv, dim=0))
+        turned = _turned(Y[..., 2 + 2 * Gl:], v, w, applied[..., None])  # the moved points as read, turned
         X.index_copy_(2, lv["rows"], turned.view(3, B, -1))
         return new, applied
 
@@ -360,8 +363,8 @@ class CCDSolver(nn.Module):
         its ``base (3, B, S, 1)``, ``w (3, B, S, 1)``, by ``angle (B, S)``; X in place."""
         B, S = angle.shape
         rows = lv["rows"]
-        v = X.index_select(2, rows).view(3, B, S, -1) - base  # (3, B, S, M)
-        X.index_copy_(2, rows, (axis_angle_rotate(v, w, angle[..., None]) + base).view(3, B, -1))
+        points = X.index_select(2, rows).view(3, B, S, -1)  # (3, B, S, M)
+        X.index_copy_(2, rows, _turned(points, points - base, w, angle[..., None]).view(3, B, -1))
 
     def _refine_step(self, X: torch.Tensor, levels: list[dict[str, torch.Tensor]], thetas: list[torch.Tensor],
                      goal_weights: torch.Tensor | None) -> list[torch.Tensor]:

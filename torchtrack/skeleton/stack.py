@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+from kornia.geometry.epipolar import cross_product_matrix
 from torch import nn
 
 from torchtrack.checks import InputError, check_shape
@@ -91,9 +92,7 @@ class SkeletonStack(nn.Module):
         axis = first.axes_local[torch.tensor(dof).clamp(min=0)].double()  # (F, 3)
         axis = axis / axis.norm(dim=-1, keepdim=True).clamp(min=1e-12)
         revolute = torch.tensor([k in ("revolute", "continuous") for k in kinds])
-        zero = torch.zeros_like(axis[:, 0])
-        K = torch.stack([zero, -axis[:, 2], axis[:, 1], axis[:, 2], zero, -axis[:, 0],
-                         -axis[:, 1], axis[:, 0], zero], -1).view(-1, 3, 3) * revolute[:, None, None]
+        K = cross_product_matrix(axis) * revolute[:, None, None]
         self.register_buffer("frame_k", K, persistent=False)
         self.register_buffer("frame_k2", K @ K, persistent=False)
         prismatic = torch.tensor([k == "prismatic" for k in kinds])

@@ -22,6 +22,7 @@ import copy
 import math
 
 import torch
+from kornia.geometry.epipolar import cross_product_matrix
 from torch import nn
 
 from torchtrack.blobs.model import BlobModel
@@ -40,8 +41,7 @@ def axis_rotation(axis: torch.Tensor, sin: torch.Tensor, cos: torch.Tensor) -> t
     Hand-written rather than kornia's ``axis_angle_to_rotation_matrix``, which takes a rotation vector and
     evaluates both its branches (small and large angles) at every call: about a hundred tensor operations, where
     the tracker's step, bound by kernel launches on a GPU, needs a dozen."""
-    zero, k, nk = torch.zeros_like(axis[..., 0]), axis.unbind(-1), (-axis).unbind(-1)
-    K = torch.stack([zero, nk[2], k[1], k[2], zero, nk[0], nk[1], k[0], zero], -1).unflatten(-1, (3, 3))
+    K = cross_product_matrix(axis)
     eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
     return torch.addcmul(eye, sin[..., None, None], K).addcmul_((1 - cos)[..., None, None], K @ K)
 

@@ -59,7 +59,7 @@ from torchtrack.tracking.functional import AxisPivot
 from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.goals import sole_heights
 from torchtrack.tracking.hips import HipsMixin, with_hips_raised
-from torchtrack.tracking.recovery import RecoveryMixin, routine_tests
+from torchtrack.tracking.recovery import RecoveryMixin
 from torchtrack.tracking.voxels import VoxelObservation
 from torchtrack.tracking.race import RaceMixin, _Race
 from torchtrack.tracking.settle import SettleMixin
@@ -413,19 +413,11 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         return self.accept(obs, self._track(obs, learn_colour=True,
                                             max_rot=math.radians(self.config.max_root_rotation_deg)))
 
-    def routine(self, obs: VoxelObservation) -> VoxelObservation | None:
-        """``obs`` as the plain per-frame step takes it (:meth:`routine_obs`) where this frame needs nothing
-        more of this tracker: it is started, not lost, not racing a start, someone is there and the images do not
-        hold the body. Else None: the frame goes through :meth:`step`. A driver that runs the plain step itself
-        (several sequences in lockstep, :class:`~torchtrack.tracking.lockstep.Lockstep`) hands its result to
-        :meth:`accept`; it tests many trackers at once by :meth:`routine_ready` and :func:`routine_tests`."""
-        if not self.routine_ready(obs) or not bool(routine_tests([self], [obs], self.subject.stack)[0]):
-            return None
-        return self.routine_obs(obs)
-
     def routine_ready(self, obs: VoxelObservation) -> bool:
-        """The host's part of :meth:`routine`: False where the tracker's own state (or the voxels' count) rules the
-        plain step out; else :func:`routine_tests` decides."""
+        """For a driver that runs the plain per-frame step itself (several sequences in lockstep,
+        :class:`~torchtrack.tracking.lockstep.Lockstep`): False where this tracker's own state (not started, lost,
+        racing a start) or the voxels' count rules the plain step out and the frame goes through :meth:`step`;
+        else :func:`~torchtrack.tracking.recovery.routine_tests` decides, and :meth:`accept` takes the result."""
         return not (self._race is not None or self.subject is None or self.angles is None
                     or self.lost >= self.config.lost_frames or obs.num_observed < self.config.min_voxels)
 
@@ -490,4 +482,3 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
 
     def _diverging(self, res: FrameResult) -> bool:
         return res.residual_m > self.config.lost_residual_m or res.explained < self.config.min_explained
-

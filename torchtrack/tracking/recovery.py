@@ -103,16 +103,10 @@ class RecoveryMixin:
         volume's sides cut the body's voxels, or its prediction lies out of them: IMAGE_HOLD_CUT,
         IMAGE_HOLD_OUTSIDE; the track not yet lost, held for fewer than ``image_hold_s`` in a row, the cameras'
         foreground kept); else None."""
-        test = self._hold_test(obs)
-        return test[0] if test is not None and bool(test[1]) else None
-
-    def _hold_test(self, obs: VoxelObservation) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """:meth:`_hold_prediction` without reading the device: None where the tracker's state rules the hold out,
-        else the predicted state ``(D,)`` and a 0-d bool tensor, true where the images are to track the frame."""
         if not self._hold_applies(obs):
             return None
         predicted, hold = hold_tests([self], [obs], self.subject.stack)
-        return predicted[0], hold[0]
+        return predicted[0] if bool(hold[0]) else None
 
     def _hold_applies(self, obs: VoxelObservation) -> bool:
         """Whether the image hold may take this frame: on, the cameras' foreground kept, the volume known, the
@@ -240,13 +234,9 @@ def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelOb
     :meth:`~RecoveryMixin._hold_applies`; a frame whose volume is unknown is tested against an unbounded one.
     ``prediction``: the predicted states and their bone frames where the caller has them (the batched step's,
     :class:`~torchtrack.tracking.step.Stepped`)."""
-    if prediction is None:
-        one = len(trackers) == 1
-        angles = trackers[0].angles[None] if one else torch.stack([t.angles for t in trackers])
-        previous = trackers[0].previous[None] if one else torch.stack([t.previous for t in trackers])
-        velocity = {t.prediction_velocity for t in trackers}
-        v = (velocity.pop() if len(velocity) == 1 else
-             host_tensor([t.prediction_velocity for t in trackers], angles)[:, None])
+    if prediction is None:  # as the step predicts
+        angles, previous = (torch.stack([getattr(t, f) for t in trackers]) for f in ("angles", "previous"))
+        v = host_tensor([t.prediction_velocity for t in trackers], angles)[:, None]
         predicted = stack.clamp(angles + v * (angles - previous))
         bones = stack.skeleton.forward(predicted).bone_frames
     else:
@@ -272,11 +262,12 @@ def hold_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelOb
     # no body voxels: 0 / 0, NaN, which no threshold passes
     return predicted, hold | ((w * cut).sum(-1) / w.sum(-1) >= IMAGE_HOLD_CUT)
 
+
 def routine_tests(trackers: Sequence[RecoveryMixin], observations: Sequence[VoxelObservation],
                   stack: SubjectStack, prediction: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-    """The device's part of :meth:`MarkerlessTracker.routine <torchtrack.tracking.markerless.MarkerlessTracker.routine>`
-    for trackers that passed its ``routine_ready`` on their frames: (R,) bool, true where someone is there (the
-    voxels' volume, as ``_has_person``) and the images do not hold the body (:func:`hold_tests`).
+    """Whether the plain per-frame step takes each frame, for trackers whose own state lets it (their
+    ``routine_ready``): (R,) bool, true where someone is there (the voxels' volume, as ``_has_person``) and the
+    images do not hold the body (:func:`hold_tests`).
     ``stack``: the trackers' subjects stacked (a stack of one for one tracker); ``prediction``: their predicted states
     and bone frames where the caller has them. All trackers at once and nothing read back: a driver of many reads
     the answers with the step's results, in one synchronisation."""
