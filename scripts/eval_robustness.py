@@ -63,9 +63,9 @@ START_MM = 50.0
 START_S = 1.0
 #: A frame is "in view" when every landmark projects inside at least this many images.
 IN_VIEW = 3
-#: The mean pace (m/s) at which the "cross" and "leave" paths carry the subject: a walker's (the smoothstep between
-#: waypoints peaks at 1.5 times it). The paths add to the motion's own gait, so a faster carry slides the feet of a
-#: walk: a path timed in fixed seconds carried the leave row's walker at up to 6.1 m/s.
+#: The mean pace (m/s) at which the subject walks the "cross" and "leave" paths: a walker's (the smoothstep between
+#: waypoints peaks at 1.5 times it). The walk walks its path, facing the way it goes
+#: (:func:`torchtrack.synth.motion.walks_path`).
 PATH_PACE_M_S = 1.2
 #: The issue's targets: MPJPE (mm) with 8 cameras and more, and with fewer; no invalid frame while in view.
 TARGET_MANY_MM, TARGET_FEW_MM = 40.0, 60.0

@@ -41,3 +41,34 @@ def test_motion_properties(skel, kind):
 def test_unknown_motion(skel):
     with pytest.raises(InputError, match="unknown motion 'fly'"):
         procedural_motion(skel, "fly", 1.0, 30)
+
+
+def test_walk_on_a_path_faces_the_way_it_goes_and_turns_where_it_pauses(skel):
+    """The walk on a path (out 3 m, a pause, back): the pelvis passes the waypoints, the hips face the way the
+    pelvis moves (read from the body's joints, not the heading it was given), the half turn falls in the pause,
+    and the legs stride while moving and stand still before the first move."""
+    import math
+
+    fps, t0, out, pause = 30.0, 1.5, 2.5, 0.8
+    heading = 2.2
+    far = (3.0 * math.cos(heading), 3.0 * math.sin(heading))
+    path = ((t0, 0.0, 0.0), (t0 + out, *far), (t0 + out + pause, *far), (t0 + 2 * out + pause, 0.0, 0.0))
+    a = procedural_motion(skel, "walk", duration_s=7.0, fps=fps, starfish_s=1.0, path=path)
+    assert bool(((a >= skel.lower) & (a <= skel.upper)).all())
+    lm = skel.landmarks(a).double()
+    pelvis = lm[:, LANDMARKS.index("pelvis"), :2]
+    frame = [round(w[0] * fps) for w in path]
+    for f, w in zip(frame, path):
+        assert float((pelvis[f] - torch.tensor(w[1:], dtype=torch.float64)).norm()) < 0.06
+    hips = lm[:, LANDMARKS.index("l_hip"), :2] - lm[:, LANDMARKS.index("r_hip"), :2]
+    facing = torch.atan2(-hips[:, 0], hips[:, 1])  # the hips' forward normal: left hip to the left of forward
+    step = pelvis[2:] - pelvis[:-2]
+    moving = step.norm(dim=-1) * fps / 2 > 0.5
+    off = torch.remainder(torch.atan2(step[:, 1], step[:, 0]) - facing[1:-1] + math.pi, 2 * math.pi) - math.pi
+    assert int(moving.sum()) > 3 * fps and float(off[moving].abs().max()) < math.radians(20)
+    turned = torch.remainder(facing[frame[2]] - facing[frame[1]], 2 * math.pi)
+    assert abs(float(turned) - math.pi) < math.radians(20)  # the half turn, done within the pause
+    hip = a[:, skel.dof_names.index("l_hip_flex")]
+    assert float(hip[frame[0] - 5:frame[0]].abs().max()) < 0.02  # standing before the walk sets off
+    walking = slice(frame[0] + round(0.7 * fps), frame[1] - round(0.7 * fps))
+    assert float(hip[walking].max() - hip[walking].min()) > 0.6  # striding at full pace

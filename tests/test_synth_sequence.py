@@ -195,16 +195,16 @@ def test_overhead_camera_looks_straight_down():
 
 
 def test_body_path_and_start_style_reach_the_ground_truth(tmp_path):
-    """Bone scale, girth and colours change the rendered body; the path moves the whole motion by the eased
-    waypoint offsets; the starfish style sets the arms' abduction (read back from gt.npz, against the plain
+    """Bone scale, girth and colours change the rendered body; the path carries a motion other than the walk by the
+    eased waypoint offsets; the starfish style sets the arms' abduction (read back from gt.npz, against the plain
     sequence's)."""
     from torchtrack.synth.sequence import BodyConfig
 
     import tomllib
 
-    plain = load_poses(write_sequence(_cfg(motion="walk"), tmp_path / "a", progress=False) / "gt.npz")
+    plain = load_poses(write_sequence(_cfg(motion="turn"), tmp_path / "a", progress=False) / "gt.npz")
     body = BodyConfig(bone_scale=(("l_thigh", 1.2),), girth=1.3, colours=(("chest", (0.1, 0.9, 0.2)),))
-    cfg = _cfg(motion="walk", body=body, path=((0.0, 0.0, 0.0), (0.6, 1.0, -0.5)), starfish_arms=0.9)
+    cfg = _cfg(motion="turn", body=body, path=((0.0, 0.0, 0.0), (0.6, 1.0, -0.5)), starfish_arms=0.9)
     other = load_poses(write_sequence(cfg, tmp_path / "b", progress=False) / "gt.npz")
     height = [tomllib.loads((tmp_path / n / "meta.toml").read_text())["subject_height_m"] for n in "ab"]
     bones = list(plain.extra["bone_names"])
@@ -238,3 +238,18 @@ def test_a_kept_capture_sequence_goes_stale_when_the_retargeting_changes(tmp_pat
     monkeypatch.setattr(synth_sequence, "RETARGET_REVISION", synth_sequence.RETARGET_REVISION + 1)
     assert not synth_sequence.is_current(written, capture)
     assert synth_sequence.is_current(procedural, _cfg(duration_s=0.2, starfish_s=0.0))
+
+
+def test_a_kept_walk_on_a_path_goes_stale_when_the_path_walk_changes(tmp_path, monkeypatch):
+    """A walk on a path is current for its config until ``PATH_WALK_REVISION`` changes (a sequence kept from when
+    the walk was carried along its path is not current); a walk without a path does not depend on it."""
+    from torchtrack.synth import sequence as synth_sequence
+
+    walk = _cfg(motion="walk", duration_s=0.2, starfish_s=0.0, path=((0.0, 0.0, 0.0), (0.2, 0.3, 0.0)))
+    written = write_sequence(walk, tmp_path / "walk", progress=False)
+    circle = write_sequence(_cfg(motion="walk", duration_s=0.2, starfish_s=0.0), tmp_path / "circle",
+                            progress=False)
+    assert synth_sequence.is_current(written, walk)
+    monkeypatch.setattr(synth_sequence, "PATH_WALK_REVISION", synth_sequence.PATH_WALK_REVISION + 1)
+    assert not synth_sequence.is_current(written, walk)
+    assert synth_sequence.is_current(circle, _cfg(motion="walk", duration_s=0.2, starfish_s=0.0))

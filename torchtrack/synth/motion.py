@@ -9,7 +9,7 @@ about 1 m of the origin so that a rig on a 3-4 m circle sees them. Angles are in
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 
@@ -23,23 +23,106 @@ def _set(angles: torch.Tensor, skel: Skeleton, name: str, value: torch.Tensor | 
     angles[:, skel.dof_names.index(name)] = value
 
 
-def _walk(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, radius_m: float = 0.8, speed_mps: float = 0.9) -> None:
+def _gait(skel: Skeleton, a: torch.Tensor, phase: torch.Tensor, scale: float | torch.Tensor = 1.0) -> None:
+    """The walk's legs, arms and bob at gait ``phase`` (rad, one cycle per stride); ``scale`` (per frame or one
+    value) shrinks the swings from a walk at :data:`WALK_SPEED_M_S` (1) to standing (0)."""
+    _set(a, skel, "root_tz", skel.standing_root_height() - 0.03 + (0.015 * scale) * torch.cos(2 * phase))
+    for side in ("l", "r"):
+        p = phase + (0.0 if side == "l" else math.pi)
+        _set(a, skel, f"{side}_hip_flex", (0.35 * scale) * torch.sin(p))
+        _set(a, skel, f"{side}_knee_flex", 0.15 + (0.5 * scale) * torch.clamp(torch.sin(p + 1.2), min=0))
+        _set(a, skel, f"{side}_ankle_flex", (0.1 * scale) * torch.sin(p - 0.5))
+        _set(a, skel, f"{side}_shoulder_flex", (-0.35 * scale) * torch.sin(p))
+        _set(a, skel, f"{side}_shoulder_abd", 0.12)
+        _set(a, skel, f"{side}_elbow_flex", 0.35 + (0.15 * scale) * torch.sin(p))
+    _set(a, skel, "spine_twist", (0.08 * scale) * torch.sin(phase))
+
+
+#: The procedural walk: its speed and gait cycle (the circle walk's; a path walk strides longer or shorter).
+WALK_SPEED_M_S = 0.9
+WALK_CYCLE_S = 1.1
+
+
+def _walk(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, radius_m: float = 0.8,
+          speed_mps: float = WALK_SPEED_M_S) -> None:
     """Walk counter-clockwise on a circle of ``radius_m`` around the origin, facing the walking direction."""
-    phase = 2 * math.pi * t / 1.1  # one gait cycle per 1.1 s
     heading = speed_mps * t / radius_m
     _set(a, skel, "root_tx", radius_m * torch.sin(heading))
     _set(a, skel, "root_ty", -radius_m * torch.cos(heading))
     _set(a, skel, "root_rz", heading)
-    _set(a, skel, "root_tz", skel.standing_root_height() - 0.03 + 0.015 * torch.cos(2 * phase))
-    for side, sgn in (("l", 1.0), ("r", -1.0)):
-        p = phase + (0.0 if side == "l" else math.pi)
-        _set(a, skel, f"{side}_hip_flex", 0.35 * torch.sin(p))
-        _set(a, skel, f"{side}_knee_flex", 0.15 + 0.5 * torch.clamp(torch.sin(p + 1.2), min=0))
-        _set(a, skel, f"{side}_ankle_flex", 0.1 * torch.sin(p - 0.5))
-        _set(a, skel, f"{side}_shoulder_flex", -0.35 * torch.sin(p))
-        _set(a, skel, f"{side}_shoulder_abd", 0.12)
-        _set(a, skel, f"{side}_elbow_flex", 0.35 + 0.15 * torch.sin(p))
-    _set(a, skel, "spine_twist", 0.08 * torch.sin(phase))
+    _gait(skel, a, 2 * math.pi * t / WALK_CYCLE_S)
+
+
+#: The path walk's swings grow with the speed up to this (the circle walk's 1.6x), then its cadence does.
+PATH_WALK_MAX_SCALE = 1.6
+#: Turning on the spot steps too: a turn of this many rad/s strides as walking at 1 m/s does.
+PATH_WALK_TURN_M = 0.25
+
+
+def path_position(path: Sequence[Sequence[float]], t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
+                                                                              torch.Tensor]:
+    """Where ``path`` (``(time_s, x, y)`` waypoints in increasing time) puts the subject at times ``t (T,)``:
+    (T, 2) float64 positions eased between waypoints (smoothstep: no jump in speed at a waypoint), held before
+    the first and after the last; (T,) each time's segment end (1 .. P - 1) and (T,) its eased fraction."""
+    way = torch.tensor([list(p) for p in path], dtype=torch.float64)  # (P, 3)
+    if way.ndim != 2 or way.shape[1] != 3 or not bool((way[1:, 0] > way[:-1, 0]).all()):
+        raise InputError(f"path: (time_s, x, y) waypoints in increasing time, got {path}")
+    t = t.to(torch.float64)
+    seg = torch.searchsorted(way[:, 0].contiguous(), t).clamp(1, max(1, way.shape[0] - 1))  # (T,) segment end
+    t0, t1 = way[seg - 1, 0], way[seg, 0]
+    u = ((t - t0) / (t1 - t0).clamp(min=1e-9)).clamp(0, 1) if way.shape[0] > 1 else torch.zeros_like(t)
+    u = u * u * (3 - 2 * u)
+    return (1 - u)[:, None] * way[seg - 1, 1:] + u[:, None] * way[seg, 1:], seg, u
+
+
+def _path_heading(path: Sequence[Sequence[float]], seg: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+    """(T,) float64 the heading (rad, unwrapped) of a walker on ``path`` (:func:`path_position`'s ``seg`` and
+    ``u``): along each segment that moves; on a segment that stays (a pause), turning from the way they came to the
+    way they go next, the shorter way round (left on a half turn), as the segment's eased fraction ``u``; before
+    the first move and after the last, the nearest move's. A path that never moves faces +X."""
+    pts = [(float(p[1]), float(p[2])) for p in path]
+    moving = [k for k in range(len(pts) - 1) if math.dist(pts[k], pts[k + 1]) > 1e-9]
+    if not moving:
+        return torch.zeros_like(u)
+    unwrapped: dict[int, float] = {}
+    for i, k in enumerate(moving):  # each move's direction, continued from the one before
+        along = math.atan2(pts[k + 1][1] - pts[k][1], pts[k + 1][0] - pts[k][0])
+        if i == 0:
+            unwrapped[k] = along
+            continue
+        before = unwrapped[moving[i - 1]]
+        turn = math.remainder(along - before, 2 * math.pi)
+        unwrapped[k] = before + (math.pi if turn <= -math.pi + 1e-9 else turn)
+    enter, leave = [], []  # (P - 1,) each segment's heading at its start and end
+    for k in range(len(pts) - 1):
+        came = max((m for m in moving if m <= k), default=moving[0])
+        goes = min((m for m in moving if m >= k), default=moving[-1])
+        enter.append(unwrapped[came])
+        leave.append(unwrapped[goes])
+    enter_t, leave_t = (torch.tensor(v, dtype=torch.float64) for v in (enter, leave))
+    k = seg - 1
+    return enter_t[k] + u * (leave_t[k] - enter_t[k])
+
+
+def _walk_path(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, path: Sequence[Sequence[float]]) -> None:
+    """Walk ``path`` (times ``t`` from the sequence's start): facing the way they go, turning on the spot where the
+    path pauses, the gait's swings and stride as long as the speed asks (the circle walk's at its speed, up to
+    :data:`PATH_WALK_MAX_SCALE` of them, faster by cadence), so the feet step as the body goes rather than slide."""
+    pos, seg, u = path_position(path, t)
+    heading = _path_heading(path, seg, u)
+    dt = float(t[1] - t[0]) if t.shape[0] > 1 else 1.0
+    speed = torch.gradient(pos, spacing=dt, dim=0)[0].norm(dim=-1) if t.shape[0] > 1 else torch.zeros_like(u)
+    omega = torch.gradient(heading, spacing=dt)[0].abs() if t.shape[0] > 1 else torch.zeros_like(u)
+    pace = speed + PATH_WALK_TURN_M * omega  # (T,) m/s the legs stride at
+    scale = (pace / WALK_SPEED_M_S).clamp(max=PATH_WALK_MAX_SCALE)
+    # the circle walk strides WALK_SPEED_M_S * WALK_CYCLE_S a cycle at scale 1, proportionally at other scales
+    rate = 2 * math.pi / WALK_CYCLE_S * torch.where(scale > 1e-6, pace / (WALK_SPEED_M_S * scale.clamp(min=1e-6)),
+                                                    torch.ones_like(scale))
+    phase = torch.cumsum(rate * dt, 0) - rate[0] * dt
+    _set(a, skel, "root_tx", pos[:, 0].float())
+    _set(a, skel, "root_ty", pos[:, 1].float())
+    _set(a, skel, "root_rz", heading.float())
+    _gait(skel, a, phase.float(), scale.float())
 
 
 def _turn(skel: Skeleton, t: torch.Tensor, a: torch.Tensor) -> None:
@@ -131,13 +214,22 @@ def with_starfish_start(skel: Skeleton, motion: torch.Tensor, fps: float, starfi
     return out
 
 
+def walks_path(kind: str, path: Sequence[Sequence[float]]) -> bool:
+    """Whether motion ``kind`` on ``path`` walks it (the walk: facing the way it goes, its feet planted) rather than
+    being carried along it by an offset (every other motion)."""
+    return kind == "walk" and len(path) > 0
+
+
 def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, starfish_s: float = 1.0,
-                      **starfish: float) -> torch.Tensor:
+                      path: Sequence[Sequence[float]] = (), **starfish: float) -> torch.Tensor:
     """A procedural motion with the starfish start.
 
     Args:
         kind: one of :data:`MOTIONS`.
         duration_s: length of the motion itself (the starfish second comes on top).
+        path: for the walk, ``(time_s, x, y)`` waypoints (times from the sequence's start, starfish included)
+            that it walks instead of its circle (:func:`walks_path`); other motions ignore it (the caller carries
+            them along it).
         starfish: ``arm_abduction`` and ``leg_abduction`` of the starfish (:func:`with_starfish_start`).
 
     Returns:
@@ -149,7 +241,10 @@ def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, 
         raise InputError(f"duration_s and fps must be positive, got {duration_s}, {fps}")
     t = torch.arange(round(duration_s * fps), dtype=torch.float32) / fps  # (T,)
     a = skel.rest_angles().float().expand(t.shape[0], -1).clone()  # (T, D)
-    _GENERATORS[kind](skel, t, a)
+    if walks_path(kind, path):
+        _walk_path(skel, t + starfish_s, a, path)
+    else:
+        _GENERATORS[kind](skel, t, a)
     return on_the_floor(skel, with_starfish_start(skel, skel.clamp(a), fps, starfish_s, **starfish))
 
 

@@ -27,11 +27,15 @@ from torchtrack.io.poses import Poses, save_poses
 from torchtrack.resources import builtin_config
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.markers import MarkerStyle, marker_names, marker_positions, visible_centroids
-from torchtrack.synth.motion import MOTIONS, on_the_floor, procedural_motion
+from torchtrack.synth.motion import MOTIONS, on_the_floor, path_position, procedural_motion, walks_path
 from torchtrack.synth.retarget import RETARGET_REVISION
 from torchtrack.synth.scene import SceneConfig, SceneRenderer
 
 log = logging.getLogger(__name__)
+
+#: The walk on a path (:func:`~torchtrack.synth.motion.walks_path`) in meta.toml's ``[synth]`` table, so that a
+#: sequence kept from before it (the circle walk carried along the path, its feet sliding) goes stale.
+PATH_WALK_REVISION = 1
 
 
 @dataclass(frozen=True)
@@ -153,9 +157,10 @@ class SynthConfig:
         rig, scene: camera ring and scene options (noise, illumination change, shadow, distractor).
         body: the subject's proportions, girth and colours beyond the template's.
         starfish_arms, starfish_legs: the starfish's arm and leg abduction (rad), its style.
-        path: ``(time_s, x, y)`` waypoints: the subject is carried over the floor by this offset (m) from where
-            the motion puts them, eased between waypoints (smoothstep), held before the first and after the
-            last; times from the sequence's start, starfish included. Empty: no offset.
+        path: ``(time_s, x, y)`` waypoints (m), eased between waypoints (smoothstep), held before the first and
+            after the last; times from the sequence's start, starfish included. The walk walks it, facing the way
+            it goes and turning where it pauses; any other motion is carried over the floor by this offset from
+            where the motion puts it. Empty: no path.
         markers: coloured balls on the body (:mod:`torchtrack.synth.markers`), for the colour marker detector:
             gt.npz then also holds their centres and visible pixels, and ``marker_labels.csv`` the labels of frame 0
             as a person would click them. None: no markers.
@@ -185,7 +190,9 @@ def motion_angles(cfg: SynthConfig, skel: Skeleton) -> tuple[Skeleton, torch.Ten
     style = {"arm_abduction": cfg.starfish_arms, "leg_abduction": cfg.starfish_legs}
     if cfg.motion in MOTIONS:
         skel = cfg.body.skeleton(skel.scaled_to_height(cfg.subject_height_m))
-        angles = procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s, **style)
+        angles = procedural_motion(skel, cfg.motion, cfg.duration_s, cfg.fps, cfg.starfish_s, cfg.path, **style)
+        if walks_path(cfg.motion, cfg.path):
+            return skel, angles
     else:
         path = Path(cfg.motion)
         if path.suffix.lower() == ".bvh":
@@ -207,15 +214,8 @@ def carried_along(skel: Skeleton, angles: torch.Tensor, path: Sequence[Sequence[
     waypoints, see :class:`SynthConfig`) at each frame's time ``t / fps``."""
     if not path:
         return angles
-    way = torch.tensor([list(p) for p in path], dtype=torch.float64)  # (P, 3)
-    if way.ndim != 2 or way.shape[1] != 3 or not bool((way[1:, 0] > way[:-1, 0]).all()):
-        raise InputError(f"path: (time_s, x, y) waypoints in increasing time, got {path}")
     t = torch.arange(angles.shape[0], dtype=torch.float64) / fps  # (T,)
-    seg = torch.searchsorted(way[:, 0].contiguous(), t).clamp(1, max(1, way.shape[0] - 1))  # (T,) segment end
-    t0, t1 = way[seg - 1, 0], way[seg, 0]
-    u = ((t - t0) / (t1 - t0).clamp(min=1e-9)).clamp(0, 1) if way.shape[0] > 1 else torch.zeros_like(t)
-    u = u * u * (3 - 2 * u)  # smoothstep: no jump in speed at a waypoint
-    offset = (1 - u)[:, None] * way[seg - 1, 1:] + u[:, None] * way[seg, 1:]  # (T, 2)
+    offset = path_position(path, t)[0]  # (T, 2)
     out = angles.clone()
     idx = skel.dof_index(["root_tx", "root_ty"])
     out[:, idx] += offset.to(out)
@@ -367,7 +367,8 @@ def _synth_table(cfg: SynthConfig) -> dict:
             "scene": _plain(asdict(cfg.scene)), "body": _plain(asdict(cfg.body)),
             "starfish": [cfg.starfish_arms, cfg.starfish_legs], "path": _plain(cfg.path),
             **({} if cfg.markers is None else {"markers": _plain(asdict(cfg.markers))}),
-            **({} if cfg.motion in MOTIONS else {"retarget": RETARGET_REVISION})}
+            **({} if cfg.motion in MOTIONS else {"retarget": RETARGET_REVISION}),
+            **({"path_walk": PATH_WALK_REVISION} if walks_path(cfg.motion, cfg.path) else {})}
 
 
 def is_current(out: str | Path, cfg: SynthConfig) -> bool:
