@@ -9,6 +9,7 @@ frames per second summed over them. The lost-track test of `torchtrack track` is
     .venv/bin/python scripts/bench_markers.py [--frames 30] [--settings 1000x5 4000x5] [--device cpu] [--threads 1]
         [--lockstep 1 4 16 [--lockstep-setting 1000x5]]
     .venv/bin/python scripts/bench_markers.py --settings 1000x5 4000x5 --polish 20 --before DIR [--pairs 3]
+    .venv/bin/python scripts/bench_markers.py --settings 4000x5 --ops      # operations a frame (GPU launches)
 
 ``--before DIR`` times the package of another checkout (e.g. ``git worktree add /tmp/before <commit>``) against
 this one, each in a process of its own, alternated ``--pairs`` times in one run (this host's speed moves by a fifth
@@ -67,6 +68,9 @@ def main() -> int:
                     help="numbers of sequences tracked in lockstep, each timed; only these are timed (default: none)")
     ap.add_argument("--lockstep-setting", default="1000x5", metavar="PxL",
                     help="particles x layers of the lockstep runs, with the polish (default: %(default)s)")
+    ap.add_argument("--ops", action="store_true",
+                    help="count the torch operations a frame of each setting makes instead of timing it (about one "
+                         "GPU kernel launch each), by where they are made; the GPU's path: no CPU chunks")
     ap.add_argument("--before", type=Path, default=None, metavar="DIR",
                     help="time the package of the checkout DIR against this one, alternated (see above)")
     ap.add_argument("--pairs", type=int, default=3, help="--before: alternated pairs of runs (default: 3)")
@@ -81,6 +85,8 @@ def main() -> int:
         return lockstep(args, rig, dev)
     skel_d, mset_d, start, zd = capture(rig, args.frames, 0, dev)
     rig_d = rig.to(dev)
+    if args.ops:
+        return count_ops(args, skel_d, mset_d, rig_d, start, zd, dev)
     print(f"{'particles x layers':<19} {'polish':>6} {'frames/s':>9} {'ms/frame':>9}   ({args.device}, "
           f"{args.threads} thread(s), {mset_d.num_markers} markers, {rig.num_cameras} cameras)")
     for setting in args.settings:
@@ -108,6 +114,32 @@ def main() -> int:
                     torch.cuda.synchronize()
                 print(f"forward kinematics of {P} states, {name}, {str(dtype).split('.')[-1]}: "
                       f"{1e3 * (time.perf_counter() - t0) / 10:.1f} ms", flush=True)
+    return 0
+
+
+def count_ops(args: argparse.Namespace, skel, mset, rig, start: torch.Tensor, z: torch.Tensor,  # noqa: ANN001
+              dev: torch.device, frames: int = 5) -> int:
+    """``--ops``: the torch operations other than views a frame of the filter makes at each setting and polish,
+    over ``frames`` frames after the warm-up, with the particles weighed in one piece as on a GPU (a CPU's chunks,
+    ``CPU_CHUNK_STATES``, repeat a layer's operations per chunk), and where the most are made."""
+    from _op_count import OpCount
+
+    import torchtrack.tracking.particles as particles
+
+    particles.CPU_CHUNK_STATES = 1 << 30
+    for setting in args.settings:
+        P, L = (int(v) for v in setting.lower().split("x"))
+        for polish in args.polish:
+            apf = MarkerAPF(skel, mset, rig, APFConfig(particles=P, layers=L, polish_steps=polish),
+                            torch.Generator(device=dev).manual_seed(0))
+            apf.reset(start)
+            apf.step(z[60])
+            with OpCount() as count:
+                for t in range(61, 61 + frames):
+                    apf.step(z[t])
+            total = sum(count.places.values()) / frames
+            print(f"{setting} polish {polish}: {total:.0f} operations a frame, views not counted", flush=True)
+            count.report(frames)
     return 0
 
 

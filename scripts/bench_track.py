@@ -161,14 +161,6 @@ def lockstep_observations(work: Path, count: int, device: torch.device, config: 
     return seqs, out
 
 
-def _place(depth: int, what) -> str:  # noqa: ANN001 (what: frame summary -> its label)
-    """The caller's innermost ``depth`` frames in torchtrack, innermost first, as "file:label < file:label"."""
-    import traceback
-
-    ours = [f for f in traceback.extract_stack()[:-2] if f"{os.sep}torchtrack{os.sep}" in f.filename]
-    return " < ".join(f"{Path(f.filename).name}:{what(f)}" for f in ours[::-1][:depth])
-
-
 def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], device: torch.device, config: dict,
               timed_from: int, frames: int = 5) -> None:
     """``--ops``: the torch operations other than views that a frame of the lockstep step makes for each B, counted
@@ -176,22 +168,9 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
     the step there (docs/results.md, Speed), so this count, the same on any device, shows where a GPU's frame goes
     on a machine without one. The trackers start from the generator's pose at frame ``timed_from``, whose step
     builds the subject stacks; the ``frames`` after it are counted."""
-    import collections
-
-    from torch.utils._python_dispatch import TorchDispatchMode
+    from _op_count import OpCount
 
     from torchtrack.tracking.lockstep import Lockstep
-
-    class Count(TorchDispatchMode):
-        def __init__(self) -> None:
-            super().__init__()
-            self.places: collections.Counter = collections.Counter()
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001
-            if func.is_view:
-                return func(*args, **(kwargs or {}))
-            self.places[_place(2, lambda f: f.name) or "?"] += 1
-            return func(*args, **(kwargs or {}))
 
     last = None  # the B and count before: what each further sequence costs
     for B in sizes:
@@ -207,7 +186,7 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
         lockstep = Lockstep(trackers)
         obs = observations
         lockstep.step({i: obs[i % len(obs)][timed_from] for i in range(B)})  # builds the subject stacks
-        with Count() as count:
+        with OpCount() as count:
             for k in range(timed_from + 1, timed_from + 1 + frames):
                 lockstep.step({i: obs[i % len(obs)][k] for i in range(B)})
         total = sum(count.places.values()) / frames
@@ -215,8 +194,7 @@ def count_ops(observations: list[list], seqs: list[Path], sizes: list[int], devi
         print(f"B = {B:3d}: {total:.0f} operations a frame, views not counted ({total / B:.0f} a sequence{further})",
               flush=True)
         last = B, total
-        for place, n in count.places.most_common(8):
-            print(f"    {n / frames:7.1f}  {place}", flush=True)
+        count.report(frames)
 
 
 def bench_lockstep(observations: list[list], sizes: list[int], device: torch.device, config: dict,
@@ -235,6 +213,8 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
     import copy
     import warnings
 
+    from _op_count import place
+
     from torchtrack.tracking.lockstep import Lockstep
 
     places: collections.Counter = collections.Counter()
@@ -243,7 +223,7 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
         """A sync debug warning: counted under its innermost three frames in torchtrack (others are dropped)."""
         if "synchroniz" not in str(message):
             return
-        places[_place(3, lambda f: f.lineno) or f"{filename}:{lineno}"] += 1
+        places[place(3, lambda f: f.lineno) or f"{filename}:{lineno}"] += 1
 
     def step(lockstep: Lockstep, frames: dict) -> None:
         _, errors = lockstep.step(frames)
@@ -298,8 +278,8 @@ def bench_lockstep(observations: list[list], sizes: list[int], device: torch.dev
               f"{plain / (B * (T - timed_from)):.0%} of the frames in the batched step"
               + (f"; host synchronisations a frame: mean {sum(syncs) / len(syncs):.1f}, most {max(syncs)}"
                  if syncs else ""), flush=True)
-        for place, n in places.most_common(6):
-            print(f"    {n / len(syncs):6.2f} a frame  {place}", flush=True)
+        for where, n in places.most_common(6):
+            print(f"    {n / len(syncs):6.2f} a frame  {where}", flush=True)
 
 
 def demo_run(code: Path, seq: Path, out: Path) -> tuple[float, str]:
