@@ -68,7 +68,45 @@ def test_walk_on_a_path_faces_the_way_it_goes_and_turns_where_it_pauses(skel):
     assert int(moving.sum()) > 3 * fps and float(off[moving].abs().max()) < math.radians(20)
     turned = torch.remainder(facing[frame[2]] - facing[frame[1]], 2 * math.pi)
     assert abs(float(turned) - math.pi) < math.radians(20)  # the half turn, done within the pause
+    halfway = torch.remainder(facing[(frame[1] + frame[2]) // 2] - facing[frame[1]], 2 * math.pi)
+    assert abs(float(halfway) - math.pi / 2) < math.radians(20)  # turning through the pause, not at one end
+    step_turn = torch.remainder(facing[1:] - facing[:-1] + math.pi, 2 * math.pi) - math.pi
+    assert float(step_turn.abs().max()) < math.radians(15)  # no frame turns the body at once
     hip = a[:, skel.dof_names.index("l_hip_flex")]
     assert float(hip[frame[0] - 5:frame[0]].abs().max()) < 0.02  # standing before the walk sets off
     walking = slice(frame[0] + round(0.7 * fps), frame[1] - round(0.7 * fps))
     assert float(hip[walking].max() - hip[walking].min()) > 0.6  # striding at full pace
+    # the strides keep up with the body as the circle walk's do at its own pace (the lower toe's forward speed
+    # over the pelvis's, while moving; a procedural gait's feet are not truly planted in either)
+    circle = procedural_motion(skel, "walk", duration_s=4.0, fps=fps, starfish_s=0.0)
+    assert abs(_toe_drift(skel, a, fps) - _toe_drift(skel, circle, fps)) < 0.15
+
+
+def _toe_drift(skel, a: torch.Tensor, fps: float) -> float:
+    """The lower toe's forward speed over the pelvis's, mean over the frames where the pelvis moves > 0.5 m/s."""
+    joints = skel(a).joints.double()
+    toes = joints[:, [skel.joint_names.index("l_toe"), skel.joint_names.index("r_toe")]]  # (T, 2, 3)
+    lower = toes[:-1, :, 2].argmin(1)  # (T - 1,)
+    rows = torch.arange(len(lower))
+    toe_v = (toes[1:, :, :2] - toes[:-1, :, :2])[rows, lower] * fps  # (T - 1, 2)
+    pelvis = joints[:, skel.joint_names.index("pelvis"), :2]
+    v = (pelvis[1:] - pelvis[:-1]) * fps
+    speed = v.norm(dim=-1)
+    moving = speed > 0.5
+    return float(((toe_v * v).sum(-1) / speed.square())[moving].mean())
+
+
+def test_a_walk_on_a_path_turns_smoothly_over_a_split_pause_and_refuses_a_corner_without_one(skel):
+    """A pause given as two waypoints turns once across both (no frame turns far); a corner with no pause is
+    refused, naming the waypoint; a path of one waypoint stands there."""
+    import math
+
+    fps = 10.0
+    a = procedural_motion(skel, "walk", 3.0, fps, 0.0, ((0, 0, 0), (1, 1, 0), (1.5, 1, 0), (2, 1, 0), (3, 0, 0)))
+    heading = a[:, skel.dof_names.index("root_rz")]
+    assert float((heading[1:] - heading[:-1]).abs().max()) < math.radians(30)
+    assert float(heading[-1] - heading[0]) == pytest.approx(math.pi, abs=1e-5)
+    with pytest.raises(InputError, match=r"turns at waypoint 1 \(1, 1, 0\) without a pause"):
+        procedural_motion(skel, "walk", 2.0, fps, 0.0, ((0, 0, 0), (1, 1, 0), (2, 1, 1)))
+    still = procedural_motion(skel, "walk", 1.0, fps, 0.5, ((1.0, 0.5, -0.5),))
+    torch.testing.assert_close(still[:, :2], torch.tensor([0.5, -0.5]).expand(still.shape[0], 2))

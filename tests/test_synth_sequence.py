@@ -243,6 +243,7 @@ def test_a_kept_capture_sequence_goes_stale_when_the_retargeting_changes(tmp_pat
 def test_a_kept_walk_on_a_path_goes_stale_when_the_path_walk_changes(tmp_path, monkeypatch):
     """A walk on a path is current for its config until ``PATH_WALK_REVISION`` changes (a sequence kept from when
     the walk was carried along its path is not current); a walk without a path does not depend on it."""
+    from torchtrack.skeleton import Skeleton
     from torchtrack.synth import sequence as synth_sequence
 
     walk = _cfg(motion="walk", duration_s=0.2, starfish_s=0.0, path=((0.0, 0.0, 0.0), (0.2, 0.3, 0.0)))
@@ -250,6 +251,9 @@ def test_a_kept_walk_on_a_path_goes_stale_when_the_path_walk_changes(tmp_path, m
     circle = write_sequence(_cfg(motion="walk", duration_s=0.2, starfish_s=0.0), tmp_path / "circle",
                             progress=False)
     assert synth_sequence.is_current(written, walk)
+    # walked once, not also carried: the root ends on the last waypoint, not twice as far
+    skel, angles = synth_sequence.motion_angles(dataclasses.replace(walk, duration_s=1.0), Skeleton.from_urdf())
+    np.testing.assert_allclose(angles[-1, skel.dof_index(["root_tx", "root_ty"])].numpy(), [0.3, 0.0], atol=1e-6)
     monkeypatch.setattr(synth_sequence, "PATH_WALK_REVISION", synth_sequence.PATH_WALK_REVISION + 1)
     assert not synth_sequence.is_current(written, walk)
     assert synth_sequence.is_current(circle, _cfg(motion="walk", duration_s=0.2, starfish_s=0.0))

@@ -55,7 +55,7 @@ def _walk(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, radius_m: float = 0.
 
 #: The path walk's swings grow with the speed up to this (the circle walk's 1.6x), then its cadence does.
 PATH_WALK_MAX_SCALE = 1.6
-#: Turning on the spot steps too: a turn of this many rad/s strides as walking at 1 m/s does.
+#: Turning on the spot steps too: metres of stride a radian of turn (a turn of 4 rad/s strides as walking at 1 m/s).
 PATH_WALK_TURN_M = 0.25
 
 
@@ -68,25 +68,28 @@ def path_position(path: Sequence[Sequence[float]], t: torch.Tensor) -> tuple[tor
     if way.ndim != 2 or way.shape[1] != 3 or not bool((way[1:, 0] > way[:-1, 0]).all()):
         raise InputError(f"path: (time_s, x, y) waypoints in increasing time, got {path}")
     t = t.to(torch.float64)
-    seg = torch.searchsorted(way[:, 0].contiguous(), t).clamp(1, max(1, way.shape[0] - 1))  # (T,) segment end
+    if way.shape[0] == 1:  # one place, at all times
+        return way[:1, 1:].expand(t.shape[0], 2).clone(), torch.ones_like(t, dtype=torch.long), torch.zeros_like(t)
+    seg = torch.searchsorted(way[:, 0].contiguous(), t).clamp(1, way.shape[0] - 1)  # (T,) segment end
     t0, t1 = way[seg - 1, 0], way[seg, 0]
-    u = ((t - t0) / (t1 - t0).clamp(min=1e-9)).clamp(0, 1) if way.shape[0] > 1 else torch.zeros_like(t)
+    u = ((t - t0) / (t1 - t0).clamp(min=1e-9)).clamp(0, 1)
     u = u * u * (3 - 2 * u)
     return (1 - u)[:, None] * way[seg - 1, 1:] + u[:, None] * way[seg, 1:], seg, u
 
 
 def _path_heading(path: Sequence[Sequence[float]], seg: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """(T,) float64 the heading (rad, unwrapped) of a walker on ``path`` (:func:`path_position`'s ``seg`` and
-    ``u``): along each segment that moves; on a segment that stays (a pause), turning from the way they came to the
-    way they go next, the shorter way round (left on a half turn), as the segment's eased fraction ``u``; before
-    the first move and after the last, the nearest move's. A path that never moves faces +X."""
-    pts = [(float(p[1]), float(p[2])) for p in path]
-    moving = [k for k in range(len(pts) - 1) if math.dist(pts[k], pts[k + 1]) > 1e-9]
+    ``u``): along each segment that moves; over a pause (the segments that stay between two moves, as one), turning
+    from the way they came to the way they go next, the shorter way round (left on a half turn), as each segment's
+    eased fraction ``u`` of its share of the pause's time; before the first move and after the last, the nearest
+    move's. A path that never moves faces +X. (:func:`walks_path` refuses a turn without a pause.)"""
+    way = [(float(p[0]), float(p[1]), float(p[2])) for p in path]
+    moving = [k for k in range(len(way) - 1) if math.dist(way[k][1:], way[k + 1][1:]) > 1e-9]
     if not moving:
         return torch.zeros_like(u)
     unwrapped: dict[int, float] = {}
     for i, k in enumerate(moving):  # each move's direction, continued from the one before
-        along = math.atan2(pts[k + 1][1] - pts[k][1], pts[k + 1][0] - pts[k][0])
+        along = math.atan2(way[k + 1][2] - way[k][2], way[k + 1][1] - way[k][1])
         if i == 0:
             unwrapped[k] = along
             continue
@@ -94,11 +97,18 @@ def _path_heading(path: Sequence[Sequence[float]], seg: torch.Tensor, u: torch.T
         turn = math.remainder(along - before, 2 * math.pi)
         unwrapped[k] = before + (math.pi if turn <= -math.pi + 1e-9 else turn)
     enter, leave = [], []  # (P - 1,) each segment's heading at its start and end
-    for k in range(len(pts) - 1):
+    for k in range(len(way) - 1):
         came = max((m for m in moving if m <= k), default=moving[0])
         goes = min((m for m in moving if m >= k), default=moving[-1])
-        enter.append(unwrapped[came])
-        leave.append(unwrapped[goes])
+        if came == goes:  # a move, or a pause before the first or after the last
+            enter.append(unwrapped[came])
+            leave.append(unwrapped[came])
+            continue
+        start, end = way[came + 1][0], way[goes][0]  # the pause's time, all its segments
+        f0, f1 = (way[k][0] - start) / (end - start), (way[k + 1][0] - start) / (end - start)
+        turn = unwrapped[goes] - unwrapped[came]
+        enter.append(unwrapped[came] if k == came + 1 else unwrapped[came] + f0 * turn)
+        leave.append(unwrapped[goes] if k + 1 == goes else unwrapped[came] + f1 * turn)
     enter_t, leave_t = (torch.tensor(v, dtype=torch.float64) for v in (enter, leave))
     k = seg - 1
     return enter_t[k] + u * (leave_t[k] - enter_t[k])
@@ -215,9 +225,23 @@ def with_starfish_start(skel: Skeleton, motion: torch.Tensor, fps: float, starfi
 
 
 def walks_path(kind: str, path: Sequence[Sequence[float]]) -> bool:
-    """Whether motion ``kind`` on ``path`` walks it (the walk: facing the way it goes, its feet planted) rather than
-    being carried along it by an offset (every other motion)."""
-    return kind == "walk" and len(path) > 0
+    """Whether motion ``kind`` on ``path`` walks it (the walk: facing the way it goes, stepping as it goes) rather
+    than being carried along it by an offset (every other motion).
+
+    Raises:
+        InputError: a walk's path that changes direction at a waypoint without a pause there (the walker stops at
+            every waypoint and turns on the spot where it stays: repeat the corner at a later time).
+    """
+    if kind != "walk" or not path:
+        return False
+    pts = [(float(p[1]), float(p[2])) for p in path]
+    moves = [(k, math.atan2(b[1] - a[1], b[0] - a[0])) for k, (a, b) in enumerate(zip(pts, pts[1:]))
+             if math.dist(a, b) > 1e-9]
+    for (k, a), (m, b) in zip(moves, moves[1:]):
+        if m == k + 1 and abs(math.remainder(b - a, 2 * math.pi)) > 1e-6:
+            raise InputError(f"path: the walk turns at waypoint {m} {tuple(path[m])} without a pause there; repeat "
+                             f"that waypoint at a later time for the walker to turn in")
+    return True
 
 
 def procedural_motion(skel: Skeleton, kind: str, duration_s: float, fps: float, starfish_s: float = 1.0,

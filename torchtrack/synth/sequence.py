@@ -159,8 +159,9 @@ class SynthConfig:
         starfish_arms, starfish_legs: the starfish's arm and leg abduction (rad), its style.
         path: ``(time_s, x, y)`` waypoints (m), eased between waypoints (smoothstep), held before the first and
             after the last; times from the sequence's start, starfish included. The walk walks it, facing the way
-            it goes and turning where it pauses; any other motion is carried over the floor by this offset from
-            where the motion puts it. Empty: no path.
+            it goes, stopping at each waypoint and turning where it pauses (its starfish stands where the path is
+            when the starfish ends); any other motion is carried over the floor by this offset from where the
+            motion puts it. Empty: no path.
         markers: coloured balls on the body (:mod:`torchtrack.synth.markers`), for the colour marker detector:
             gt.npz then also holds their centres and visible pixels, and ``marker_labels.csv`` the labels of frame 0
             as a person would click them. None: no markers.
@@ -186,7 +187,7 @@ class SynthConfig:
 
 def motion_angles(cfg: SynthConfig, skel: Skeleton) -> tuple[Skeleton, torch.Tensor]:
     """The skeleton (scaled to the subject, its bones as ``cfg.body`` says) and its (T, D) state vectors for
-    ``cfg.motion``, carried along ``cfg.path``."""
+    ``cfg.motion`` on ``cfg.path`` (the walk walks it, other motions are carried along it)."""
     style = {"arm_abduction": cfg.starfish_arms, "leg_abduction": cfg.starfish_legs}
     if cfg.motion in MOTIONS:
         skel = cfg.body.skeleton(skel.scaled_to_height(cfg.subject_height_m))
