@@ -55,8 +55,10 @@ def _walk(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, radius_m: float = 0.
 
 #: The path walk's swings grow with the speed up to this (the circle walk's 1.6x), then its cadence does.
 PATH_WALK_MAX_SCALE = 1.6
-#: Turning on the spot steps too: metres of stride a radian of turn (a turn of 4 rad/s strides as walking at 1 m/s).
+#: Turning on the spot steps too: metres of stride a radian of turn (a turn of 4 rad/s strides as walking at 1 m/s),
+#: in short steps: at most the stride of walking at PATH_WALK_TURN_MAX_M_S.
 PATH_WALK_TURN_M = 0.25
+PATH_WALK_TURN_MAX_M_S = 0.45
 
 
 def path_position(path: Sequence[Sequence[float]], t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor,
@@ -123,7 +125,7 @@ def _walk_path(skel: Skeleton, t: torch.Tensor, a: torch.Tensor, path: Sequence[
     dt = float(t[1] - t[0]) if t.shape[0] > 1 else 1.0
     speed = torch.gradient(pos, spacing=dt, dim=0)[0].norm(dim=-1) if t.shape[0] > 1 else torch.zeros_like(u)
     omega = torch.gradient(heading, spacing=dt)[0].abs() if t.shape[0] > 1 else torch.zeros_like(u)
-    pace = speed + PATH_WALK_TURN_M * omega  # (T,) m/s the legs stride at
+    pace = speed + (PATH_WALK_TURN_M * omega).clamp(max=PATH_WALK_TURN_MAX_M_S)  # (T,) m/s the legs stride at
     scale = (pace / WALK_SPEED_M_S).clamp(max=PATH_WALK_MAX_SCALE)
     # the circle walk strides WALK_SPEED_M_S * WALK_CYCLE_S a cycle at scale 1, proportionally at other scales
     rate = 2 * math.pi / WALK_CYCLE_S * torch.where(scale > 1e-6, pace / (WALK_SPEED_M_S * scale.clamp(min=1e-6)),

@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 
 #: The walk on a path (:func:`~torchtrack.synth.motion.walks_path`) in meta.toml's ``[synth]`` table, so that a
 #: sequence kept from before it (the circle walk carried along the path, its feet sliding) goes stale.
-PATH_WALK_REVISION = 1
+PATH_WALK_REVISION = 2
 
 
 @dataclass(frozen=True)
