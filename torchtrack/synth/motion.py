@@ -79,6 +79,14 @@ def path_position(path: Sequence[Sequence[float]], t: torch.Tensor) -> tuple[tor
     return (1 - u)[:, None] * way[seg - 1, 1:] + u[:, None] * way[seg, 1:], seg, u
 
 
+def _moves(path: Sequence[Sequence[float]]) -> list[tuple[int, float]]:
+    """The segments of ``path`` that move (k: from waypoint k to k + 1) and each one's direction (rad): a few
+    waypoints, read on the host."""
+    pts = [(float(p[1]), float(p[2])) for p in path]
+    return [(k, math.atan2(b[1] - a[1], b[0] - a[0])) for k, (a, b) in enumerate(zip(pts, pts[1:]))
+            if math.dist(a, b) > 1e-9]
+
+
 def _path_heading(path: Sequence[Sequence[float]], seg: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     """(T,) float64 the heading (rad, unwrapped) of a walker on ``path`` (:func:`path_position`'s ``seg`` and
     ``u``): along each segment that moves; over a pause (the segments that stay between two moves, as one), turning
@@ -86,12 +94,12 @@ def _path_heading(path: Sequence[Sequence[float]], seg: torch.Tensor, u: torch.T
     eased fraction ``u`` of its share of the pause's time; before the first move and after the last, the nearest
     move's. A path that never moves faces +X. (:func:`walks_path` refuses a turn without a pause.)"""
     way = [(float(p[0]), float(p[1]), float(p[2])) for p in path]
-    moving = [k for k in range(len(way) - 1) if math.dist(way[k][1:], way[k + 1][1:]) > 1e-9]
+    moves = _moves(path)
+    moving = [k for k, _ in moves]
     if not moving:
         return torch.zeros_like(u)
     unwrapped: dict[int, float] = {}
-    for i, k in enumerate(moving):  # each move's direction, continued from the one before
-        along = math.atan2(way[k + 1][2] - way[k][2], way[k + 1][1] - way[k][1])
+    for i, (k, along) in enumerate(moves):  # each move's direction, continued from the one before
         if i == 0:
             unwrapped[k] = along
             continue
@@ -236,9 +244,7 @@ def walks_path(kind: str, path: Sequence[Sequence[float]]) -> bool:
     """
     if kind != "walk" or not path:
         return False
-    pts = [(float(p[1]), float(p[2])) for p in path]
-    moves = [(k, math.atan2(b[1] - a[1], b[0] - a[0])) for k, (a, b) in enumerate(zip(pts, pts[1:]))
-             if math.dist(a, b) > 1e-9]
+    moves = _moves(path)
     for (k, a), (m, b) in zip(moves, moves[1:]):
         if m == k + 1 and abs(math.remainder(b - a, 2 * math.pi)) > 1e-6:
             raise InputError(f"path: the walk turns at waypoint {m} {tuple(path[m])} without a pause there; repeat "
