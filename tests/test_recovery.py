@@ -366,3 +366,56 @@ def test_the_image_hold_tests_many_trackers_at_once_as_each_alone(skel):
         assert (alone is not None) == bool(hold[k]), k
         if alone is not None:
             torch.testing.assert_close(predicted[k], alone, rtol=0, atol=1e-12)
+
+
+def _checked_run(skel, turned: bool, unchecked: int, narrow: int = 0):
+    """A walker (its circle in the middle of a 4.8 m volume) tracked from a re-acquired pose on its first frame
+    (its true pose, or turned round: the heading a re-acquisition at the volume's edge guessed wrong) with
+    ``unchecked`` frames of the re-acquisition's check left; on the first ``narrow`` frames the observed volume's
+    side x passes through the walker's root (its voxels all kept: only where the search would look changes).
+    Returns the results, their errors (mean landmark distance to the truth, the poses' forward kinematics, m), the
+    frames the search ran on and the tracker."""
+    from torchtrack.tracking.poses import turned_round
+
+    subj = skel.scaled_to_height(1.75)
+    walk = procedural_motion(subj, "walk", 0.7, 30, starfish_s=0.0)
+    x = walk[:, list(skel.dof_names).index("root_tx")]
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.0, settle_back_s=0.0))
+    tracker.initialize_from_pose(turned_round(skel, walk[0]) if turned else walk[0], 1.75)
+    tracker.unchecked = unchecked
+    sub = tracker.subject
+    searched = []
+    search = tracker._searched
+    tracker._searched = lambda obs: searched.append(len(results)) or search(obs)
+    results = []
+    for t in range(1, walk.shape[0]):
+        side = float(x[t]) if t <= narrow else 2.4
+        obs = dataclasses.replace(_observation(sub.skeleton, sub.blobs, walk[t], cameras=8),
+                                  volume_m=((-2.4, -2.4, 0.0), (side, 2.4, 2.1)))
+        results.append(tracker.step(obs))
+    errors = [float((_landmarks(sub.skeleton, r.angles) - _landmarks(sub.skeleton, walk[t + 1])).norm(dim=-1).mean())
+              for t, r in enumerate(results)]
+    return results, errors, searched, tracker
+
+
+def test_a_reacquisition_turned_round_is_mended_by_its_check(skel):
+    """A re-acquisition the search had no answer for (``unchecked``) that faces the wrong way: the check runs the
+    search on the first frame and re-acquires from its answer, and from there the track is within 50 mm of the
+    truth. With no check left, the same track stays turned round (over 100 mm on every frame)."""
+    results, errors, searched, tracker = _checked_run(skel, turned=True, unchecked=30)
+    assert results[0].reinitialised and searched == [0] and tracker.unchecked == 0, searched
+    assert all(r.valid for r in results) and max(errors) < 0.05, errors
+    _, unmended, searched, _ = _checked_run(skel, turned=True, unchecked=0)
+    assert searched == [] and min(unmended) > 0.1, unmended
+
+
+def test_a_reacquisition_is_checked_once_the_body_is_inside_the_volume_and_a_right_one_stands(skel):
+    """The check of a re-acquisition that faces the right way: no search while the volume's side passes through
+    the body (half of it out, where the search does not look), one on the first frame it does not, and the track
+    stands (no frame re-initialised, every one from there within 50 mm of the truth). With the check's frames
+    spent while the body was out, no search at all."""
+    results, errors, searched, tracker = _checked_run(skel, turned=False, unchecked=30, narrow=5)
+    assert searched == [5] and tracker.unchecked == 0, searched
+    assert not any(r.reinitialised for r in results) and max(errors[5:]) < 0.05, errors
+    results, errors, searched, tracker = _checked_run(skel, turned=False, unchecked=4, narrow=5)
+    assert searched == [] and tracker.unchecked == 0 and max(errors[5:]) < 0.05, searched

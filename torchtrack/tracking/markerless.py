@@ -95,6 +95,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.colour: Blobs | None = None  # carries the learnt colour model
         self.lost = 0
         self.held = 0  # image_hold_s: frames in a row the images have held the body out of the observed volume
+        self.unchecked = 0  # frames left to check the last re-acquisition in (recovery.REACQUIRE_CHECK_S)
         self._unheld: list[VoxelObservation | None] = []  # image_hold_s: the invalid frames in a row up to this one
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
@@ -172,7 +173,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self._start_hips(learn=skeleton is None)
         self.angles = self.previous = angles.clone()
         self.colour = None
-        self.lost = self.held = 0
+        self.lost = self.held = self.unchecked = 0
         self._unheld = []
         self.hands_off = [0, 0]
         self._remember_feet()
@@ -410,15 +411,20 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         obs = self._without_floor_band(obs)  # the start keeps the floor's voxels (see config)
         if self.angles is not None and self.lost >= self.config.lost_frames:
             return self._reacquire(obs)
-        return self.accept(obs, self._track(obs, learn_colour=True,
-                                            max_rot=math.radians(self.config.max_root_rotation_deg)))
+        res = self._track(obs, learn_colour=True, max_rot=math.radians(self.config.max_root_rotation_deg))
+        if self.unchecked > 0 and self._race is None and not self._twin:
+            found = self._check_reacquired(obs, res)
+            if found is not None:
+                return found
+        return self.accept(obs, res)
 
     def routine_ready(self, obs: VoxelObservation) -> bool:
         """For a driver that runs the plain per-frame step itself (several sequences in lockstep,
         :class:`~torchtrack.tracking.lockstep.Lockstep`): False where this tracker's own state (not started, lost,
-        racing a start) or the voxels' count rules the plain step out and the frame goes through :meth:`step`;
-        else :func:`~torchtrack.tracking.recovery.routine_tests` decides, and :meth:`accept` takes the result."""
-        return not (self._race is not None or self.subject is None or self.angles is None
+        racing a start, a re-acquisition to check) or the voxels' count rules the plain step out and the frame goes
+        through :meth:`step`; else :func:`~torchtrack.tracking.recovery.routine_tests` decides, and :meth:`accept`
+        takes the result."""
+        return not (self._race is not None or self.subject is None or self.angles is None or self.unchecked > 0
                     or self.lost >= self.config.lost_frames or obs.num_observed < self.config.min_voxels)
 
     def routine_obs(self, obs: VoxelObservation) -> VoxelObservation:
