@@ -419,3 +419,25 @@ def test_a_reacquisition_is_checked_once_the_body_is_inside_the_volume_and_a_rig
     assert not any(r.reinitialised for r in results) and max(errors[5:]) < 0.05, errors
     results, errors, searched, tracker = _checked_run(skel, turned=False, unchecked=4, narrow=5)
     assert searched == [] and tracker.unchecked == 0 and max(errors[5:]) < 0.05, searched
+
+
+@pytest.mark.parametrize("recheck_s", [0.0, 2.0])
+def test_a_reacquisition_leaves_its_check_as_recheck_s_says(skel, recheck_s):
+    """A walker lost (a frame with nobody) and back: the re-acquisition leaves ``recheck_s`` of frames to check it
+    in (none with 0, the check off); a negative setting is refused, naming it."""
+    from torchtrack.checks import InputError
+
+    with pytest.raises(InputError, match="recheck_s"):
+        TrackerConfig(recheck_s=-1.0)
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
+    tracker = MarkerlessTracker(skel, TrackerConfig(recheck_s=recheck_s, start_race_s=0.0))
+    tracker.set_frame_rate(30.0)
+    tracker.initialize_from_pose(walk[0], 1.75)
+    nobody = _observation(subj, blobs, walk[1])
+    nobody = VoxelObservation(nobody.points[:0], nobody.sizes[:0], nobody.weights[:0], nobody.colours[:0],
+                              nobody.cameras_valid)
+    assert not tracker.step(nobody).valid and tracker.unchecked == 0
+    assert tracker.step(_observation(subj, blobs, walk[2])).reinitialised
+    assert tracker.unchecked == round(recheck_s * 30)

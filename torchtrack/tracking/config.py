@@ -74,6 +74,13 @@ class TrackerConfig:
             sooner is tracked back from its last frame, :meth:`MarkerlessTracker.finish`): the first frames after a
             re-acquisition at the volume's edge, tracked from a guess, are the track's worst
             (docs/results.md, "Robustness", the subject who leaves).
+        recheck_s: a re-acquisition is made where the body comes back, often at the observed volume's edge:
+            partly out of it, where the search does not look (its fits then come from the last good pose alone,
+            facing the way the subject left), or seen by few cameras, where the search's answer is a guess too. For
+            up to this long after its start race, the first frame whose tracked body lies within the volume (as the
+            search asks, ``START_MAX_OUTSIDE``) runs the search once more, and its answer replaces the track (as a
+            re-acquisition, with its race) where its two-way score is higher by more than
+            ``REACQUIRE_SCORE_MARGIN`` (0: off; docs/results.md, "The re-acquisition's check").
         image_hold_s: a body that walks out of the observed volume (where fewer cameras see it than the grid asks
             for, ``observation.min_views``), whose voxels are gone or cut off, is tracked for up to this long in
             the images of the cameras that still show it (:func:`~torchtrack.tracking.search.search_near_in_images`
@@ -180,6 +187,7 @@ class TrackerConfig:
     start_prior_exclude: tuple[str, ...] = ()
     start_race_s: float = 0.5
     settle_back_s: float = 1.0
+    recheck_s: float = 2.0
     image_hold_s: float = 0.0
     image_hold_min_cameras: int = 3
     image_hold_confidence: float = 0.5
@@ -216,6 +224,8 @@ class TrackerConfig:
         if not 0 <= self.settle_back_s < math.inf:
             raise InputError(f"TrackerConfig.settle_back_s must be a number of seconds >= 0, got "
                              f"{self.settle_back_s}")
+        if not 0 <= self.recheck_s < math.inf:
+            raise InputError(f"TrackerConfig.recheck_s must be a number of seconds >= 0, got {self.recheck_s}")
         if not 0 <= self.image_hold_s < math.inf:
             raise InputError(f"TrackerConfig.image_hold_s must be a number of seconds >= 0, got {self.image_hold_s}")
         if isinstance(self.image_hold_min_cameras, bool) or not isinstance(self.image_hold_min_cameras, int) or \

@@ -95,7 +95,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.colour: Blobs | None = None  # carries the learnt colour model
         self.lost = 0
         self.held = 0  # image_hold_s: frames in a row the images have held the body out of the observed volume
-        self.unchecked = 0  # frames left to check the last re-acquisition in (recovery.REACQUIRE_CHECK_S)
+        self.unchecked = 0  # frames left to check the last re-acquisition in (TrackerConfig.recheck_s)
         self._unheld: list[VoxelObservation | None] = []  # image_hold_s: the invalid frames in a row up to this one
         self.height_m: float | None = None
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)

@@ -27,13 +27,6 @@ REACQUIRE_SEARCH_EVERY = 5
 #: heading or pose from the right one, but it also prefers a limb no view shows (a stance leg learnt into the
 #: background) moved onto voxels; the fit cost leaves such a limb where the pose puts it.
 REACQUIRE_SCORE_MARGIN = 0.05
-#: A re-acquisition is made where the body comes back, often at the observed volume's edge: partly out of it, where
-#: the search does not look (its fits then come from the last good pose alone, facing the way the subject left),
-#: or seen by few cameras, where the search's answer is a guess too. For this long after its start race, the
-#: first frame whose tracked body lies within the volume (as the search asks, ``START_MAX_OUTSIDE``) runs the
-#: search once more, and its answer replaces the track where it scores clearly higher (docs/results.md, "The
-#: re-acquisition's check").
-REACQUIRE_CHECK_S = 2.0
 #: ``image_hold_s``: the images hold a body whose voxels the observed volume's sides cut (at least this share of
 #: the weight of the voxels within IMAGE_HOLD_NEAR_M of its predicted blobs' centres, along the floor, lie within
 #: two voxels of a side: a body's cross-section is a tenth or so of it) or whose predicted blobs' centres lie out
@@ -192,7 +185,7 @@ class RecoveryMixin:
         do not diverge, those within REACQUIRE_SCORE_MARGIN of the best two-way score (EM/IK's residual alone
         cannot tell a body turned a quarter or half round from the right one) compete by the fit cost; the winner
         races its twin turned round as a start does (``start_race_s``). The colour model goes: the fits go without
-        it and the re-acquired frame learns it afresh. The re-acquisition is checked later (REACQUIRE_CHECK_S)."""
+        it and the re-acquired frame learns it afresh. The re-acquisition is checked later (``recheck_s``)."""
         from torchtrack.tracking.search import score_states
 
         pts, w = obs.points, obs.weights
@@ -218,7 +211,7 @@ class RecoveryMixin:
         log.debug("re-acquisition: %d of %d fits hold, scores %s; fit costs %s mm", len(held), len(fits),
                   " ".join(f"{float(x):.3f}" for x in score), " ".join(f"{1e3 * self._fit_cost(r):.1f}" for r in held))
         close = [r for r, x in zip(held, score.tolist()) if x >= float(score.max()) - REACQUIRE_SCORE_MARGIN]
-        self.unchecked = self._race_frames(REACQUIRE_CHECK_S)
+        self.unchecked = self._race_frames(self.config.recheck_s) if self.config.recheck_s > 0 else 0
         return self._take(obs, min(close, key=self._fit_cost))
 
     def _take(self, obs: VoxelObservation, best: FrameResult) -> FrameResult:
@@ -237,7 +230,7 @@ class RecoveryMixin:
         return best
 
     def _check_reacquired(self, obs: VoxelObservation, res: FrameResult) -> FrameResult | None:
-        """REACQUIRE_CHECK_S, on a frame after a re-acquisition, ``res`` this frame's plain track: once the tracked
+        """``recheck_s``, on a frame after a re-acquisition, ``res`` this frame's plain track: once the tracked
         body lies within the observed volume, the search's answer (:meth:`_searched`) where its two-way score beats
         ``res``'s by more than REACQUIRE_SCORE_MARGIN, taken as a re-acquisition; else None (``res`` stands), and
         the check is over. Only a clear win replaces a track that holds (within the margin, the re-acquisition's fit
