@@ -196,7 +196,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None
-        self.lost = self.held = 0
+        self.lost = self.held = self.unchecked = 0
         self._unheld = []
         self.hands_off = [0, 0]
 
