@@ -3,10 +3,11 @@
 Each sequence keeps its own :class:`~torchtrack.tracking.markerless.MarkerlessTracker` (its subject, pose, colour
 model, held feet, counters). Per frame, the trackers whose frame needs only the plain step
 (:meth:`~MarkerlessTracker.routine_ready`, :func:`~torchtrack.tracking.recovery.routine_tests`: started, not lost,
-not racing a start, someone there, the images not holding the body) advance together in one
-:func:`~torchtrack.tracking.step.track_step` over their stacked subjects and padded voxels, and each takes in its
-row (:meth:`~MarkerlessTracker.accept`); the others (a start, a re-acquisition, a start race, nobody there, a body
-the images hold, an unreadable frame) take their own :meth:`~MarkerlessTracker.step`, as alone. The tests that need
+not racing a start, no re-acquisition left to check, someone there, the images not holding the body) advance
+together in one :func:`~torchtrack.tracking.step.track_step` over their stacked subjects and padded voxels, and each
+takes in its row (:meth:`~MarkerlessTracker.accept`); the others (a start, a re-acquisition, a start race, a
+re-acquisition being checked, nobody there, a body the images hold, an unreadable frame) take their own
+:meth:`~MarkerlessTracker.step`, as alone. The tests that need
 the device run on the batched step's own prediction and are read with its results, in the one read of the frame
 (the root fit's SVD waits on a GPU too: :mod:`~torchtrack.tracking.step`).
 Each sequence's track is the one it gets alone, up to floating-point rounding (tests/test_lockstep.py).

@@ -11,6 +11,7 @@ from dataclasses import replace
 
 import torch
 
+from torchtrack.tracking.race import fits_better
 from torchtrack.tracking.start import START_MAX_OUTSIDE
 from torchtrack.tracking.step import FrameResult, SubjectStack, host_tensor, pad_rows
 from torchtrack.tracking.voxels import VoxelObservation
@@ -230,30 +231,36 @@ class RecoveryMixin:
         return best
 
     def _check_reacquired(self, obs: VoxelObservation, res: FrameResult) -> FrameResult | None:
-        """``recheck_s``, on a frame after a re-acquisition, ``res`` this frame's plain track: once the tracked
-        body lies within the observed volume, the search's answer (:meth:`_searched`) where its two-way score beats
-        ``res``'s by more than REACQUIRE_SCORE_MARGIN, taken as a re-acquisition; else None (``res`` stands), and
-        the check is over. Only a clear win replaces a track that holds (within the margin, the re-acquisition's fit
-        cost rule would swap a right track for an equal answer)."""
+        """``recheck_s``, on a frame after a re-acquisition, ``res`` this frame's plain track. A frame where ``res``
+        diverges or the tracked body lies partly out of the observed volume (where the search does not look) uses
+        up one frame of the check and leaves it pending. Else the search runs (:meth:`_searched`) and the check is
+        over: its answer is taken as a re-acquisition where it fits better than ``res`` by the start race's rule
+        (:func:`~torchtrack.tracking.race.fits_better`: the two-way score and the fit cost; on a few views' hull
+        the score alone can prefer a wrong body); else None, and ``res`` stands. The frames since the
+        re-acquisition it mends are tracked back with those after it (``settle_back_s``)."""
         from torchtrack.tracking.search import score_states
 
         self.unchecked -= 1
         if self._diverging(res):
             return None
-        outside = float(score_states(obs, self.subject.skeleton, self.subject.blobs, res.angles[None])[3][0])
-        if outside > START_MAX_OUTSIDE:  # the search would not look there yet: a later frame checks
+        skel, blobs = self.subject.skeleton, self.subject.blobs
+        if float(score_states(obs, skel, blobs, res.angles[None])[3][0]) > START_MAX_OUTSIDE:
             return None
         self.unchecked = 0
         kept = self.angles, self.previous, self.colour
         self.colour = None  # the search's fits go without it, as a re-acquisition's do
-        found = self._searched(obs)
-        self.angles, self.previous, self.colour = kept
+        try:
+            found = self._searched(obs)
+        finally:
+            self.angles, self.previous, self.colour = kept
         if found is None or self._diverging(found):
             return None
-        score = score_states(obs, self.subject.skeleton, self.subject.blobs, torch.stack([res.angles, found.angles]))[0]
-        log.debug("re-acquisition check: the track scores %.3f, the search's answer %.3f", *score.tolist())
-        if float(score[1]) <= float(score[0]) + REACQUIRE_SCORE_MARGIN:  # the track holds its own: it stands
+        score = score_states(obs, skel, blobs, torch.stack([res.angles, found.angles]))[0]
+        log.debug("re-acquisition check: the track scores %.3f, the search's answer %.3f; fit costs %.1f / %.1f mm",
+                  *score.tolist(), 1e3 * self._fit_cost(res), 1e3 * self._fit_cost(found))
+        if not fits_better(float(score[0]), self._fit_cost(res), float(score[1]), self._fit_cost(found)):
             return None
+        self._mends = True
         return self._take(obs, found)
 
 
