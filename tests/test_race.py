@@ -64,12 +64,13 @@ def test_a_reacquisition_turned_round_loses_its_race(skel, monkeypatch, race_s):
     round just before the re-acquired frame learns its colours): the race that the re-acquisition starts tracks
     the right way round beside it and wins after start_race_s, its frames replacing the backwards ones from the
     re-acquired frame on, all within 50 mm of the truth (ground truth: the walk's forward kinematics). With the
-    race off the track stays backwards."""
+    race off the track stays backwards (the re-acquisition's check off, which would mend it too:
+    tests/test_recovery.py)."""
 
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 2.0, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s))
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=race_s, recheck_s=0.0))
     tracker.set_frame_rate(30.0)
     for t in range(30):  # the start and its own race, over before the loss
         tracker.step(_observation(subj, blobs, walk[t]))

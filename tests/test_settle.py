@@ -33,13 +33,14 @@ def _track_reacquired(skel: Skeleton, monkeypatch, settle_s: float, frames: int 
                       finish: bool = False) -> tuple[list, np.ndarray, list[int]]:
     """A walker tracked for 1 s, lost for three frames, back with the re-acquired pose's right arm raised wrongly
     (just before the re-acquired frame learns its colours); the next ``frames`` (at 30 frames/s) tracked with
-    ``settle_back_s = settle_s`` (the start race off, to leave the settle-back alone), then, with ``finish``, the
+    ``settle_back_s = settle_s`` (the start race and the re-acquisition's check off, to leave the settle-back
+    alone), then, with ``finish``, the
     sequence ended (:meth:`MarkerlessTracker.finish`). Returns the results after revisions, each frame's MPJPE (m)
     against the walk's forward kinematics, and the lengths of the revisions."""
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 2.5, 30, starfish_s=0.0)
-    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.0, settle_back_s=settle_s))
+    tracker = MarkerlessTracker(skel, TrackerConfig(start_race_s=0.0, settle_back_s=settle_s, recheck_s=0.0))
     tracker.set_frame_rate(30.0)
     for t in range(30):
         assert tracker.step(_observation(subj, blobs, walk[t])).valid
