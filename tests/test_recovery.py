@@ -421,18 +421,17 @@ def test_a_reacquisition_turned_round_is_mended_by_its_check(skel):
 
 
 def test_a_check_that_mends_a_reacquisition_tracks_back_the_frames_since(skel):
-    """A track that faces the wrong way with the check pending, half out of the volume for its first 5 frames,
+    """A track that faces the wrong way with the check pending, half out of the volume for its first 3 frames,
     with the start race and the track back on: the check waits for the body to come inside (the search runs once,
     there), its re-acquisition races its twin, and the frames since the first one are tracked back from the
-    mended track: the 5 frames before the check come within 160 mm of the truth (the backward track loses
-    accuracy as the body goes out of the volume), where without the check they stay turned round (over 250 mm),
-    and every frame from the check on within 50 mm."""
-    results, errors, searched, tracker = _checked_run(skel, turned=True, unchecked=60, narrow=5, race_and_settle=True)
-    assert searched == [5], searched
+    mended track: the 3 frames before the check within 80 mm of the truth, where without the check they stay
+    turned round (over 250 mm), and every frame from the check on within 50 mm."""
+    results, errors, searched, tracker = _checked_run(skel, turned=True, unchecked=60, narrow=3, race_and_settle=True)
+    assert searched == [3], searched
     assert not tracker.racing and not tracker.settling
-    assert all(r.valid for r in results) and max(errors[:5]) < 0.16 and max(errors[5:]) < 0.05, errors
-    _, unmended, searched, _ = _checked_run(skel, turned=True, unchecked=0, narrow=5, race_and_settle=True)
-    assert searched == [] and min(unmended[:5]) > 0.25, unmended
+    assert all(r.valid for r in results) and max(errors[:3]) < 0.08 and max(errors[3:]) < 0.05, errors
+    _, unmended, searched, _ = _checked_run(skel, turned=True, unchecked=0, narrow=3, race_and_settle=True)
+    assert searched == [] and min(unmended[:3]) > 0.25, unmended
 
 
 def test_a_reacquisition_is_checked_once_the_body_is_inside_the_volume_and_a_right_one_stands(skel):

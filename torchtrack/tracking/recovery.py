@@ -11,7 +11,6 @@ from dataclasses import replace
 
 import torch
 
-from torchtrack.tracking.race import fits_better
 from torchtrack.tracking.start import START_MAX_OUTSIDE
 from torchtrack.tracking.step import FrameResult, SubjectStack, host_tensor, pad_rows
 from torchtrack.tracking.voxels import VoxelObservation
@@ -234,10 +233,11 @@ class RecoveryMixin:
         """``recheck_s``, on a frame after a re-acquisition, ``res`` this frame's plain track. A frame where ``res``
         diverges or the tracked body lies partly out of the observed volume (where the search does not look) uses
         up one frame of the check and leaves it pending. Else the search runs (:meth:`_searched`) and the check is
-        over: its answer is taken as a re-acquisition where it fits better than ``res`` by the start race's rule
-        (:func:`~torchtrack.tracking.race.fits_better`: the two-way score and the fit cost; on a few views' hull
-        the score alone can prefer a wrong body); else None, and ``res`` stands. The frames since the
-        re-acquisition it mends are tracked back with those after it (``settle_back_s``)."""
+        over: its answer is taken as a re-acquisition where its two-way score beats ``res``'s by more than
+        REACQUIRE_SCORE_MARGIN and its fit cost is no higher (a clear win only: a track that holds stands against an
+        equal answer, and on a few views' hull the score alone can prefer a wrong body); else None, and ``res``
+        stands. The frames since the re-acquisition it mends are tracked back with those after it
+        (``settle_back_s``)."""
         from torchtrack.tracking.search import score_states
 
         self.unchecked -= 1
@@ -258,7 +258,7 @@ class RecoveryMixin:
         score = score_states(obs, skel, blobs, torch.stack([res.angles, found.angles]))[0]
         log.debug("re-acquisition check: the track scores %.3f, the search's answer %.3f; fit costs %.1f / %.1f mm",
                   *score.tolist(), 1e3 * self._fit_cost(res), 1e3 * self._fit_cost(found))
-        if not fits_better(float(score[0]), self._fit_cost(res), float(score[1]), self._fit_cost(found)):
+        if float(score[1]) <= float(score[0]) + REACQUIRE_SCORE_MARGIN or self._fit_cost(found) > self._fit_cost(res):
             return None
         self._mends = True
         return self._take(obs, found)
