@@ -79,9 +79,9 @@ class TrackerConfig:
             facing the way the subject left), or seen by few cameras, where the search's answer is a guess too. For
             up to this long after its start race, the first frame whose tracked body lies within the volume (as the
             search asks, ``START_MAX_OUTSIDE``) runs the search once more, and its answer replaces the track (as a
-            re-acquisition, with its race; the frames since the first re-acquisition tracked back with it,
-            ``settle_back_s``) where its two-way score is higher by more than ``REACQUIRE_SCORE_MARGIN`` and its fit
-            cost no higher (0: off; docs/results.md, "The re-acquisition's check").
+            re-acquisition, with its race) where its two-way score is higher by more than
+            ``REACQUIRE_SCORE_MARGIN`` and its fit cost no higher (0: off; docs/results.md, "The re-acquisition's
+            check").
         image_hold_s: a body that walks out of the observed volume (where fewer cameras see it than the grid asks
             for, ``observation.min_views``), whose voxels are gone or cut off, is tracked for up to this long in
             the images of the cameras that still show it (:func:`~torchtrack.tracking.search.search_near_in_images`

@@ -120,7 +120,6 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self._twin = False  # this tracker races another's start (it starts no race of its own)
         # settle_back_s: the frames since the last start or re-acquisition, each (observation, result, body version)
         self._settle: list[tuple[VoxelObservation, FrameResult, int]] | None = None
-        self._mends = False  # this frame's re-acquisition mends the last one (recheck_s): _settle goes on
 
     @property
     def _step_config(self) -> StepConfig:

@@ -236,8 +236,7 @@ class RecoveryMixin:
         over: its answer is taken as a re-acquisition where its two-way score beats ``res``'s by more than
         REACQUIRE_SCORE_MARGIN and its fit cost is no higher (a clear win only: a track that holds stands against an
         equal answer, and on a few views' hull the score alone can prefer a wrong body); else None, and ``res``
-        stands. The frames since the re-acquisition it mends are tracked back with those after it
-        (``settle_back_s``)."""
+        stands."""
         from torchtrack.tracking.search import score_states
 
         self.unchecked -= 1
@@ -260,7 +259,6 @@ class RecoveryMixin:
                   *score.tolist(), 1e3 * self._fit_cost(res), 1e3 * self._fit_cost(found))
         if float(score[1]) <= float(score[0]) + REACQUIRE_SCORE_MARGIN or self._fit_cost(found) > self._fit_cost(res):
             return None
-        self._mends = True
         return self._take(obs, found)
 
 

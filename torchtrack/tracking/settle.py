@@ -45,15 +45,13 @@ class SettleMixin:
     def _settle_step(self, obs: VoxelObservation, res: FrameResult, version: int) -> None:
         """Called with each frame's result as the tracker returns it (:meth:`step`, or a lockstep driver after
         :meth:`accept`) and the body version it was tracked in: a start or re-acquisition opens the frames to track
-        back (kept by a re-acquisition that mends the last one, ``recheck_s``), an invalid frame drops them (the
-        track did not hold), and once ``settle_back_s`` of them held, no start race is on and no check is pending,
-        they are tracked back (:meth:`_settle_back`). A start race's revision (:attr:`_revised`,
+        back, an invalid frame drops them (the track did not hold), and once ``settle_back_s`` of them held and no
+        start race is on, they are tracked back (:meth:`_settle_back`). A start race's revision (:attr:`_revised`,
         the twin's frames up to this one) takes the place of the frames it revises."""
         if self._twin or self.config.settle_back_s <= 0:
             return
-        if res.valid and res.reinitialised and not (self._mends and self._settle is not None):
-            self._settle = []  # a re-acquisition that mends the last one (recheck_s) keeps the frames since that one
-        self._mends = False
+        if res.valid and res.reinitialised:
+            self._settle = []
         if self._settle is None:
             return
         entry = [(obs, res, version)]
@@ -66,8 +64,7 @@ class SettleMixin:
             self._settle = None
             return
         self._settle += entry
-        if (self._race is None and self.unchecked == 0  # a pending check may yet mend the frames
-                and len(self._settle) >= self._race_frames(self.config.settle_back_s)):
+        if self._race is None and len(self._settle) >= self._race_frames(self.config.settle_back_s):
             self._settle_back()
 
     def _settle_revised(self) -> None:
