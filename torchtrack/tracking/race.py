@@ -41,14 +41,6 @@ START_RACE_MOVED_M = 0.1
 START_RACE_WAIT_S = 2.0
 
 
-def fits_better(score: float, cost: float, other_score: float, other_cost: float) -> bool:
-    """The start race's rule: a body with two-way score ``other_score`` and fit cost ``other_cost`` fits better
-    than one with ``score``, ``cost``: a lower cost, a score not lower by more than START_RACE_MARGIN, and one of
-    the two clearly better (the score by START_RACE_MARGIN, or the cost by START_RACE_COST_RATIO)."""
-    return other_cost < cost and other_score >= score - START_RACE_MARGIN and (
-        other_score > score + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * cost)
-
-
 @dataclass
 class _Race:
     """A start race in progress: the twin tracker (started turned round), the frames left, each side's scores and
@@ -125,7 +117,8 @@ class RaceMixin:
         log.debug("start race over %d frames (decided on the last %d, the body moved on frame %s): the search's start "
                   "scores %.3f, turned round %.3f; fit cost %.1f / %.1f mm", len(race.results), len(fits),
                   race.moved_at, own, other, 1e3 * own_cost, 1e3 * other_cost)
-        if fits_better(own, own_cost, other, other_cost):
+        if other_cost < own_cost and other >= own - START_RACE_MARGIN and (
+                other > own + START_RACE_MARGIN or other_cost < START_RACE_COST_RATIO * own_cost):
             revised, settle, unheld = race.results, self._settle, self._unheld
             self.__dict__.update(race.twin.__dict__)  # this tracker goes on as the twin
             self._race, self._revised, self._twin, self._settle, self._unheld = None, revised, False, settle, unheld

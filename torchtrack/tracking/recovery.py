@@ -243,7 +243,8 @@ class RecoveryMixin:
         if self._diverging(res):
             return None
         skel, blobs = self.subject.skeleton, self.subject.blobs
-        if float(score_states(obs, skel, blobs, res.angles[None])[3][0]) > START_MAX_OUTSIDE:
+        own, _, _, outside = score_states(obs, skel, blobs, res.angles[None])
+        if float(outside[0]) > START_MAX_OUTSIDE:
             return None
         self.unchecked = 0
         kept = self.angles, self.previous, self.colour
@@ -254,10 +255,10 @@ class RecoveryMixin:
             self.angles, self.previous, self.colour = kept
         if found is None or self._diverging(found):
             return None
-        score = score_states(obs, skel, blobs, torch.stack([res.angles, found.angles]))[0]
+        other = score_states(obs, skel, blobs, found.angles[None])[0]
         log.debug("re-acquisition check: the track scores %.3f, the search's answer %.3f; fit costs %.1f / %.1f mm",
-                  *score.tolist(), 1e3 * self._fit_cost(res), 1e3 * self._fit_cost(found))
-        if float(score[1]) <= float(score[0]) + REACQUIRE_SCORE_MARGIN or self._fit_cost(found) > self._fit_cost(res):
+                  float(own[0]), float(other[0]), 1e3 * self._fit_cost(res), 1e3 * self._fit_cost(found))
+        if float(other[0]) <= float(own[0]) + REACQUIRE_SCORE_MARGIN or self._fit_cost(found) > self._fit_cost(res):
             return None
         return self._take(obs, found)
 
