@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -192,3 +193,35 @@ def demo_rig():
     from torchtrack.cameras import load_calibration
 
     return load_calibration(shared_data(*DEMO_RIG), warn_units=False).double()
+
+
+def stooped_observation(case, cameras):
+    """A 1.6 m body stooped over (spine flexed, head bowed, knees bent, a hand at the chest, the other arm swung
+    back; each joint near its value), at a heading, with its voxels and the silhouettes of its blobs on a ring of
+    ``cameras`` (ground truth: clearance.body_masks): the observation, the template, the true landmarks, their
+    indices among the skeleton's outputs, the true state and the subject's body."""
+    from torchtrack.blobs import BlobModel
+    from torchtrack.conventions import LANDMARKS
+    from torchtrack.skeleton import Skeleton
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.clearance import body_masks
+    from torchtrack.tracking.voxels import ViewSilhouettes
+
+    skel = Skeleton.from_urdf()
+    names, idx = list(skel.dof_names), [list(skel.output_names).index(n) for n in LANDMARKS]
+    gen = torch.Generator().manual_seed(case)
+    truth = torch.zeros(skel.num_dofs, dtype=torch.float64)
+    for dof, value in {"spine_flex": 0.5, "neck_flex": 0.95, "l_knee_flex": 0.7, "r_knee_flex": 0.9,
+                       "l_hip_flex": 0.4, "r_hip_flex": 0.5, "r_shoulder_flex": 0.6, "r_elbow_flex": 2.1,
+                       "l_shoulder_flex": -0.7, "l_elbow_flex": 0.3}.items():
+        truth[names.index(dof)] = value + 0.1 * float(torch.randn(1, generator=gen))
+    truth[names.index("root_rz")] = 0.5 + 2.0 * case
+    truth = skel.clamp(truth[None])[0]
+    subj = skel.scaled_to_height(1.6)
+    blobs = BlobModel.from_config(subj)
+    truth[names.index("root_tz")] -= float(subj.forward(truth[None]).output_points[0, :, 2].min())
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
+    fg = body_masks(rig, subj, truth[None], blobs=blobs)[0].float()
+    obs = voxelised_observation(subj, blobs, truth, cameras=cameras)
+    obs = dataclasses.replace(obs, silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
+    return obs, skel, subj.forward(truth[None]).output_points[0, idx], idx, truth, subj

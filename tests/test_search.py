@@ -293,39 +293,6 @@ def test_the_search_near_a_prediction_finds_the_body_the_images_show(seed, camer
     assert found.cameras == cameras_shown and 0.5 < found.score <= 1.0, found
 
 
-def _stooped_observation(case, cameras):
-    """A 1.6 m body stooped over (spine flexed, head bowed, knees bent, a hand at the chest, the other arm swung
-    back; each joint near its value), at a heading, with its voxels and the silhouettes of its blobs on a ring of
-    ``cameras`` (ground truth: clearance.body_masks): the observation, the template, the true landmarks and their
-    indices among the skeleton's outputs."""
-    from conftest import voxelised_observation
-    from torchtrack.blobs import BlobModel
-    from torchtrack.conventions import LANDMARKS
-    from torchtrack.skeleton import Skeleton
-    from torchtrack.synth.sequence import RigConfig, make_ring_rig
-    from torchtrack.tracking.clearance import body_masks
-    from torchtrack.tracking.voxels import ViewSilhouettes
-
-    skel = Skeleton.from_urdf()
-    names, idx = list(skel.dof_names), [list(skel.output_names).index(n) for n in LANDMARKS]
-    gen = torch.Generator().manual_seed(case)
-    truth = torch.zeros(skel.num_dofs, dtype=torch.float64)
-    for dof, value in {"spine_flex": 0.5, "neck_flex": 0.95, "l_knee_flex": 0.7, "r_knee_flex": 0.9,
-                       "l_hip_flex": 0.4, "r_hip_flex": 0.5, "r_shoulder_flex": 0.6, "r_elbow_flex": 2.1,
-                       "l_shoulder_flex": -0.7, "l_elbow_flex": 0.3}.items():
-        truth[names.index(dof)] = value + 0.1 * float(torch.randn(1, generator=gen))
-    truth[names.index("root_rz")] = 0.5 + 2.0 * case
-    truth = skel.clamp(truth[None])[0]
-    subj = skel.scaled_to_height(1.6)
-    blobs = BlobModel.from_config(subj)
-    truth[names.index("root_tz")] -= float(subj.forward(truth[None]).output_points[0, :, 2].min())
-    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
-    fg = body_masks(rig, subj, truth[None], blobs=blobs)[0].float()
-    obs = voxelised_observation(subj, blobs, truth, cameras=cameras)
-    obs = dataclasses.replace(obs, silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
-    return obs, skel, subj.forward(truth[None]).output_points[0, idx], idx
-
-
 @pytest.mark.parametrize("case", [1, 2])
 def test_a_stooped_body_is_found_where_the_images_score_it(case):
     """8 cameras: the search with the stooped prior lands within 60 mm of a stooped body's landmarks and at least
@@ -334,7 +301,9 @@ def test_a_stooped_body_is_found_where_the_images_score_it(case):
     from torchtrack.blobs import BlobModel
     from torchtrack.tracking.search import SearchConfig, search_pose
 
-    obs, skel, want, idx = _stooped_observation(case, 8)
+    from conftest import stooped_observation
+
+    obs, skel, want, idx, _, _ = stooped_observation(case, 8)
     err = {}
     for stooped in (False, True):
         found = search_pose(obs, skel, BlobModel.from_config(skel), SearchConfig(stooped=stooped),
@@ -352,7 +321,9 @@ def test_the_stooped_prior_is_tried_from_7_cameras_only(cameras):
     from torchtrack.blobs import BlobModel
     from torchtrack.tracking.search import SearchConfig, search_pose
 
-    obs, skel, _, _ = _stooped_observation(1, cameras)
+    from conftest import stooped_observation
+
+    obs, skel, _, _, _, _ = stooped_observation(1, cameras)
     config = SearchConfig(layers=0)
     on, off = (search_pose(obs, skel, BlobModel.from_config(skel), dataclasses.replace(config, stooped=s),
                            torch.Generator().manual_seed(0), n=1) for s in (True, False))

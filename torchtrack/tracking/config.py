@@ -59,6 +59,13 @@ class TrackerConfig:
         start_prior_exclude: the search leaves out the real captures' poses whose capture's name contains one of
             these (:func:`~torchtrack.tracking.poses.real_pose_prior`): for evaluations on the captures the prior
             was built from, which leave their subject out (scripts/eval_start.py, eval_robustness.py).
+        start_limb_sweep: once a start is fitted (its pose finished by EM/IK, its bones' lengths fitted), each limb
+            is swept again over the search's grid on the fitted body, the rest kept, and the best swept pose,
+            finished by EM/IK, is the start where it scores higher than the start tracked again
+            (:func:`~torchtrack.tracking.search.sweep_limbs`; the start race's twin, the start before the sweep
+            turned round, is swept likewise for its own heading): the search's sweep ran on the template's
+            proportions before EM/IK had placed the trunk, and a start often has one arm off (docs/results.md, "The
+            limb sweep on the fitted body").
         start_race_s: after a searched start (and a re-acquisition, with that start), the start turned round (the
             same silhouette facing the other way, which one frame's voxels cannot tell from it:
             :func:`~torchtrack.tracking.poses.turned_round`) is tracked beside it for this long from the body's
@@ -186,6 +193,7 @@ class TrackerConfig:
     search_seed: int = 0
     start_real_poses: bool = False
     start_prior_exclude: tuple[str, ...] = ()
+    start_limb_sweep: bool = True
     start_race_s: float = 0.5
     settle_back_s: float = 1.0
     recheck_s: float = 2.0

@@ -116,6 +116,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.hip_estimate: tuple[torch.Tensor, torch.Tensor] | None = None
         self.frame_rate: float | None = None  # the sequence's (set_frame_rate); None: velocity as configured
         self._race: _Race | None = None  # start_race_s: the start turned round, tracked beside this one
+        self._unswept: torch.Tensor | None = None  # the last start's state before its limb sweep (start_limb_sweep)
         self._revised: list[tuple[FrameResult, int]] = []  # a won race's or the track back's frames (take_revised)
         self._twin = False  # this tracker races another's start (it starts no race of its own)
         # settle_back_s: the frames since the last start or re-acquisition, each (observation, result, body version)
@@ -192,7 +193,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.start_refusals = []
 
     def _clear(self) -> None:
-        self._race, self._revised, self._settle = None, [], None
+        self._race, self._revised, self._settle, self._unswept = None, [], None, None
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None

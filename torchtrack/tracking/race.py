@@ -67,17 +67,22 @@ class RaceMixin:
         """A start race is in progress (``TrackerConfig.start_race_s``): :meth:`take_revised` may yet revise the
         frames since the start."""
         return self._race is not None
-    def _start_race(self, obs: VoxelObservation, res: FrameResult) -> None:
-        """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is."""
+
+    def _start_race(self, obs: VoxelObservation, res: FrameResult, unswept: torch.Tensor | None = None) -> None:
+        """``start_race_s``: the twin started from this start turned round, finished on ``obs`` as a start is.
+        ``unswept``: the start's state before its limb sweep (``start_limb_sweep``), which the twin turns round
+        instead: limbs swept for one heading fit the other badly."""
         from torchtrack.tracking.poses import turned_round
 
         twin = self._fork()
         twin._twin = True
-        twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles)
+        twin.angles = twin.previous = turned_round(self.subject.skeleton, res.angles if unswept is None else unswept)
         twin.colour = None
         for _ in range(self.config.init_passes):
             r = twin._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
             twin.angles = twin.previous = r.angles
+        if self.config.start_limb_sweep:  # its limbs swept for its own heading, as the start's were
+            twin._sweep_finished_limbs(obs, r)
         r = twin._learn_colour(obs)
         twin._remember_feet()
         wait = max(self._race_frames(), self._race_frames(START_RACE_WAIT_S))

@@ -40,7 +40,7 @@ from torchtrack.tracking.poses import ARM_POSES, pose_prior, real_pose_prior
 from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
 __all__ = ["NearResult", "SearchConfig", "SearchResult", "score_states", "search_near_in_images", "search_pose",
-           "two_way_score"]
+           "sweep_limbs", "two_way_score"]
 
 #: The body's DOFs the annealed search perturbs, with the step (rad) of its first layer.
 STEP_RAD = 0.3
@@ -427,6 +427,27 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
     pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
     return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
+
+
+def sweep_limbs(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles: torch.Tensor
+                ) -> tuple[torch.Tensor, float, float]:
+    """The limb sweep of the search (:data:`ARM_GRID`, :data:`LEG_GRID`; the folded elbow where the images compare
+    finished bodies) on one finished state ``angles (D,)`` of ``skel``, placed and sized as it is: each limb in
+    turn set to every point of its grid, the rest of the body kept, scored as finished bodies are compared
+    (:func:`score_states`), the best kept where it beats the state so far. Returns the swept state, its score and
+    the score of ``angles``."""
+    lo, hi = skel.lower.to(angles), skel.upper.to(angles)
+    start = float(score_states(obs, skel, blobs, angles[None])[0][0])
+    best, pose = start, angles
+    for idx, values in _limb_grids(skel, _images_compare(obs)):
+        cand = pose.repeat(values.shape[0], 1)
+        cand[:, idx.to(cand.device)] = values.to(cand)
+        cand = torch.maximum(torch.minimum(cand, hi), lo)
+        score = score_states(obs, skel, blobs, cand)[0]
+        k = int(score.argmax())
+        if float(score[k]) > best:
+            best, pose = float(score[k]), cand[k]
+    return pose, best, start
 
 
 #: :func:`search_near_in_images`: each layer's first steps, along the floor (m), of the heading and of the joints

@@ -126,7 +126,7 @@ class StartMixin:
         self._remember_feet()
         self._start_hips(learn=True)
         if self.config.start == "search" and self.config.start_race_s > 0:
-            self._start_race(obs, res)
+            self._start_race(obs, res, self._unswept)
         return res
 
     def _fork(self) -> MarkerlessTracker:
@@ -444,7 +444,35 @@ class StartMixin:
                 f"initialisation: the first frame does not fit a person{pose} (goal residual "
                 f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
                 + START_ADVICE)
+        self._unswept = res.angles  # the start race's twin turns it round
+        if self.config.start_limb_sweep:  # on a start the checks took: limbs swept into phantom volume pass them
+            self._sweep_finished_limbs(obs, res)
         return self._learn_colour(obs)
+
+    def _sweep_finished_limbs(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
+        """``start_limb_sweep``: the finished start ``res`` with its limbs swept again on the fitted body
+        (:func:`~torchtrack.tracking.search.sweep_limbs`). Where the sweep scores higher, its state and ``res`` each
+        get the bone fit's EM/IK passes once more (more passes alone change a fit, so the sweep is measured against
+        ``res`` tracked again), and the one that scores higher after them is the start."""
+        from torchtrack.tracking.search import score_states, sweep_limbs
+
+        skel, blobs = self.subject.skeleton, self.subject.blobs
+        swept, score, before = sweep_limbs(obs, skel, blobs, res.angles)
+        if score <= before:
+            return res
+        finished = []
+        for angles in (res.angles, swept):
+            self.angles = self.previous = angles
+            for _ in range(max(2, self.config.init_passes // 3)):
+                fit = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                self.angles = self.previous = fit.angles
+            finished.append(fit)
+        after = score_states(obs, skel, blobs, torch.stack([r.angles for r in finished]))[0]
+        log.debug("start: the limbs swept again score %.3f against %.3f; after EM/IK %.3f against %.3f", score,
+                  before, float(after[1]), float(after[0]))
+        res = finished[1] if float(after[1]) > float(after[0]) else finished[0]
+        self.angles = self.previous = res.angles
+        return res
 
     def _learn_colour(self, obs: VoxelObservation) -> FrameResult:
         """The colour model learnt afresh on ``obs`` from the current pose (a start's or a re-acquisition's): the
