@@ -81,7 +81,7 @@ class RaceMixin:
         for _ in range(self.config.init_passes):
             r = twin._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
             twin.angles = twin.previous = r.angles
-        if self.config.start_limb_sweep:  # its limbs swept for its own heading, as the start's were
+        if self.config.start_limb_sweep:  # its limbs swept for its own heading (a re-acquisition's twin too)
             twin._sweep_finished_limbs(obs, r)
         r = twin._learn_colour(obs)
         twin._remember_feet()
