@@ -420,12 +420,23 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     ``skel`` (placed as they are) on ``obs``: to compare hypotheses that EM/IK has finished. The voxel subsample is
     the same for every call on ``obs``. In the images where ``obs`` keeps them, from
     :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras; on fewer, on the voxels."""
+    return _score_finished(_compare_voxels(obs, max_voxels), skel, blobs, angles, samples)
+
+
+def _compare_voxels(obs: VoxelObservation, max_voxels: int = SearchConfig.max_voxels) -> _Voxels:
+    """The frame as :func:`score_states` compares finished bodies on it (the images from
+    :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras, else the voxels; the same subsample at every call)."""
     if obs.silhouettes is not None and not _images_compare(obs):
         obs = replace(obs, silhouettes=None)
-    vox = _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
+    return _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
+
+
+def _score_finished(vox: _Voxels, skel: Skeleton, blobs: BlobModel, angles: torch.Tensor,
+                    samples: int = SearchConfig.samples) -> tuple[torch.Tensor, ...]:
+    """:func:`score_states` on a frame :func:`_compare_voxels` made once."""
     c, R = blobs.ellipsoids(skel.forward(angles.to(skel.lower)).bone_frames)
     semi = blobs.semi_axes.to(c)[None].expand(c.shape[0], -1, -1)
-    pts = unit_ball_samples(samples, dtype=torch.float32, device=obs.points.device)
+    pts = unit_ball_samples(samples, dtype=torch.float32, device=vox.points.device)
     return two_way_score(c.float(), R.float(), semi.float(), vox, pts)
 
 
@@ -437,13 +448,14 @@ def sweep_limbs(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles:
     (:func:`score_states`), the best kept where it beats the state so far. Returns the swept state, its score and
     the score of ``angles``."""
     lo, hi = skel.lower.to(angles), skel.upper.to(angles)
-    start = float(score_states(obs, skel, blobs, angles[None])[0][0])
+    vox = _compare_voxels(obs)  # built once for every limb's candidates
+    start = float(_score_finished(vox, skel, blobs, angles[None])[0][0])
     best, pose = start, angles
     for idx, values in _limb_grids(skel, _images_compare(obs)):
         cand = pose.repeat(values.shape[0], 1)
         cand[:, idx.to(cand.device)] = values.to(cand)
         cand = torch.maximum(torch.minimum(cand, hi), lo)
-        score = score_states(obs, skel, blobs, cand)[0]
+        score = _score_finished(vox, skel, blobs, cand)[0]
         k = int(score.argmax())
         if float(score[k]) > best:
             best, pose = float(score[k]), cand[k]

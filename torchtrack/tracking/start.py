@@ -444,8 +444,9 @@ class StartMixin:
                 f"initialisation: the first frame does not fit a person{pose} (goal residual "
                 f"{1e3 * res.residual_m:.0f} mm, {100 * res.explained:.0f}% of the voxels explained). "
                 + START_ADVICE)
-        self._unswept = res.angles  # the start race's twin turns it round
+        self._unswept = None  # without the sweep the twin turns the start round as it stands
         if self.config.start_limb_sweep:  # on a start the checks took: limbs swept into phantom volume pass them
+            self._unswept = res.angles  # the start race's twin turns it round
             self._sweep_finished_limbs(obs, res)
         return self._learn_colour(obs)
 
