@@ -19,6 +19,7 @@ search's own error before EM/CCD; and the share within 50 mm before the race (``
     .venv/bin/python scripts/eval_start.py --frames 8 --search-only --search particles=384   # a larger search
     .venv/bin/python scripts/eval_start.py --cameras 8 --frames 3 --search-only --search sweep=false  # no limb sweep
     .venv/bin/python scripts/eval_start.py --from-truth          # the ceiling: the tracker's fit from the true pose
+    .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --true-answer   # the start from a perfect search
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --tracker init_passes=6   # a tracker setting
     .venv/bin/python scripts/eval_start.py --cameras 4 --frames 10 --voxels   # the search on the voxels alone
     .venv/bin/python scripts/eval_start.py --cameras 8 --motions cmu:131_02 --at 76 80 --per-start  # given frames
@@ -26,6 +27,9 @@ search's own error before EM/CCD; and the share within 50 mm before the race (``
 ``--from-truth`` starts no search: the tracker is given the true pose and the subject's own body (the rendered
 ``body.urdf``) and fits the start frame from them as it tracks any frame (EM/CCD from the predicted pose); the share
 within 50 mm is then what the observation and the fit allow a start to reach at best, whatever the search.
+``--true-answer`` runs the tracker's start as it is but hands it the true pose, on the template's body at the
+subject's height, as the search's one answer: what the start's finishing (EM/CCD, the bone fit, the checks, the
+race) makes of a perfect search.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ import logging
 import time
 from dataclasses import replace
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import torch
@@ -52,7 +57,7 @@ from torchtrack.skeleton import Skeleton
 from torchtrack.synth.sequence import is_current, write_sequence
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.pipeline import load_config, observer_from_config
-from torchtrack.tracking.search import SearchConfig, score_states, search_pose
+from torchtrack.tracking.search import SearchConfig, SearchResult, score_states, search_pose
 
 import eval_robustness as rob
 
@@ -135,12 +140,17 @@ def main() -> None:
     ap.add_argument("--from-truth", action="store_true",
                     help="no search: the tracker started from the true pose and body fits the start frame; the "
                          "ceiling of any start")
+    ap.add_argument("--true-answer", action="store_true",
+                    help="the tracker's start given the true pose (on the template's body at the subject's height) "
+                         "as the search's answer: what the start's finishing makes of a perfect search")
     ap.add_argument("--tracker", nargs="*", default=[], metavar="KEY=VALUE",
                     help="override the tracking config's tracker settings, e.g. init_passes=6 (YAML values)")
     ap.add_argument("--work", type=Path, default=Path("out/eval_start"))
     args = ap.parse_args()
     if args.from_truth and args.search_only:
         ap.error("--from-truth runs no search: give it without --search-only")
+    if args.true_answer and (args.search_only or args.from_truth):
+        ap.error("--true-answer replaces the tracker's search: give it without --search-only or --from-truth")
     fields = {f.name: f.type for f in dataclasses.fields(SearchConfig)}
     overrides = {}
     simple = ("int", "float", "bool")
@@ -218,13 +228,14 @@ def main() -> None:
                     continue
                 gen = torch.Generator().manual_seed(t)
                 t0 = time.perf_counter()
-                search = SearchConfig(real_poses=args.real_poses, prior_exclude=leave_out, **overrides)
-                found = search_pose(obs, template, blobs, search, generator=gen)
-                body = template.scaled_to_height(template.height() * float(found.scale[0]))
-                lm = body.forward(found.angles[:1].double()).output_points[0].numpy()
-                names = list(body.output_names)
-                search_errors.append(1e3 * np.linalg.norm(lm[[names.index(n) for n in LANDMARKS]]
-                                                          - truth.joints3d[t, idx], axis=-1).mean())
+                if not args.true_answer:  # the search's own error (the "search" column)
+                    search = SearchConfig(real_poses=args.real_poses, prior_exclude=leave_out, **overrides)
+                    found = search_pose(obs, template, blobs, search, generator=gen)
+                    body = template.scaled_to_height(template.height() * float(found.scale[0]))
+                    lm = body.forward(found.angles[:1].double()).output_points[0].numpy()
+                    names = list(body.output_names)
+                    search_errors.append(1e3 * np.linalg.norm(lm[[names.index(n) for n in LANDMARKS]]
+                                                              - truth.joints3d[t, idx], axis=-1).mean())
                 if args.search_only:
                     seconds.append(time.perf_counter() - t0)
                     errors.append(search_errors[-1])
@@ -242,7 +253,17 @@ def main() -> None:
                                                                       start_prior_exclude=leave_out))
                 tracker.set_frame_rate(folder.fps)
                 t0 = time.perf_counter()
-                first = tracker.step(obs)  # the start (a refusal: an invalid frame)
+                if args.true_answer:  # the start's search (imported from its module when it runs) answers the truth
+                    one = torch.ones(1)
+                    answer = SearchResult(torch.as_tensor(truth.angles[t:t + 1]).float(),
+                                          one * Skeleton.from_urdf(seq / "body.urdf").height() / template.height(),
+                                          one, one, one, 0 * one, 1)
+                    with mock.patch("torchtrack.tracking.search.search_pose", return_value=answer) as searched:
+                        first = tracker.step(obs)
+                    if not searched.called:  # the start no longer imports the search where it runs
+                        raise SystemExit("--true-answer: the tracker's start did not call search_pose")
+                else:
+                    first = tracker.step(obs)  # the start (a refusal: an invalid frame)
                 before.append(landmark_error_mm(first, truth.joints3d[t, idx]) <= WITHIN_MM)
                 if first.valid and (tracker.racing or tracker.settling):  # on until the race is decided and the
                     # frames since the start tracked back (or the sequence ends)
