@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -81,9 +82,10 @@ def landmark_error_mm(res, truth: np.ndarray) -> float:
     return float(1e3 * np.linalg.norm(res.output_points[:len(LANDMARKS)].numpy() - truth, axis=-1).mean())
 
 
-def start_report(res, truth: np.ndarray) -> str:
-    """One start's line for --per-start: MPJPE, how far its heading (the hips' horizontal normal) and pelvis are
-    from the truth's, and its worst landmark."""
+def start_report(res, truth: np.ndarray, height: float, true_height: float) -> str:
+    """One start's line for --per-start: MPJPE, how far its heading (the hips' horizontal normal) and pelvis (and its
+    height: a body sunk into a few views' hull) are from the truth's, its worst landmark, and the fitted body's height
+    against the subject's."""
     if not res.valid:
         return "refused"
     got = res.output_points[:len(LANDMARKS)].numpy().astype(np.float64)
@@ -97,8 +99,9 @@ def start_report(res, truth: np.ndarray) -> str:
 
     turn = np.degrees(np.angle(np.exp(1j * (heading(got) - heading(truth)))))
     worst = int(err.argmax())
-    return (f"{1e3 * err.mean():6.1f} mm, heading {turn:+5.0f} deg, pelvis {1e3 * err[0]:5.0f} mm, worst "
-            f"{LANDMARKS[worst]} {1e3 * err[worst]:.0f} mm")
+    return (f"{1e3 * err.mean():6.1f} mm, heading {turn:+5.0f} deg, pelvis {1e3 * err[0]:5.0f} mm (z "
+            f"{1e3 * (got[0, 2] - truth[0, 2]):+4.0f}), worst {LANDMARKS[worst]} {1e3 * err[worst]:.0f} mm, body "
+            f"{height:.2f} m ({true_height:.2f})")
 
 
 def from_truth(obs, truth, t: int, seq: Path, tcfg: TrackerConfig, fps: float) -> float:  # noqa: ANN001
@@ -207,6 +210,7 @@ def main() -> None:
             bg = BackgroundModel.from_folder(folder, BackgroundConfig(**config["background"]), size_wh=(W, H))
             observer = observer_from_config(rig, bg, config["observation"], "bayes", 0.03)
             truth = load_poses(seq / "gt.npz")
+            true_height = Skeleton.from_urdf(seq / "body.urdf").height()
             leave_out = tuple(rob.prior_leave_out(motion))
             idx = [truth.joint_names.index(n) for n in LANDMARKS]
             race = max(1, round(tcfg.start_race_s * folder.fps))  # the start frame and the race's others, if moving
@@ -240,7 +244,7 @@ def main() -> None:
                     seconds.append(time.perf_counter() - t0)
                     errors.append(search_errors[-1])
                     if args.truth_score:  # the true pose on the template's body at the subject's height
-                        sized = template.scaled_to_height(Skeleton.from_urdf(seq / "body.urdf").height())
+                        sized = template.scaled_to_height(true_height)
                         mine = score_states(obs, body, BlobModel(body, *load_blob_specs(tcfg.blobs)),
                                             found.angles[:1].double())[0]
                         true = score_states(obs, sized, BlobModel(sized, *load_blob_specs(tcfg.blobs)),
@@ -256,7 +260,7 @@ def main() -> None:
                 if args.true_answer:  # the start's search (imported from its module when it runs) answers the truth
                     one = torch.ones(1)
                     answer = SearchResult(torch.as_tensor(truth.angles[t:t + 1]).float(),
-                                          one * Skeleton.from_urdf(seq / "body.urdf").height() / template.height(),
+                                          one * true_height / template.height(),
                                           one, one, one, 0 * one, 1)
                     with mock.patch("torchtrack.tracking.search.search_pose", return_value=answer) as searched:
                         first = tracker.step(obs)
@@ -284,8 +288,9 @@ def main() -> None:
                 seconds.append(time.perf_counter() - t0)
                 errors.append(landmark_error_mm(first, truth.joints3d[t, idx]))
                 if args.per_start:
-                    print(f"  {motion} {cams} frame {t:>4}: {start_report(first, truth.joints3d[t, idx])}",
-                          flush=True)
+                    height = tracker.subject.skeleton.height() if tracker.subject is not None else math.nan
+                    print(f"  {motion} {cams} frame {t:>4}: "
+                          f"{start_report(first, truth.joints3d[t, idx], height, true_height)}", flush=True)
             e = np.asarray(errors)
             ok = e <= WITHIN_MM
             totals.setdefault(cams, []).extend(ok.tolist())

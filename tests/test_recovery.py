@@ -54,9 +54,11 @@ def test_a_subject_back_in_another_pose_and_heading_is_reacquired(skel):
     assert float(err) < 0.05, float(err)
 
 
-def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
+@pytest.mark.parametrize("trusted", [False, True])
+def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel, trusted):
     """MarkerlessTracker._fit_many against _track run round after round on each start in turn, as re-acquisition
-    fitted its hypotheses before: a walking body's voxels, the last pose at four headings."""
+    fitted its hypotheses before: a walking body's voxels, the last pose at four headings; also with the
+    prediction trusted and the feet held, as the start's limb sweep fits its two states."""
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
     walk = procedural_motion(subj, "walk", 0.3, 30, starfish_s=0.0)
@@ -67,11 +69,12 @@ def test_the_reacquisition_fits_in_one_batch_as_each_fitted_alone(skel):
     names = list(skel.dof_names)
     starts = tracker.angles.repeat(4, 1)
     starts[:, names.index("root_rz")] += torch.tensor([0.0, 0.5, 1.0, -0.5]).to(starts) * math.pi
-    got = tracker._fit_many(obs, starts, 3, math.radians(45))
+    got = tracker._fit_many(obs, starts, 3, math.radians(45), predicted=trusted, hold=trusted)
     for h in range(4):
         tracker.angles = tracker.previous = starts[h]
         for _ in range(3):
-            want = tracker._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=False, hold=False)
+            want = tracker._track(obs, learn_colour=False, max_rot=math.radians(45), predicted=trusted,
+                                  hold=trusted)
             tracker.angles = tracker.previous = want.angles
         torch.testing.assert_close(got[h].angles, want.angles, rtol=1e-4, atol=1e-4)
         assert got[h].residual_m == pytest.approx(want.residual_m, rel=1e-3, abs=1e-5)

@@ -293,11 +293,11 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         return self._results(track_step(self.subject.stack, batch, state, self._step_config, learn_colour,
                                         max_rot, predicted, hold))[0]
 
-    def _fit_many(self, obs: VoxelObservation, starts: torch.Tensor, passes: int, max_rot: float
-                  ) -> list[FrameResult]:
-        """Each of H states ``starts (H, D)`` fitted to ``obs`` by ``passes`` rounds of :meth:`_track` without the
-        prediction's trust, held feet, colours or velocity (as ``_track(obs, learn_colour=False, max_rot,
-        predicted=False, hold=False)`` from each round's result), all H in one batch: the hypotheses of a
+    def _fit_many(self, obs: VoxelObservation, starts: torch.Tensor, passes: int, max_rot: float,
+                  predicted: bool = False, hold: bool = False) -> list[FrameResult]:
+        """Each of H states ``starts (H, D)`` fitted to ``obs`` by ``passes`` rounds of :meth:`_track` without
+        colours or velocity (as ``_track(obs, learn_colour=False, max_rot, predicted, hold)`` from each round's
+        result), all H in one batch: by default without the prediction's trust or held feet, the hypotheses of a
         re-acquisition. The tracker's state is not changed."""
         if self.colour is not None:
             raise InputError("_fit_many fits without colours: the tracker's colour model must be dropped first")
@@ -305,7 +305,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         state = starts
         for _ in range(passes):
             st = track_step(self.subject.stack, batch, self._step_state(state, state, 0.0), self._step_config,
-                            False, max_rot, predicted=False, hold=False)
+                            False, max_rot, predicted=predicted, hold=hold)
             state = st.angles
         return self._results(st)
 

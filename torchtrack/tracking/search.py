@@ -403,6 +403,16 @@ def _limb_grids(skel: Skeleton, stooped: bool = False) -> list[tuple[torch.Tenso
     return out
 
 
+def _limb_candidates(poses: torch.Tensor, idx: torch.Tensor, values: torch.Tensor, lo: torch.Tensor,
+                     hi: torch.Tensor) -> torch.Tensor:
+    """(H * V, D) each of the H states ``poses (H, D)`` with its DOFs ``idx`` set to every row of ``values (V, 3)``
+    (one limb's grid, :func:`_limb_grids`), within the joint limits ``lo``, ``hi``; grouped by state."""
+    H, V = poses.shape[0], values.shape[0]
+    cand = poses.repeat_interleave(V, 0)
+    cand[:, idx.to(cand.device)] = values.to(cand).repeat(H, 1)
+    return torch.maximum(torch.minimum(cand, hi), lo)
+
+
 def _dof_groups(skel: Skeleton) -> torch.Tensor:
     """(G, D) float masks of :data:`GROUPS`' DOFs."""
     out = torch.zeros(len(GROUPS), skel.num_dofs, device=skel.lower.device)
@@ -452,9 +462,7 @@ def sweep_limbs(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles:
     start = float(_score_finished(vox, skel, blobs, angles[None])[0][0])
     best, pose = start, angles
     for idx, values in _limb_grids(skel, _images_compare(obs)):
-        cand = pose.repeat(values.shape[0], 1)
-        cand[:, idx.to(cand.device)] = values.to(cand)
-        cand = torch.maximum(torch.minimum(cand, hi), lo)
+        cand = _limb_candidates(pose[None], idx, values, lo, hi)
         score = _score_finished(vox, skel, blobs, cand)[0]
         k = int(score.argmax())
         if float(score[k]) > best:
@@ -636,9 +644,7 @@ def search_pose(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, config:
         H, rows = poses.shape[0], torch.arange(poses.shape[0], device=dev)
         for idx, values in _limb_grids(skel, stooped):
             V = values.shape[0]
-            cand = poses.repeat_interleave(V, 0)
-            cand[:, idx] = values.repeat(H, 1)
-            cand = torch.maximum(torch.minimum(cand, hi), lo)
+            cand = _limb_candidates(poses, idx, values, lo, hi)
             c_scale = hyp.initial_scale(cand, config.scale_range)
             (c_score, *_), _ = scored(cand, heading.repeat_interleave(V), c_scale, shift.repeat_interleave(V, 0))
             top, pick = c_score.view(H, V).max(1)

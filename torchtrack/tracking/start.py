@@ -454,20 +454,16 @@ class StartMixin:
         """``start_limb_sweep``: the finished start ``res`` with its limbs swept again on the fitted body
         (:func:`~torchtrack.tracking.search.sweep_limbs`). Where the sweep scores higher, its state and ``res`` each
         get the bone fit's EM/IK passes once more (more passes alone change a fit, so the sweep is measured against
-        ``res`` tracked again), and the one that scores higher after them is the start."""
+        ``res`` tracked again, both in one batch), and the one that scores higher after them is the start (the
+        tracker's state; returned)."""
         from torchtrack.tracking.search import score_states, sweep_limbs
 
         skel, blobs = self.subject.skeleton, self.subject.blobs
         swept, score, before = sweep_limbs(obs, skel, blobs, res.angles)
         if score <= before:
             return res
-        finished = []
-        for angles in (res.angles, swept):
-            self.angles = self.previous = angles
-            for _ in range(max(2, self.config.init_passes // 3)):
-                fit = self._track(obs, learn_colour=False, max_rot=math.radians(45))
-                self.angles = self.previous = fit.angles
-            finished.append(fit)
+        finished = self._fit_many(obs, torch.stack([res.angles, swept.to(res.angles)]),
+                                  max(2, self.config.init_passes // 3), math.radians(45), predicted=True, hold=True)
         after = score_states(obs, skel, blobs, torch.stack([r.angles for r in finished]))[0]
         log.debug("start: the limbs swept again score %.3f against %.3f; after EM/IK %.3f against %.3f", score,
                   before, float(after[1]), float(after[0]))
