@@ -26,6 +26,9 @@ voxel inside its image. The shell (``self_scale``) trades the other way: a shell
 ghosts, which then pull it (wider shells lost the synthetic 4-camera walk's right wrist; docs/results.md,
 "Tracker settings").
 
+The start's and re-acquisition's comparison of finished bodies on few views' voxels runs the same test on each body
+against itself (:func:`~torchtrack.tracking.search.two_way_score`): its ghosts count neither for it nor against it.
+
 This is this project's extension to de Bem's and Caillette's EM, not part of either paper: both tracked from
 enough cameras that ghosts were small.
 """

@@ -32,10 +32,11 @@ import torch
 import torch.nn.functional as F
 
 from torchtrack.blobs.em import quadric_distance2
-from torchtrack.blobs.model import BlobModel
+from torchtrack.blobs.model import SURFACE_MAHALANOBIS2, BlobModel
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
+from torchtrack.tracking.ghosts import ghost_voxels
 from torchtrack.tracking.poses import ARM_POSES, pose_prior, real_pose_prior
 from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
 
@@ -135,13 +136,18 @@ class SearchResult:
 class _Voxels:
     """The frame's voxels as the score reads them: a weighted subsample, and a dense occupancy grid."""
 
-    def __init__(self, obs: VoxelObservation, max_voxels: int, generator: torch.Generator | None) -> None:
+    def __init__(self, obs: VoxelObservation, max_voxels: int, generator: torch.Generator | None,
+                 own_ghosts: bool = False) -> None:
         pts, w = obs.points.float(), obs.weights.float()
+        own_ghosts = own_ghosts and obs.camera_centres is not None
+        # each body's own ghosts (two_way_score) need where the cameras are and which of them see each voxel
+        seen = torch.isfinite(obs.colours).all(-1) & obs.cameras_valid.to(pts.device)[None] if own_ghosts else None
         if pts.shape[0] > max_voxels:  # a weighted subsample without replacement: the same share per weight
             at = w if generator is None else w.to(generator.device)  # drawn where the generator lives
             pick = torch.multinomial(at, max_voxels, replacement=False, generator=generator).to(pts.device)
-            pts, w = pts[pick], w[pick]
+            pts, w, seen = pts[pick], w[pick], None if seen is None else seen[pick]
         self.points, self.weights = pts, w / w.sum()
+        self.ghost_views = (seen, obs.camera_centres.to(pts)) if own_ghosts else None  # (N, C), (C, 3)
         fine = obs.split(CELL_M)
         p = fine.points.float()
         self.lower = p.amin(0) - 3 * CELL_M
@@ -204,7 +210,9 @@ class _Views:
 #: a few views the images find the body's basin more often than the voxels, whose hull holds phantom volume (the
 #: search), but they score close variants within it alike: a forearm held before the trunk, which 4 views all
 #: hide, against the one hanging; a starfish start turned round, 0.005 under its twin in 4 cameras' images, inside
-#: the start race's margin, and 0.014 under it on the voxels (docs/results.md, "The start search").
+#: the start race's margin, and 0.014 under it on the voxels (docs/results.md, "The start search"). On the voxels each
+#: body's own ghosts are left out of the share it must explain (:func:`two_way_score`): the forearm before the trunk
+#: sits in phantom volume the hanging one leaves as ghosts of the body.
 IMAGE_COMPARE_MIN_CAMERAS = 7
 
 
@@ -304,7 +312,9 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
 
     Returns:
         score (H,): the harmonic mean of ``explained`` (the share of the voxel weight inside some blob grown by
-        INSIDE_GROW) and ``filled`` (the share of the body's volume, over what the cameras observe, on
+        INSIDE_GROW; where ``vox`` knows the cameras' views, of the voxels that are not the body's own ghosts, those
+        it explains in every view that sees them: a few views' phantom volume counts neither for a body nor against
+        the one it is a ghost of) and ``filled`` (the share of the body's volume, over what the cameras observe, on
         occupied voxels), or of their counterparts in the images where ``vox`` has them (:func:`image_terms`);
         ``explained``, ``filled`` and ``outside`` (the share of the body's volume out of the observed volume),
         each (H,).
@@ -324,12 +334,28 @@ def two_way_score(centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tenso
         else:
             # voxels -> body: the weight of the voxels inside some blob grown by INSIDE_GROW
             inside = (ellipsoid_distance2(vox.points, c, Rs, a) <= INSIDE_GROW ** 2).any(-1)  # (N, h)
-            explained = vox.weights @ inside.float()  # (h,)
+            if vox.ghost_views is None:
+                explained = vox.weights @ inside.float()  # (h,)
+            else:  # of the voxels that are not the body's own ghosts
+                real = ~_own_ghosts(vox, c, Rs, a).T  # (N, h)
+                w = vox.weights[:, None] * real
+                explained = (w * inside).sum(0) / w.sum(0).clamp(min=1e-12)
             # body -> voxels: each blob's sample points on occupied cells, over the observed ones
             filled = ((occ & seen).float().mean(-1) * v).sum(-1) / seen_v.clamp(min=1e-12)
         out.append(torch.stack([explained, filled, outside], -1))
     e, f, o = torch.cat(out).unbind(-1)
     return 2 * e * f / (e + f).clamp(min=1e-12), e, f, o
+
+
+def _own_ghosts(vox: _Voxels, centres: torch.Tensor, R: torch.Tensor, semi_axes: torch.Tensor) -> torch.Tensor:
+    """(h, N) the voxels each of h bodies (solid ellipsoids ``centres (h, K, 3)``, axes ``R``, ``semi_axes``) explains
+    away as its own ghosts in every view that sees them (:func:`~torchtrack.tracking.ghosts.ghost_voxels`, its
+    default scales)."""
+    seen, cams = vox.ghost_views
+    h, N = centres.shape[0], vox.points.shape[0]
+    cov = (R * (semi_axes.square() / SURFACE_MAHALANOBIS2)[..., None, :]) @ R.transpose(-1, -2)
+    return ghost_voxels(vox.points.expand(h, N, 3), seen.expand(h, *seen.shape), cams.expand(h, *cams.shape),
+                        centres, cov)
 
 
 class _Hypotheses:
@@ -429,7 +455,8 @@ def score_states(obs: VoxelObservation, skel: Skeleton, blobs: BlobModel, angles
     """:func:`two_way_score` (score, explained, filled, outside; each (n,)) of the states ``angles (n, D)`` of
     ``skel`` (placed as they are) on ``obs``: to compare hypotheses that EM/IK has finished. The voxel subsample is
     the same for every call on ``obs``. In the images where ``obs`` keeps them, from
-    :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras; on fewer, on the voxels."""
+    :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras; on fewer, on the voxels, each body's own ghosts left out where ``obs``
+    has the cameras' centres."""
     return _score_finished(_compare_voxels(obs, max_voxels), skel, blobs, angles, samples)
 
 
@@ -438,7 +465,8 @@ def _compare_voxels(obs: VoxelObservation, max_voxels: int = SearchConfig.max_vo
     :data:`IMAGE_COMPARE_MIN_CAMERAS` cameras, else the voxels; the same subsample at every call)."""
     if obs.silhouettes is not None and not _images_compare(obs):
         obs = replace(obs, silhouettes=None)
-    return _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0))
+    return _Voxels(obs, max_voxels, torch.Generator(device=obs.points.device).manual_seed(0),
+                   own_ghosts=not _images_compare(obs))
 
 
 def _score_finished(vox: _Voxels, skel: Skeleton, blobs: BlobModel, angles: torch.Tensor,
