@@ -335,21 +335,19 @@ def test_the_stooped_prior_is_tried_from_7_cameras_only(cameras):
 
 
 def _carved_observation(subj, blobs, angles, cameras):
-    """The visual hull of the body ``subj`` at ``angles`` on a ring of ``cameras``: the 3 cm cells whose centres every
-    view sees on the body's silhouette (a plain carve of clearance.body_masks), each seen by every camera."""
+    """The visual hull of the body ``subj`` at ``angles`` on a ring of ``cameras``: the 3 cm voxels every view sees on
+    the body's silhouette (clearance.body_masks carved by the occupancy's plain silhouette carving), each seen by
+    every camera."""
+    from torchtrack.occupancy.grid import GridSpec, VoxelLookup
+    from torchtrack.occupancy.silhouette import carve
     from torchtrack.synth.sequence import RigConfig, make_ring_rig
     from torchtrack.tracking.clearance import body_masks
     from torchtrack.tracking.voxels import VoxelObservation
 
     rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
-    masks = body_masks(rig, subj, angles[None], blobs=blobs)[0] > 0.5  # (C, H, W)
-    axes = [torch.arange(lo + 0.015, hi, 0.03) for lo, hi in ((-1.0, 1.0), (-1.0, 1.0), (0.0, 2.0))]
-    grid = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    uv, ok = rig.project(grid)
-    C, H, W = masks.shape
-    iu, iv = uv[..., 0].round().long().clamp(0, W - 1), uv[..., 1].round().long().clamp(0, H - 1)
-    on = torch.stack([masks[c, iv[c], iu[c]] for c in range(C)]) & ok
-    pts = grid[on.all(0)]
+    masks = body_masks(rig, subj, angles[None], blobs=blobs) > 0.5  # (1, C, H, W)
+    spec = GridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0), 0.03)
+    pts = spec.centres()[carve(masks, VoxelLookup(rig, spec), min_views=cameras)[0]]
     N = pts.shape[0]
     return VoxelObservation(pts, torch.full((N,), 0.03), torch.full((N,), 0.03 ** 3), torch.zeros(N, cameras, 3),
                             torch.ones(cameras, dtype=torch.bool), camera_centres=rig.centers().float())

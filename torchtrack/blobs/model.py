@@ -162,9 +162,14 @@ class BlobModel(nn.Module):
     def gaussians(self, bone_frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, nb, 4, 4) -> means (B, K, 3), covariances (B, K, 3, 3) (eq. 17-18)."""
         centres, R = self.ellipsoids(bone_frames)
-        var = (self.semi_axes.to(R) / math.sqrt(SURFACE_MAHALANOBIS2)) ** 2  # (K, 3)
-        cov = R @ torch.diag_embed(var) @ R.transpose(-1, -2)
-        return centres, cov
+        return centres, ellipsoid_covariance(R, self.semi_axes.to(R))
+
+
+def ellipsoid_covariance(R: torch.Tensor, semi_axes: torch.Tensor) -> torch.Tensor:
+    """The covariance of uniform solid ellipsoids (eq. 18): axes ``R (..., 3, 3)`` (columns), ``semi_axes (..., 3)``
+    -> ``R diag(semi_axes^2 / SURFACE_MAHALANOBIS2) R^T (..., 3, 3)``."""
+    var = (semi_axes / math.sqrt(SURFACE_MAHALANOBIS2)) ** 2
+    return R @ torch.diag_embed(var) @ R.transpose(-1, -2)
 
 
 def blob_volumes(blobs: BlobModel) -> torch.Tensor:

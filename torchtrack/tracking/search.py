@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 
 from torchtrack.blobs.em import quadric_distance2
-from torchtrack.blobs.model import SURFACE_MAHALANOBIS2, BlobModel
+from torchtrack.blobs.model import BlobModel, ellipsoid_covariance
 from torchtrack.blobs.shape import unit_ball_samples
 from torchtrack.checks import InputError
 from torchtrack.skeleton.model import Skeleton
@@ -353,9 +353,8 @@ def _own_ghosts(vox: _Voxels, centres: torch.Tensor, R: torch.Tensor, semi_axes:
     default scales)."""
     seen, cams = vox.ghost_views
     h, N = centres.shape[0], vox.points.shape[0]
-    cov = (R * (semi_axes.square() / SURFACE_MAHALANOBIS2)[..., None, :]) @ R.transpose(-1, -2)
     return ghost_voxels(vox.points.expand(h, N, 3), seen.expand(h, *seen.shape), cams.expand(h, *cams.shape),
-                        centres, cov)
+                        centres, ellipsoid_covariance(R, semi_axes))
 
 
 class _Hypotheses:
