@@ -225,3 +225,24 @@ def stooped_observation(case, cameras):
     obs = voxelised_observation(subj, blobs, truth, cameras=cameras)
     obs = dataclasses.replace(obs, silhouettes=ViewSilhouettes.from_evidence(2 * fg - 1, rig))
     return obs, skel, subj.forward(truth[None]).output_points[0, idx], idx, truth, subj
+
+
+def carved_observation(subj, blobs, angles, cameras, silhouettes=False):
+    """The visual hull of the body ``subj`` at ``angles`` on a ring of ``cameras``: the 3 cm voxels every view sees on
+    the body's silhouette (clearance.body_masks carved by the occupancy's plain silhouette carving), each seen by
+    every camera; with ``silhouettes``, the cameras' foreground (those silhouettes) kept as the observer keeps it."""
+    from torchtrack.occupancy.grid import GridSpec, VoxelLookup
+    from torchtrack.occupancy.silhouette import carve
+    from torchtrack.synth.sequence import RigConfig, make_ring_rig
+    from torchtrack.tracking.clearance import body_masks
+    from torchtrack.tracking.voxels import ViewSilhouettes, VoxelObservation
+
+    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
+    masks = body_masks(rig, subj, angles[None], blobs=blobs) > 0.5  # (1, C, H, W)
+    spec = GridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0), 0.03)
+    pts = spec.centres()[carve(masks, VoxelLookup(rig, spec), min_views=cameras)[0]]
+    N = pts.shape[0]
+    views = ViewSilhouettes.from_evidence(masks[0].float() * 2 - 1, rig) if silhouettes else None
+    return VoxelObservation(pts, torch.full((N,), 0.03), torch.full((N,), 0.03 ** 3), torch.zeros(N, cameras, 3),
+                            torch.ones(cameras, dtype=torch.bool), camera_centres=rig.centers().float(),
+                            silhouettes=views)

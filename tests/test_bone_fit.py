@@ -12,6 +12,7 @@ from torchtrack.blobs import BlobModel
 from torchtrack.checks import InputError, ShapeError
 from torchtrack.skeleton import Skeleton
 from torchtrack.synth.motion import procedural_motion
+from torchtrack.tracking.goals import GoalModel
 from torchtrack.tracking.markerless import MarkerlessTracker, TrackerConfig
 from torchtrack.tracking.observation import VoxelObservation
 
@@ -177,3 +178,45 @@ def test_a_bone_fit_round_that_worsens_the_fit_is_undone(skel, monkeypatch):
     np.testing.assert_allclose(tracker.subject.skeleton.bone_lengths.numpy(), calls[0].bone_lengths.numpy(),
                                rtol=1e-6)
     assert np.mean(errs) < 0.03, errs
+
+
+@pytest.mark.parametrize("girth", [0.9, 1.2])
+def test_the_start_measures_the_subjects_girth_in_the_cameras_foreground(skel, girth):
+    """A body slimmer or stouter than the template (every blob's cross semi-axes times ``girth``, as the synthetic
+    subjects are drawn), seen by 4 cameras: at its true pose on the template scaled to its height, the girth fit
+    picks its girth from the cameras' foreground; started by the search on its carved hull, the tracker's subject
+    ends with that girth, its blobs' cross semi-axes the template's times it."""
+    from conftest import carved_observation
+
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    blobs.semi_axes[:, 1:] *= girth
+    angles = procedural_motion(subj, "walk", 0.5, 30, starfish_s=0.0)[10].float()
+    obs = carved_observation(subj, blobs, angles, 4, silhouettes=True)
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    tracker.initialize_from_pose(angles, height_m=subj.height())
+    assert tracker._fit_girth(obs, angles) == pytest.approx(girth)
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    assert tracker.step(obs).valid
+    assert tracker.girth == pytest.approx(girth, abs=0.051)
+    template = BlobModel.from_config(tracker.subject.skeleton)
+    torch.testing.assert_close(tracker.subject.blobs.semi_axes[:, 1:], template.semi_axes[:, 1:] * tracker.girth)
+    # the goals keep the template's main axes (a stout hand's width must not take the place of its axis)
+    goals = GoalModel(tracker.subject.skeleton, template)
+    for name in ("elongated", "principal"):
+        assert torch.equal(getattr(tracker.subject.goals, name), getattr(goals, name)), name
+    tracker.reset()
+    assert tracker.girth == 1.0
+
+
+def test_the_girth_is_not_fitted_from_7_cameras(skel):
+    """From 7 cameras (beyond ``ghost_max_cameras``) the start keeps the template's girth, a stout body or not."""
+    from conftest import carved_observation
+
+    subj = skel.scaled_to_height(1.75)
+    blobs = BlobModel.from_config(subj)
+    blobs.semi_axes[:, 1:] *= 1.2
+    angles = procedural_motion(subj, "walk", 0.5, 30, starfish_s=0.0)[10].float()
+    tracker = MarkerlessTracker(skel, TrackerConfig())
+    assert tracker.step(carved_observation(subj, blobs, angles, 8, silhouettes=True)).valid
+    assert tracker.girth == 1.0

@@ -334,25 +334,6 @@ def test_the_stooped_prior_is_tried_from_7_cameras_only(cameras):
         assert on.hypotheses > off.hypotheses
 
 
-def _carved_observation(subj, blobs, angles, cameras):
-    """The visual hull of the body ``subj`` at ``angles`` on a ring of ``cameras``: the 3 cm voxels every view sees on
-    the body's silhouette (clearance.body_masks carved by the occupancy's plain silhouette carving), each seen by
-    every camera."""
-    from torchtrack.occupancy.grid import GridSpec, VoxelLookup
-    from torchtrack.occupancy.silhouette import carve
-    from torchtrack.synth.sequence import RigConfig, make_ring_rig
-    from torchtrack.tracking.clearance import body_masks
-    from torchtrack.tracking.voxels import VoxelObservation
-
-    rig = make_ring_rig(RigConfig(num_cameras=cameras, width=320, height=240, radius_m=4.0)).float()
-    masks = body_masks(rig, subj, angles[None], blobs=blobs) > 0.5  # (1, C, H, W)
-    spec = GridSpec((-1.0, -1.0, 0.0), (1.0, 1.0, 2.0), 0.03)
-    pts = spec.centres()[carve(masks, VoxelLookup(rig, spec), min_views=cameras)[0]]
-    N = pts.shape[0]
-    return VoxelObservation(pts, torch.full((N,), 0.03), torch.full((N,), 0.03 ** 3), torch.zeros(N, cameras, 3),
-                            torch.ones(cameras, dtype=torch.bool), camera_centres=rig.centers().float())
-
-
 @pytest.mark.parametrize("heading", [0.3, 2.2])
 @pytest.mark.parametrize("cameras", [4, 6, 8])
 def test_finished_bodies_on_a_few_views_hull_explain_their_own_ghosts_away(heading, cameras):
@@ -366,6 +347,8 @@ def test_finished_bodies_on_a_few_views_hull_explain_their_own_ghosts_away(headi
     from torchtrack.skeleton import Skeleton
     from torchtrack.tracking.search import score_states
 
+    from conftest import carved_observation
+
     skel = Skeleton.from_urdf()
     subj = skel.scaled_to_height(1.75)
     blobs = BlobModel.from_config(subj)
@@ -376,7 +359,7 @@ def test_finished_bodies_on_a_few_views_hull_explain_their_own_ghosts_away(headi
     truth[names.index("root_tz")] -= float(subj.forward(truth[None]).output_points[0, :, 2].min())
     folded = truth.clone()
     folded[names.index("r_shoulder_flex")], folded[names.index("r_elbow_flex")] = 0.3, 2.1
-    obs = _carved_observation(subj, blobs, truth, cameras)
+    obs = carved_observation(subj, blobs, truth, cameras)
     both = torch.stack([truth, folded])
     got = score_states(obs, subj, blobs, both)
     plain = score_states(dataclasses.replace(obs, camera_centres=None), subj, blobs, both)

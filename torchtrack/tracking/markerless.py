@@ -98,6 +98,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self.unchecked = 0  # frames left to check the last re-acquisition in (TrackerConfig.recheck_s)
         self._unheld: list[VoxelObservation | None] = []  # image_hold_s: the invalid frames in a row up to this one
         self.height_m: float | None = None
+        self.girth = 1.0  # the subject's girth (Subject), measured at the start
         self.floor_z: float | None = None  # the floor's height for floor contact (set at initialisation)
         self.start_check: StartCheck | None = None  # the last automatic initialisation's measures
         self.start_refusals: list[str] = []  # why each frame before the start was not one to start from
@@ -155,7 +156,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         self._use(self.generic.scaled_to_height(height_m).to(device))
 
     def _use(self, skeleton: Skeleton) -> None:
-        self.subject = Subject(skeleton, self.config.ccd, self.blob_specs).to(skeleton.lower.device)
+        self.subject = Subject(skeleton, self.config.ccd, self.blob_specs, self.girth).to(skeleton.lower.device)
         self.height_m = skeleton.height()
 
     def initialize_from_pose(self, angles: torch.Tensor, height_m: float | None = None, *,
@@ -163,7 +164,8 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
         """Start from a known state vector ``angles (D,)`` of a subject ``height_m`` tall (the body model
         scaled to it) or with a given ``skeleton`` (e.g. a previous run's fitted one); give one of the two.
         The floor (for ``floor_contact``) is ``floor_z_m`` when given (e.g. the floor an earlier run measured),
-        else the pose's lower sole; the config's ``floor_z_m`` overrides both."""
+        else the pose's lower sole; the config's ``floor_z_m`` overrides both. The body's girth stays the tracker's
+        (the template's, or the one its last automatic start measured: the body refit keeps it)."""
         check_shape(angles, (self.generic.num_dofs,), "angles")
         if (height_m is None) == (skeleton is None):
             raise InputError("initialize_from_pose: give the subject's height_m or its skeleton")
@@ -195,6 +197,7 @@ class MarkerlessTracker(StartMixin, RaceMixin, SettleMixin, RecoveryMixin, BoneF
     def _clear(self) -> None:
         self._race, self._revised, self._settle, self._unswept = None, [], None, None
         self.subject = self.angles = self.previous = self.colour = self.height_m = self.floor_z = None
+        self.girth = 1.0
         self.hips, self.hip_shifts, self.bodies, self.hip_estimate = None, [], [], None
         self.feet_seen = self.feet_still = None
         self.lost = self.held = self.unchecked = 0

@@ -140,6 +140,7 @@ class StartMixin:
             self._settle, self._unheld = settle, unheld
 
     def _initialize(self, obs: VoxelObservation) -> FrameResult:
+        self.girth = 1.0  # the template's until the start's fit measures it
         if obs.num_observed < self.config.min_voxels or obs.volume_m3() < self.config.min_volume_m3:
             raise InputError("initialisation: the first frame has nobody in the tracking volume")
         self.check_one_person(obs)
@@ -384,6 +385,16 @@ class StartMixin:
             res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
             self.angles = self.previous = res.angles
         res = self._fit_size_to_span(obs, res)
+        if self._explains_ghosts(obs):  # a few views' hull: the body's girth from the images (GIRTHS), once the
+            # pose and the size are fitted (a body too small or a limb astray would be made up for by a stouter one)
+            girth = self._fit_girth(obs, res.angles)
+            if girth != self.girth:
+                log.debug("start: the body's girth %.2f (was %.2f)", girth, self.girth)
+                self.girth = girth
+                self._use(self.subject.skeleton)
+                for _ in range(max(2, self.config.init_passes // 3)):
+                    res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+                    self.angles = self.previous = res.angles
         # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
         # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
         # undone and ends the fit (a guard against feedback between the fit and the pose, which let the hull's

@@ -76,13 +76,17 @@ class StepConfig:
 
 
 class Subject:
-    """The subject-specific models: skeleton scaled to the subject, its blobs, goals and CCD."""
+    """The subject-specific models: skeleton scaled to the subject, its blobs (every blob's two cross semi-axes
+    times ``girth``: a slimmer or a stouter body than the template's), goals and CCD."""
 
-    def __init__(self, skeleton: Skeleton, ccd: CCDConfig, specs: tuple[list, float]) -> None:
+    def __init__(self, skeleton: Skeleton, ccd: CCDConfig, specs: tuple[list, float], girth: float = 1.0) -> None:
         specs, ref = specs
-        self.skeleton = skeleton
+        self.skeleton, self.girth = skeleton, girth
         self.blobs = BlobModel(skeleton, specs, ref)
+        # the goals read each blob's main axis off the template's build: a stout or slim one must not turn a hand's
+        # axis or the pelvis' width (the heading) into another (GoalModel's elongated and principal axes)
         self.goals = GoalModel(skeleton, self.blobs)
+        self.blobs.semi_axes[:, 1:] *= girth
         self.ccd = CCDSolver(skeleton, CCD_GOALS, ccd)
         self.ccd_goal_index = torch.tensor([JOINT_FRAMES.index(j) for j in CCD_GOALS])
         self.spine_dofs = skeleton.dof_index([n for n in SPINE_DOFS if n in skeleton.dof_names])  # rigid_trunk
