@@ -39,6 +39,7 @@ import dataclasses
 import logging
 import math
 import time
+import tomllib
 from dataclasses import replace
 from pathlib import Path
 from unittest import mock
@@ -82,10 +83,10 @@ def landmark_error_mm(res, truth: np.ndarray) -> float:
     return float(1e3 * np.linalg.norm(res.output_points[:len(LANDMARKS)].numpy() - truth, axis=-1).mean())
 
 
-def start_report(res, truth: np.ndarray, height: float, true_height: float) -> str:
+def start_report(res, truth: np.ndarray, height: float, true_height: float, girth: float, true_girth: float) -> str:
     """One start's line for --per-start: MPJPE, how far its heading (the hips' horizontal normal) and pelvis (and its
     height: a body sunk into a few views' hull) are from the truth's, its worst landmark, and the fitted body's height
-    against the subject's."""
+    and girth (the blobs' cross semi-axes over the template's) against the subject's."""
     if not res.valid:
         return "refused"
     got = res.output_points[:len(LANDMARKS)].numpy().astype(np.float64)
@@ -101,7 +102,7 @@ def start_report(res, truth: np.ndarray, height: float, true_height: float) -> s
     worst = int(err.argmax())
     return (f"{1e3 * err.mean():6.1f} mm, heading {turn:+5.0f} deg, pelvis {1e3 * err[0]:5.0f} mm (z "
             f"{1e3 * (got[0, 2] - truth[0, 2]):+4.0f}), worst {LANDMARKS[worst]} {1e3 * err[worst]:.0f} mm, body "
-            f"{height:.2f} m ({true_height:.2f})")
+            f"{height:.2f} m ({true_height:.2f}), girth {girth:.2f} ({true_girth:.2f})")
 
 
 def from_truth(obs, truth, t: int, seq: Path, tcfg: TrackerConfig, fps: float) -> float:  # noqa: ANN001
@@ -124,7 +125,8 @@ def main() -> None:
                     help="start from these frames of each motion's sequence instead of --frames random ones")
     ap.add_argument("--search-only", action="store_true", help="score the search's best hypothesis, no EM/CCD")
     ap.add_argument("--per-start", action="store_true",
-                    help="also print each start: its frame, MPJPE, heading and pelvis error and worst landmark")
+                    help="also print each start: its frame, MPJPE, heading and pelvis error, worst landmark, and the "
+                         "fitted body's height and girth against the subject's")
     ap.add_argument("--real-poses", action="store_true",
                     help="the search also starts from real captured poses (TrackerConfig.start_real_poses)")
     ap.add_argument("--truth-score", action="store_true",
@@ -211,6 +213,8 @@ def main() -> None:
             observer = observer_from_config(rig, bg, config["observation"], "bayes", 0.03)
             truth = load_poses(seq / "gt.npz")
             true_height = Skeleton.from_urdf(seq / "body.urdf").height()
+            true_girth = float(tomllib.loads((seq / "meta.toml").read_text(encoding="utf-8"))["synth"]["body"]
+                               .get("girth", 1.0))
             leave_out = tuple(rob.prior_leave_out(motion))
             idx = [truth.joint_names.index(n) for n in LANDMARKS]
             race = max(1, round(tcfg.start_race_s * folder.fps))  # the start frame and the race's others, if moving
@@ -289,8 +293,9 @@ def main() -> None:
                 errors.append(landmark_error_mm(first, truth.joints3d[t, idx]))
                 if args.per_start:
                     height = tracker.subject.skeleton.height() if tracker.subject is not None else math.nan
-                    print(f"  {motion} {cams} frame {t:>4}: "
-                          f"{start_report(first, truth.joints3d[t, idx], height, true_height)}", flush=True)
+                    report = start_report(first, truth.joints3d[t, idx], height, true_height, tracker.girth,
+                                          true_girth)
+                    print(f"  {motion} {cams} frame {t:>4}: {report}", flush=True)
             e = np.asarray(errors)
             ok = e <= WITHIN_MM
             totals.setdefault(cams, []).extend(ok.tolist())

@@ -143,6 +143,13 @@ class BlobModel(nn.Module):
     def num_blobs(self) -> int:
         return len(self.names)
 
+    def widened(self, girth: float) -> BlobModel:
+        """A copy with every blob's two cross semi-axes times ``girth`` (a stouter body above 1, a slimmer one below;
+        the lengths along the bones kept): the synthetic subjects' build and the tracker's fitted one."""
+        out = copy.deepcopy(self)
+        out.semi_axes[..., 1:] *= girth
+        return out
+
     def ellipsoids(self, bone_frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """World placement of every blob's ellipsoid.
 

@@ -123,13 +123,15 @@ class BodyConfig:
             if len(rgb) != 3 or not all(0.0 <= v <= 1.0 for v in rgb):
                 raise InputError(f"BodyConfig.colours: {name!r} needs an RGB triple in [0, 1], got {rgb}")
 
-    def apply(self, skel: Skeleton, blobs: BlobModel) -> None:
-        """Set ``blobs``' cross semi-axes and colours in place (``skel``: for the bone names in messages)."""
-        blobs.semi_axes[:, 1:] *= self.girth
+    def apply(self, skel: Skeleton, blobs: BlobModel) -> BlobModel:
+        """``blobs`` with this body's girth (:meth:`BlobModel.widened`) and colours (``skel``: for the bone names in
+        messages)."""
+        blobs = blobs.widened(self.girth)
         for name, rgb in self.colours:
             if name not in blobs.names:
                 raise InputError(f"BodyConfig.colours: unknown blob {name!r}; blobs: {list(blobs.names)}")
             blobs.colour[blobs.names.index(name)] = torch.tensor(rgb, dtype=blobs.colour.dtype)
+        return blobs
 
     def skeleton(self, skel: Skeleton) -> Skeleton:
         """``skel`` with the bones scaled by ``bone_scale``."""
@@ -257,7 +259,7 @@ def write_sequence(cfg: SynthConfig, out: str | Path, device: torch.device | str
     table = _synth_table(cfg)  # the body model's digest as of the start, before the body is read
     skel, angles = motion_angles(cfg, Skeleton.from_urdf())
     blobs = BlobModel.from_config(skel)
-    cfg.body.apply(skel, blobs)
+    blobs = cfg.body.apply(skel, blobs)
     rig = make_ring_rig(cfg.rig)
     # .float() and .to() convert a module in place: the renderer gets its own copy, the saved calibration
     # keeps the rig's float64 values

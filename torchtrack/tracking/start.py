@@ -344,6 +344,14 @@ class StartMixin:
         low = torch.minimum(sole_heights(fk.joints[0, sub.feet], sub.ankle_height).min(), points[:, 2].min())
         return float(points[:, 2].max() - low)
 
+    def _refit(self, obs: VoxelObservation) -> FrameResult:
+        """The EM/IK passes that follow each change of the start's body (its size, girth or bones): ``max(2,
+        init_passes // 3)`` of them from the tracker's state, which follows each; the last pass's fit."""
+        for _ in range(max(2, self.config.init_passes // 3)):
+            res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
+            self.angles = self.previous = res.angles
+        return res
+
     def _fit_size_to_span(self, obs: VoxelObservation, res: FrameResult) -> FrameResult:
         """The body rescaled until the fitted pose spans the voxels' height (``SPAN_ROUNDS``), the root's height
         above the soles scaled with it, each round finished by EM/IK passes."""
@@ -367,9 +375,7 @@ class StartMixin:
             angles[iz] = sole + (angles[iz] - sole) * s
             self._setup(self.height_m * s, angles.device)
             self.angles = self.previous = angles
-            for _ in range(max(2, self.config.init_passes // 3)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
-                self.angles = self.previous = res.angles
+            res = self._refit(obs)
         return res
 
     def _finish_start(self, obs: VoxelObservation, res: FrameResult, height: float, body_m3: float, toe: float,
@@ -381,9 +387,8 @@ class StartMixin:
         obs = self._without_floor_band(obs)
         pts = obs.points
         # the bone fit's rounds explain ghosts away: so does the fit they must improve on
-        for _ in range(max(2, self.config.init_passes // 3) if self._explains_ghosts(obs) else 0):
-            res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
-            self.angles = self.previous = res.angles
+        if self._explains_ghosts(obs):
+            res = self._refit(obs)
         res = self._fit_size_to_span(obs, res)
         if self._explains_ghosts(obs):  # a few views' hull: the body's girth from the images (GIRTHS), once the
             # pose and the size are fitted (a body too small or a limb astray would be made up for by a stouter one)
@@ -392,9 +397,7 @@ class StartMixin:
                 log.debug("start: the body's girth %.2f (was %.2f)", girth, self.girth)
                 self.girth = girth
                 self._use(self.subject.skeleton)
-                for _ in range(max(2, self.config.init_passes // 3)):
-                    res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
-                    self.angles = self.previous = res.angles
+                res = self._refit(obs)
         # the voxels' top is a coarse height: refine the subject's scale from the fitted blobs, or (the default)
         # the bones' lengths. Each round must lower the fit's cost after its EM/IK passes; one that raises it is
         # undone and ends the fit (a guard against feedback between the fit and the pose, which let the hull's
@@ -416,9 +419,7 @@ class StartMixin:
             angles = res.angles.clone()
             self._use(skel_fit.to(pts.device))
             self.angles = self.previous = angles
-            for _ in range(max(2, self.config.init_passes // 3)):
-                res = self._track(obs, learn_colour=False, max_rot=math.radians(45))
-                self.angles = self.previous = res.angles
+            res = self._refit(obs)
             cost = self._fit_cost(res)
             log.debug("bone fit round: fit cost %.2f mm, best before %.2f mm", 1e3 * cost, 1e3 * best_fit[0])
             if cost > best_fit[0]:

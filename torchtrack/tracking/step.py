@@ -86,7 +86,7 @@ class Subject:
         # the goals read each blob's main axis off the template's build: a stout or slim one must not turn a hand's
         # axis or the pelvis' width (the heading) into another (GoalModel's elongated and principal axes)
         self.goals = GoalModel(skeleton, self.blobs)
-        self.blobs.semi_axes[:, 1:] *= girth
+        self.blobs = self.blobs.widened(girth)
         self.ccd = CCDSolver(skeleton, CCD_GOALS, ccd)
         self.ccd_goal_index = torch.tensor([JOINT_FRAMES.index(j) for j in CCD_GOALS])
         self.spine_dofs = skeleton.dof_index([n for n in SPINE_DOFS if n in skeleton.dof_names])  # rigid_trunk
